@@ -1,0 +1,139 @@
+"""Argument validation shared by every torchmorph module.
+
+Each check raises ``ValueError`` (or ``TypeError`` for a wrong kind of object)
+with a message that starts with the argument's name, so a user reading a
+traceback knows which input was wrong and how.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = [
+    "as_index",
+    "as_points",
+    "check_finite",
+    "check_positive",
+    "check_same_device_dtype",
+    "check_vectors",
+]
+
+
+def as_points(
+    value: Tensor | np.ndarray | Sequence,
+    name: str,
+    *,
+    dim: int = 3,
+    allow_empty: bool = False,
+    dtype: torch.dtype | None = None,
+) -> Tensor:
+    """Return ``value`` as a floating tensor of shape (N, dim), validated.
+
+    Tensors keep their dtype, device and autograd history; NumPy arrays and
+    sequences become float64 tensors (float32 arrays stay float32).
+
+    Raises
+    ------
+    ValueError
+        If the shape is not (N, dim), N == 0 (unless ``allow_empty``), the
+        dtype is not floating point, or any entry is NaN or infinite.
+    """
+    if not isinstance(value, Tensor):
+        array = np.asarray(value)
+        if array.dtype.kind not in "fiu":
+            raise ValueError(f"{name} must hold numbers, got an array of dtype {array.dtype}")
+        if array.dtype != np.float32:
+            array = array.astype(np.float64)
+        value = torch.from_numpy(np.ascontiguousarray(array))
+    if dtype is not None:
+        value = value.to(dtype)
+    if not value.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    if value.ndim != 2 or value.shape[1] != dim:
+        raise ValueError(f"{name} must have shape (N, {dim}), got {tuple(value.shape)}")
+    if value.shape[0] == 0 and not allow_empty:
+        raise ValueError(f"{name} is empty: at least one point is needed")
+    check_finite(value, name)
+    return value
+
+
+def as_index(value: Tensor | np.ndarray | Sequence, name: str, *, size: int | None = None) -> Tensor:
+    """Return ``value`` as a 1-D int64 tensor of indices, checked against ``size``.
+
+    Boolean masks of length ``size`` are converted to the indices they select.
+    """
+    if not isinstance(value, Tensor):
+        array = np.asarray(value)
+        if array.size == 0:
+            array = array.astype(np.int64)
+        value = torch.from_numpy(np.ascontiguousarray(array))
+    if value.dtype == torch.bool:
+        if value.ndim != 1 or (size is not None and value.numel() != size):
+            raise ValueError(
+                f"{name}: a boolean mask must have shape ({size},), got {tuple(value.shape)}"
+            )
+        value = torch.nonzero(value).flatten()
+    if value.is_floating_point() or value.is_complex():
+        raise ValueError(f"{name} must hold integer indices, got dtype {value.dtype}")
+    value = value.reshape(-1).long() if value.ndim <= 1 else value
+    if value.ndim != 1:
+        raise ValueError(f"{name} must be a 1-D index array, got shape {tuple(value.shape)}")
+    if size is not None and value.numel() > 0:
+        low, high = int(value.min()), int(value.max())
+        if low < 0 or high >= size:
+            raise ValueError(
+                f"{name} holds indices outside [0, {size}): min {low}, max {high}"
+            )
+    return value
+
+
+def check_finite(value: Tensor, name: str) -> None:
+    """Raise ``ValueError`` if ``value`` holds NaN or infinite entries."""
+    if value.is_floating_point() and value.numel() > 0:
+        finite = torch.isfinite(value.detach())
+        if not bool(finite.all()):
+            bad = int((~finite).sum())
+            raise ValueError(f"{name} holds {bad} NaN or infinite value(s)")
+
+
+def check_positive(value: float, name: str) -> float:
+    """Return ``value`` as float if it is finite and > 0, else raise ``ValueError``."""
+    number = float(value)
+    if not np.isfinite(number) or number <= 0.0:
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return number
+
+
+def check_same_device_dtype(reference: Tensor, reference_name: str, other: Tensor, name: str) -> None:
+    """Raise ``ValueError`` if ``other`` is not on ``reference``'s device and dtype."""
+    if other.device != reference.device:
+        raise ValueError(
+            f"{name} is on device {other.device} but {reference_name} is on {reference.device}"
+        )
+    if other.dtype != reference.dtype:
+        raise ValueError(
+            f"{name} has dtype {other.dtype} but {reference_name} has {reference.dtype}"
+        )
+
+
+def check_vectors(value: Tensor, name: str, count: int, *, what: str) -> bool:
+    """Check a field of 3-vectors, shape (count, 3) or (B, count, 3).
+
+    Returns True when the input is batched. ``what`` names the points the rows
+    belong to, for the message (e.g. "control points").
+    """
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if value.ndim not in (2, 3) or value.shape[-2:] != (count, 3):
+        raise ValueError(
+            f"{name} must have shape ({count}, 3) or (B, {count}, 3) for {count} {what}, "
+            f"got {tuple(value.shape)}"
+        )
+    if not value.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    check_finite(value, name)
+    return value.ndim == 3
