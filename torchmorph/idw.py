@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
 from ._checks import as_points, check_positive, check_same_device_dtype, check_vectors
+from ._state import resize_buffers_for_load
 
 __all__ = [
     "DEFAULT_BLOCK_BYTES",
@@ -431,9 +432,7 @@ class IDW(nn.Module):
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # keep the column-major layout of W when loading a saved module
-        key = prefix + "weights"
-        if key in state_dict and self.weights is not None:
-            state_dict[key] = state_dict[key].T.contiguous().T
+        resize_buffers_for_load(self, state_dict, prefix, ("controls", "targets", "weights"))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def _geometry_requires_grad(self) -> bool:

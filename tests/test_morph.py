@@ -1,0 +1,135 @@
+"""The Algorithm 2 morph of a tetrahedral mesh (SPEC.md §3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch.autograd import gradcheck
+
+from torchmorph import MeshMorph
+from torchmorph.selection import SelectionPlan
+
+F64 = torch.float64
+FACES = ("x0", "x1", "y0", "y1", "z0", "z1")
+
+
+def bend_top(points: torch.Tensor) -> torch.Tensor:
+    """Top face (z = 1) pushed up by a smooth bump, zero on its edges."""
+    x, y = points[:, 0], points[:, 1]
+    bump = 0.1 * torch.sin(torch.pi * x) * torch.sin(torch.pi * y)
+    return torch.stack([torch.zeros_like(x), torch.zeros_like(x), bump], 1)
+
+
+def brute_force_interior(mesh, displacement_of_boundary):
+    """Eq. (2) in float64 NumPy from every boundary node to every interior node."""
+    points = mesh.points.numpy()
+    boundary, interior = mesh.boundary_nodes.numpy(), mesh.interior_nodes.numpy()
+    result = np.zeros((len(interior), 3))
+    for row, node in enumerate(interior):
+        inverse = ((points[node] - points[boundary]) ** 2).sum(1) ** -2.0
+        result[row] = inverse @ displacement_of_boundary.numpy() / inverse.sum()
+    return torch.from_numpy(result)
+
+
+def test_boundary_is_exact_and_interior_is_plain_idw(cube):
+    morph = MeshMorph(cube)
+    assert morph.num_controls == cube.boundary_nodes.numel() == 98
+    boundary = morph.boundary_displacement("z1", bend_top)
+    field = morph(boundary)
+    assert field.shape == (cube.num_nodes, 3)
+    assert torch.equal(field[cube.boundary_nodes], boundary)
+    torch.testing.assert_close(field[cube.interior_nodes], brute_force_interior(cube, boundary),
+                               rtol=1e-12, atol=1e-15)
+
+
+def test_selecting_everything_equals_plain_idw(cube):
+    spacing = 0.25
+    plan = SelectionPlan({face: spacing / 10 for face in FACES})
+    selective = MeshMorph(cube, plan)
+    plain = MeshMorph(cube)
+    assert torch.equal(selective.control_nodes, plain.control_nodes)
+    boundary = plain.boundary_displacement("z1", bend_top)
+    torch.testing.assert_close(selective(boundary), plain(boundary), rtol=0, atol=0)
+
+
+def test_selection_uses_fewer_controls_and_keeps_the_boundary_exact(cube):
+    plan = SelectionPlan({face: 0.6 for face in FACES}, enrich=["z1"])
+    morph = MeshMorph(cube, plan, generator=torch.Generator().manual_seed(3))
+    top = set(cube.node_set("z1").tolist())
+    assert top <= set(morph.control_nodes.tolist())
+    assert morph.num_controls < cube.boundary_nodes.numel()
+    boundary = morph.boundary_displacement("z1", bend_top)
+    field = morph(boundary)
+    assert torch.equal(field[cube.boundary_nodes], boundary)
+    weights = morph.idw.weights_matrix()
+    torch.testing.assert_close(field[cube.interior_nodes],
+                               weights @ boundary[morph.selected])
+
+
+def test_batched_equals_loop(cube):
+    morph = MeshMorph(cube)
+    amplitudes = torch.linspace(0.1, 1.0, 4, dtype=F64)
+    batch = morph.boundary_displacement(
+        "z1", lambda p: amplitudes[:, None, None] * bend_top(p)[None])
+    assert batch.shape == (4, morph.num_boundary, 3)
+    torch.testing.assert_close(morph(batch), torch.stack([morph(single) for single in batch]),
+                               rtol=1e-14, atol=1e-15)
+
+
+def test_matrix_free_equals_dense(cube):
+    dense, free = MeshMorph(cube, mode="dense"), MeshMorph(cube, mode="matrix_free")
+    boundary = dense.boundary_displacement("z1", bend_top)
+    torch.testing.assert_close(free(boundary), dense(boundary), rtol=0, atol=1e-14)
+
+
+def test_state_dict_round_trip(cube):
+    plan = SelectionPlan({face: 0.6 for face in FACES})
+    morph = MeshMorph(cube, plan, generator=torch.Generator().manual_seed(1))
+    other = MeshMorph(cube, plan, generator=torch.Generator().manual_seed(2))
+    if torch.equal(other.control_nodes, morph.control_nodes):
+        pytest.skip("both seeds happened to pick the same controls")
+    other.load_state_dict(morph.state_dict())
+    boundary = morph.boundary_displacement("z1", bend_top)
+    assert torch.equal(other(boundary), morph(boundary))
+
+
+def test_gradcheck_through_the_morph(cube):
+    morph = MeshMorph(cube, SelectionPlan({face: 0.6 for face in FACES}))
+    boundary = morph.boundary_displacement("z1", bend_top).requires_grad_(True)
+    assert gradcheck(morph, (boundary,))
+
+
+def test_gradient_with_respect_to_reference_points(cube):
+    morph = MeshMorph(cube)
+    boundary = morph.boundary_displacement("z1", bend_top)
+    points = cube.points.clone().requires_grad_(True)
+    morph(boundary, points=points)[cube.interior_nodes].sum().backward()
+    assert points.grad is not None and torch.isfinite(points.grad).all()
+    assert points.grad[cube.interior_nodes].abs().sum() > 0
+    assert points.grad[cube.boundary_nodes].abs().sum() > 0
+
+
+def test_count_inverted(cube):
+    morph = MeshMorph(cube)
+    gentle = morph(morph.boundary_displacement("z1", bend_top))
+    assert morph.count_inverted(gentle) == 0
+    crushed = morph(morph.boundary_displacement(
+        "z1", lambda p: torch.tensor([0.0, 0.0, -1.5], dtype=F64).expand_as(p)))
+    assert morph.count_inverted(crushed) > 0
+    counts = morph.count_inverted(torch.stack([gentle, crushed]))
+    assert counts[0] == 0 and counts[1] > 0
+
+
+def test_errors(cube):
+    morph = MeshMorph(cube)
+    with pytest.raises(ValueError, match=r"boundary_displacement must have shape \(98, 3\)"):
+        morph(torch.zeros(97, 3, dtype=F64))
+    with pytest.raises(ValueError, match="unknown node set 'wing'; known: x0, x1"):
+        morph.boundary_displacement("wing", bend_top)
+    with pytest.raises(ValueError, match=r"displacement must return shape \(25, 3\)"):
+        morph.boundary_displacement("z1", lambda p: p[:, :2])
+    with pytest.raises(ValueError, match="boundary_displacement has dtype torch.float32"):
+        morph(torch.zeros(98, 3))
+    with pytest.raises(TypeError, match="mesh must be a TetMesh"):
+        MeshMorph(cube.points)
