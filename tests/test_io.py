@@ -1,0 +1,197 @@
+"""Reading and writing meshes with node sets and fields (vtu, vtk, xdmf, msh)."""
+
+from __future__ import annotations
+
+import itertools
+
+import meshio
+import numpy as np
+import pytest
+import torch
+
+from torchmorph.io import from_meshio, read_mesh, to_meshio, write_mesh
+from torchmorph.mesh import TetMesh
+from torchmorph.quality import edge_ratio
+
+F64 = torch.float64
+
+
+def kuhn_grid(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit cube in n^3 cells, each split into the 6 Kuhn tetrahedra."""
+    axis = np.linspace(0.0, 1.0, n + 1)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    index = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
+    i, j, k = (a.ravel() for a in np.meshgrid(*[np.arange(n)] * 3, indexing="ij"))
+    blocks = []
+    for order in itertools.permutations(range(3)):
+        corner = [0, 0, 0]
+        path = [index[i, j, k]]
+        for axis_number in order:
+            corner[axis_number] = 1
+            path.append(index[i + corner[0], j + corner[1], k + corner[2]])
+        blocks.append(np.stack(path, axis=1))
+    return points, np.concatenate(blocks)
+
+
+@pytest.fixture
+def cube() -> TetMesh:
+    points, tets = kuhn_grid(2)
+    # irrational-looking coordinates so that a lossy writer would show
+    points = points * np.array([1.0, np.pi, np.e]) + 0.1234567890123
+    bottom = np.flatnonzero(np.isclose(points[:, 2], points[:, 2].min()))
+    corner = [0]
+    return TetMesh(points, tets, {"bottom": bottom, "corner": corner, "empty": []}, name="cube")
+
+
+FORMATS = [".vtu", ".vtk", ".xdmf", ".msh"]
+
+
+def needs_h5py(extension: str) -> None:
+    if extension == ".xdmf":
+        pytest.importorskip("h5py")
+
+
+@pytest.mark.parametrize("extension", FORMATS)
+def test_round_trip(tmp_path, cube, extension):
+    needs_h5py(extension)
+    generator = torch.Generator().manual_seed(0)
+    displacement = torch.randn(cube.num_nodes, 3, generator=generator, dtype=F64)
+    pressure = torch.randn(cube.num_nodes, generator=generator, dtype=F64)
+    quality = edge_ratio(cube.points, cube.tets)
+    path = tmp_path / f"mesh{extension}"
+    write_mesh(
+        path,
+        cube,
+        point_data={"displacement": displacement, "pressure": pressure},
+        cell_data={"quality": quality},
+    )
+    mesh, point_data, cell_data = read_mesh(path, return_data=True)
+    assert mesh.name == "mesh"
+    assert torch.equal(mesh.points, cube.points)
+    assert torch.equal(mesh.tets, cube.tets)
+    assert sorted(mesh.node_sets) == ["bottom", "corner", "empty"]
+    for name, nodes in cube.node_sets.items():
+        assert torch.equal(mesh.node_set(name), nodes)
+    assert sorted(point_data) == ["displacement", "pressure"]
+    assert torch.equal(point_data["displacement"], displacement)
+    assert torch.equal(point_data["pressure"].reshape(-1), pressure)
+    assert sorted(cell_data) == ["quality"]
+    assert torch.equal(cell_data["quality"].reshape(-1), quality)
+
+
+@pytest.mark.parametrize("extension", FORMATS)
+def test_read_without_data_returns_the_mesh(tmp_path, cube, extension):
+    needs_h5py(extension)
+    path = tmp_path / f"mesh{extension}"
+    write_mesh(path, cube)
+    mesh = read_mesh(path)
+    assert isinstance(mesh, TetMesh)
+    assert torch.equal(mesh.boundary_faces, cube.boundary_faces)
+
+
+def test_float32_points_and_tensor_on_meshio_round_trip(cube):
+    single = cube.to(dtype=torch.float32)
+    m = to_meshio(single, point_data={"flag": torch.ones(cube.num_nodes, dtype=torch.bool)})
+    assert m.points.dtype == np.float32
+    assert m.point_data["flag"].dtype == np.uint8
+    assert m.point_data["set:bottom"].sum() == cube.node_set("bottom").numel()
+    back, point_data, _ = from_meshio(m, return_data=True)
+    assert torch.equal(back.node_set("corner"), cube.node_set("corner"))
+    assert torch.equal(point_data["flag"], torch.ones(cube.num_nodes, dtype=torch.uint8))
+
+
+def test_other_cell_blocks_are_ignored_and_physical_groups_become_node_sets(tmp_path, cube):
+    # a Gmsh 2.2 file with a named physical surface group on the bottom face
+    faces = cube.boundary_faces
+    on_bottom = torch.isin(faces, cube.node_set("bottom")).all(dim=1)
+    triangles = faces[on_bottom].numpy()
+    m = meshio.Mesh(
+        cube.points.numpy(),
+        [("triangle", triangles), ("tetra", cube.tets.numpy())],
+        cell_data={
+            "gmsh:physical": [np.full(len(triangles), 7), np.full(cube.num_tets, 1)],
+            "gmsh:geometrical": [np.full(len(triangles), 1), np.full(cube.num_tets, 1)],
+        },
+        field_data={"floor": np.array([7, 2]), "fluid": np.array([1, 3])},
+    )
+    path = tmp_path / "physical.msh"
+    meshio.write(path, m, file_format="gmsh22", binary=True)
+    mesh = read_mesh(path)
+    assert mesh.num_tets == cube.num_tets
+    assert sorted(mesh.node_sets) == ["floor"]  # volume groups give no node set
+    assert torch.equal(mesh.node_set("floor"), cube.node_set("bottom"))
+
+
+def test_gmsh_generated_mesh_with_physical_groups(tmp_path):
+    gmsh = pytest.importorskip("gmsh")
+    path = tmp_path / "box.msh"
+    gmsh.initialize(readConfigFiles=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("box")
+        gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        gmsh.model.occ.synchronize()
+        surfaces = {
+            tag: gmsh.model.occ.getCenterOfMass(dim, tag) for dim, tag in gmsh.model.getEntities(2)
+        }
+        xmin = [tag for tag, centre in surfaces.items() if abs(centre[0]) < 1e-9]
+        ymax = [tag for tag, centre in surfaces.items() if abs(centre[1] - 1) < 1e-9]
+        gmsh.model.addPhysicalGroup(2, xmin, name="inlet")
+        gmsh.model.addPhysicalGroup(2, ymax, name="top")
+        gmsh.model.addPhysicalGroup(3, [1], name="fluid")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.5)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+    mesh = read_mesh(path)
+    assert sorted(mesh.node_sets) == ["inlet", "top"]
+    inlet = mesh.points[mesh.node_set("inlet")]
+    top = mesh.points[mesh.node_set("top")]
+    assert float(inlet[:, 0].abs().max()) < 1e-12
+    assert float((top[:, 1] - 1).abs().max()) < 1e-12
+    on_x0 = torch.nonzero(mesh.points[:, 0].abs() < 1e-12).flatten()
+    assert torch.equal(mesh.node_set("inlet"), on_x0)
+    torch.testing.assert_close(mesh.volumes.sum(), torch.tensor(1.0, dtype=F64))
+
+
+# ----------------------------------------------------------------------------- errors
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        read_mesh(tmp_path / "absent.vtu")
+
+
+@pytest.mark.parametrize("name", ["mesh.stl", "mesh", "mesh.txt"])
+def test_unknown_extension(tmp_path, cube, name):
+    with pytest.raises(ValueError, match="unsupported mesh file extension"):
+        read_mesh(tmp_path / name)
+    with pytest.raises(ValueError, match="unsupported mesh file extension"):
+        write_mesh(tmp_path / name, cube)
+
+
+def test_file_without_tetrahedra(tmp_path):
+    path = tmp_path / "surface.vtu"
+    points = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    meshio.write(path, meshio.Mesh(points, [("triangle", np.array([[0, 1, 2]]))]))
+    with pytest.raises(ValueError, match=r"no linear tetrahedra.*present: triangle"):
+        read_mesh(path)
+
+
+def test_unreadable_file(tmp_path):
+    path = tmp_path / "broken.msh"
+    path.write_text("not a mesh\n")
+    with pytest.raises(ValueError, match="could not read"):
+        read_mesh(path)
+
+
+def test_write_rejects_bad_fields(tmp_path, cube):
+    path = tmp_path / "mesh.vtu"
+    with pytest.raises(ValueError, match=r"point_data\['d'\] must have shape \(27,\) or \(27, k\)"):
+        write_mesh(path, cube, point_data={"d": torch.zeros(5, 3)})
+    with pytest.raises(ValueError, match=r"cell_data\['q'\] must have shape \(48,\)"):
+        write_mesh(path, cube, cell_data={"q": torch.zeros(47)})
+    with pytest.raises(ValueError, match=r"point_data\['set:x'\]: names starting with 'set:'"):
+        write_mesh(path, cube, point_data={"set:x": torch.zeros(27)})

@@ -1,0 +1,268 @@
+"""TetMesh: validation, orientation, derived topology and geometry."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+
+from torchmorph.mesh import FLAT_TET_TOLERANCE, TetMesh
+
+F64 = torch.float64
+
+REFERENCE_POINTS = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+
+def kuhn_grid(n: int, size: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Cube [0, size]^3 in n^3 cells, each split into the 6 Kuhn tetrahedra.
+
+    Half of the tetrahedra come out negatively oriented (odd permutations).
+    """
+    axis = np.linspace(0.0, size, n + 1)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    index = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
+    i, j, k = (a.ravel() for a in np.meshgrid(*[np.arange(n)] * 3, indexing="ij"))
+    blocks = []
+    for order in itertools.permutations(range(3)):
+        corner = [0, 0, 0]
+        path = [index[i, j, k]]
+        for axis_number in order:
+            corner[axis_number] = 1
+            path.append(index[i + corner[0], j + corner[1], k + corner[2]])
+        blocks.append(np.stack(path, axis=1))
+    return points, np.concatenate(blocks)
+
+
+@pytest.fixture
+def reference_tet() -> TetMesh:
+    return TetMesh(torch.tensor(REFERENCE_POINTS, dtype=F64), torch.tensor([[0, 1, 2, 3]]))
+
+
+@pytest.fixture
+def cube_grid() -> TetMesh:
+    points, tets = kuhn_grid(4)
+    return TetMesh(points, tets)
+
+
+# ----------------------------------------------------------------------------- construction
+
+
+def test_reference_tetrahedron(reference_tet):
+    mesh = reference_tet
+    assert mesh.num_nodes == 4 and mesh.num_tets == 1
+    torch.testing.assert_close(
+        mesh.volumes, torch.tensor([1.0 / 6.0], dtype=F64), rtol=0, atol=1e-15
+    )
+    assert mesh.boundary_faces.shape == (4, 3)
+    assert mesh.boundary_nodes.tolist() == [0, 1, 2, 3]
+    assert mesh.interior_nodes.numel() == 0
+    assert mesh.edges.tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]
+
+
+def test_numpy_input_becomes_float64_and_int64():
+    mesh = TetMesh(np.array(REFERENCE_POINTS, dtype=np.float32), np.array([[0, 1, 2, 3]], np.int32))
+    assert mesh.points.dtype == F64
+    assert mesh.tets.dtype == torch.int64
+
+
+def test_negative_tet_is_reoriented_without_touching_the_input():
+    tets = torch.tensor([[0, 2, 1, 3]])
+    mesh = TetMesh(torch.tensor(REFERENCE_POINTS, dtype=F64), tets)
+    assert mesh.tets.tolist() == [[0, 2, 3, 1]]
+    assert float(mesh.volumes[0]) == pytest.approx(1.0 / 6.0, abs=1e-15)
+    assert tets.tolist() == [[0, 2, 1, 3]]
+
+
+def test_cube_grid_counts_and_orientation(cube_grid):
+    n = 4
+    mesh = cube_grid
+    assert mesh.num_tets == 6 * n**3
+    assert bool((mesh.volumes > 0).all())
+    torch.testing.assert_close(mesh.volumes.sum(), torch.tensor(1.0, dtype=F64))
+    assert mesh.boundary_faces.shape == (12 * n**2, 3)
+    # axis edges + face diagonals + body diagonals of the Kuhn triangulation
+    assert mesh.edges.shape == (3 * n * (n + 1) ** 2 + 3 * n**2 * (n + 1) + n**3, 2)
+    # Euler characteristic of a ball: V - E + F - T = 1
+    num_faces = (4 * mesh.num_tets + mesh.boundary_faces.shape[0]) // 2
+    assert mesh.num_nodes - mesh.edges.shape[0] + num_faces - mesh.num_tets == 1
+
+
+def test_interior_nodes_are_the_inner_grid_points(cube_grid):
+    n = 4
+    points = cube_grid.points
+    inside = ((points > 1e-12) & (points < 1 - 1e-12)).all(dim=1)
+    expected = torch.nonzero(inside).flatten()
+    assert cube_grid.interior_nodes.numel() == (n - 1) ** 3
+    assert torch.equal(cube_grid.interior_nodes, expected)
+    assert torch.equal(cube_grid.boundary_nodes, torch.nonzero(~inside).flatten())
+
+
+def test_boundary_faces_point_outward(cube_grid):
+    points = cube_grid.points
+    a, b, c = (points[cube_grid.boundary_faces[:, i]] for i in range(3))
+    normals = torch.linalg.cross(b - a, c - a, dim=1)
+    centroid = (a + b + c) / 3
+    # every outward normal points away from the cube's centre
+    assert bool(((normals * (centroid - 0.5)).sum(1) > 0).all())
+    # divergence theorem: the enclosed volume from the oriented surface
+    enclosed = (torch.linalg.cross(b, c, dim=1) * a).sum() / 6
+    torch.testing.assert_close(enclosed, torch.tensor(1.0, dtype=F64))
+
+
+def test_boundary_faces_without_int64_keys_agree(cube_grid, monkeypatch):
+    # meshes with more than ~2e6 nodes use unique rows instead of packed keys
+    import torchmorph.mesh
+
+    monkeypatch.setattr(torchmorph.mesh, "_MAX_NODES_FOR_FACE_KEYS", 0)
+    fresh = TetMesh(cube_grid.points, cube_grid.tets)
+    assert sorted(map(tuple, fresh.boundary_faces.tolist())) == sorted(
+        map(tuple, cube_grid.boundary_faces.tolist())
+    )
+
+
+def test_edges_are_unique_and_ordered(cube_grid):
+    edges = cube_grid.edges
+    assert bool((edges[:, 0] < edges[:, 1]).all())
+    assert torch.unique(edges, dim=0).shape == edges.shape
+    # tet_edges maps each tet's six local edges to rows of `edges`
+    local = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    tets = cube_grid.tets
+    for column, (i, j) in enumerate(local):
+        pair = edges[cube_grid.tet_edges[:, column]]
+        expected = torch.sort(tets[:, [i, j]], dim=1).values
+        assert torch.equal(pair, expected)
+
+
+def test_unused_nodes_are_allowed_and_count_as_interior():
+    points = torch.tensor(REFERENCE_POINTS + [[5.0, 5.0, 5.0]], dtype=F64)
+    mesh = TetMesh(points, torch.tensor([[0, 1, 2, 3]]))
+    assert mesh.interior_nodes.tolist() == [4]
+
+
+def test_relative_flatness_tolerance_accepts_tiny_and_graded_meshes():
+    points, tets = kuhn_grid(2)
+    tiny = TetMesh(points * 1e-9, tets)
+    assert bool((tiny.volumes > 0).all())
+    # a sliver much thinner than the mesh but far from flat relative to its own edges
+    sliver = torch.tensor(REFERENCE_POINTS, dtype=F64)
+    sliver[3, 2] = 1e-7
+    TetMesh(sliver, torch.tensor([[0, 1, 2, 3]]))
+
+
+# ----------------------------------------------------------------------------- node sets
+
+
+def test_node_sets_are_sorted_unique_and_accept_masks(reference_tet):
+    mask = torch.tensor([True, False, True, False])
+    mesh = TetMesh(
+        reference_tet.points, reference_tet.tets, {"root": [3, 1, 1], "tip": mask, "none": []}
+    )
+    assert mesh.node_set("root").tolist() == [1, 3]
+    assert mesh.node_set("root").dtype == torch.int64
+    assert mesh.node_set("tip").tolist() == [0, 2]
+    assert mesh.node_set("none").numel() == 0
+    assert mesh.nodes_of(["root", "tip"]).tolist() == [0, 1, 2, 3]
+    assert mesh.nodes_of("root").tolist() == [1, 3]
+    assert mesh.nodes_of([]).numel() == 0
+
+
+def test_unknown_node_set_lists_the_known_ones(reference_tet):
+    mesh = TetMesh(reference_tet.points, reference_tet.tets, {"root": [0], "tip": [1]})
+    with pytest.raises(ValueError, match=r"unknown node set 'wing'; known: root, tip"):
+        mesh.node_set("wing")
+    with pytest.raises(ValueError, match=r"unknown node set 'x'; known: \(none\)"):
+        reference_tet.node_set("x")
+
+
+# ----------------------------------------------------------------------------- errors
+
+
+@pytest.mark.parametrize(
+    ("points", "tets", "node_sets", "message"),
+    [
+        (REFERENCE_POINTS, [[0, 1, 2, 4]], None, r"tets holds vertex indices outside \[0, 4\)"),
+        (REFERENCE_POINTS, [[0, 1, 2, -1]], None, r"tets holds vertex indices outside.*min -1"),
+        (REFERENCE_POINTS, [[0, 1, 2]], None, r"tets must have shape \(M, 4\)"),
+        (REFERENCE_POINTS, [[0.0, 1.0, 2.0, 3.0]], None, r"tets must hold integer"),
+        (REFERENCE_POINTS, np.zeros((0, 4), int), None, r"tets is empty"),
+        ([[0.0, 0.0]] * 4, [[0, 1, 2, 3]], None, r"points must have shape \(N, 3\)"),
+        (REFERENCE_POINTS[:3] + [[0, 0, np.nan]], [[0, 1, 2, 3]], None, r"points holds 1 NaN"),
+        (
+            REFERENCE_POINTS[:3] + [[0, 0, np.inf]],
+            [[0, 1, 2, 3]],
+            None,
+            r"points holds 1 NaN or inf",
+        ),
+        (REFERENCE_POINTS, [[0, 1, 2, 2]], None, r"tets: 1 tetrahedra have zero volume"),
+        (REFERENCE_POINTS[:3] + [[0.3, 0.3, 0.0]], [[0, 1, 2, 3]], None, r"zero volume.*indices 0"),
+        (REFERENCE_POINTS, [[0, 1, 2, 3]], {"root": [0, 7]}, r"node_sets\['root'\] holds indices"),
+        (REFERENCE_POINTS, [[0, 1, 2, 3]], {"root": [-1]}, r"node_sets\['root'\] holds indices"),
+        (REFERENCE_POINTS, [[0, 1, 2, 3]], {"": [0]}, r"node_sets: names must be non-empty"),
+        (REFERENCE_POINTS, [[0, 1, 2, 3]], {"a": [0.5]}, r"node_sets\['a'\] must hold integer"),
+    ],
+)
+def test_invalid_input_raises(points, tets, node_sets, message):
+    with pytest.raises(ValueError, match=message):
+        TetMesh(np.asarray(points, dtype=float), tets, node_sets)
+
+
+def test_nearly_flat_tet_is_rejected_relative_to_its_size():
+    points = torch.tensor(REFERENCE_POINTS, dtype=F64) * 1e3
+    points[3, 2] = 1e3 * FLAT_TET_TOLERANCE  # |V| / L**3 is about 6e-14
+    with pytest.raises(ValueError, match="zero volume"):
+        TetMesh(points, torch.tensor([[0, 1, 2, 3]]))
+
+
+# ----------------------------------------------------------------------------- new meshes
+
+
+def test_deformed_is_not_revalidated(reference_tet):
+    displacement = torch.zeros(4, 3, dtype=F64)
+    displacement[3, 2] = -2.0  # reflect vertex 3 through the opposite face
+    moved = reference_tet.deformed(displacement)
+    assert torch.equal(moved.tets, reference_tet.tets)
+    torch.testing.assert_close(moved.volumes, torch.tensor([-1.0 / 6.0], dtype=F64))
+    torch.testing.assert_close(moved.points[3], torch.tensor([0.0, 0.0, -1.0], dtype=F64))
+    flat = torch.zeros(4, 3, dtype=F64)
+    flat[3, 2] = -1.0
+    assert float(reference_tet.deformed(flat).volumes[0]) == 0.0
+
+
+def test_deformed_keeps_node_sets_topology_and_gradients(cube_grid):
+    mesh = TetMesh(cube_grid.points, cube_grid.tets, {"bottom": cube_grid.points[:, 2] == 0})
+    displacement = torch.zeros(mesh.num_nodes, 3, dtype=F64, requires_grad=True)
+    moved = mesh.deformed(displacement)
+    assert torch.equal(moved.node_set("bottom"), mesh.node_set("bottom"))
+    assert torch.equal(moved.boundary_faces, mesh.boundary_faces)
+    moved.volumes.sum().backward()
+    assert displacement.grad is not None and bool(displacement.grad.abs().sum() > 0)
+
+
+@pytest.mark.parametrize("shape", [(4, 2), (3, 3), (1, 4, 3)])
+def test_deformed_rejects_wrong_shapes(reference_tet, shape):
+    with pytest.raises(ValueError, match=r"displacement must have shape \(4, 3\)"):
+        reference_tet.deformed(torch.zeros(shape, dtype=F64))
+
+
+def test_deformed_rejects_non_finite(reference_tet):
+    displacement = torch.zeros(4, 3, dtype=F64)
+    displacement[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="displacement holds 1 NaN"):
+        reference_tet.deformed(displacement)
+
+
+def test_to_changes_dtype_and_keeps_everything_else(cube_grid):
+    single = cube_grid.to(dtype=torch.float32)
+    assert single.points.dtype == torch.float32
+    assert torch.equal(single.tets, cube_grid.tets)
+    assert torch.equal(single.interior_nodes, cube_grid.interior_nodes)
+    with pytest.raises(ValueError, match="dtype must be a floating-point dtype"):
+        cube_grid.to(dtype=torch.int64)
+
+
+def test_repr_names_the_mesh(reference_tet):
+    mesh = TetMesh(reference_tet.points, reference_tet.tets, {"root": [0]}, name="wing")
+    assert "TetMesh('wing', nodes=4, tets=1, node_sets=[root]" in repr(mesh)

@@ -1,0 +1,434 @@
+"""Tetrahedral meshes: :class:`TetMesh`.
+
+A mesh is plain data — ``points (N, 3)``, ``tets (M, 4)`` and named node sets —
+checked once on construction. Topological quantities (boundary faces, boundary
+and interior nodes, edges) and geometric ones (volumes, the mass matrix of
+:mod:`torchmorph.quality`) are derived on first use and cached.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchmorph._checks import as_index, as_points, check_finite
+from torchmorph.quality import _tet_edge_lengths_squared, _tet_volumes
+
+__all__ = ["FLAT_TET_TOLERANCE", "TetMesh"]
+
+#: A tetrahedron is rejected as flat when ``|V| <= FLAT_TET_TOLERANCE * L**3``,
+#: ``L`` its longest edge. The bound is relative to the element's own size, so
+#: it does not depend on the units, on the extent of the mesh or on how graded
+#: it is (boundary-layer elements much smaller than the domain pass). A regular
+#: tetrahedron has ``V ≈ 0.118 L**3`` and float64 round-off in the volume is
+#: about ``1e-16 L**3``: the threshold lies far from both.
+FLAT_TET_TOLERANCE = 1e-12
+
+# Faces of a positively oriented tetrahedron (a, b, c, d), each ordered so that
+# its normal (right-hand rule) points out of the tetrahedron.
+_OUTWARD_FACES = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))
+_TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+# Largest node count for which a face (i < j < k) fits one int64 key i*N² + j*N + k.
+_MAX_NODES_FOR_FACE_KEYS = 2_000_000
+
+
+class TetMesh:
+    """A conforming tetrahedral mesh with named node sets.
+
+    Parameters
+    ----------
+    points : Tensor or array, shape (N, 3)
+        Node coordinates. Tensors keep their dtype and device; NumPy arrays and
+        sequences become float64 tensors.
+    tets : Tensor or array, shape (M, 4), integer
+        Vertex indices of the tetrahedra. Negatively oriented tetrahedra are
+        reoriented (their last two vertices swapped) so that every signed
+        volume is > 0; the order of the tetrahedra is kept, so cell data stay
+        aligned. The input is not modified.
+    node_sets : mapping of str to index array, optional
+        Named groups of nodes (``"root"``, ``"tip"``, ``"wall_top"`` …), each
+        given as indices or a boolean mask of length N; stored as sorted unique
+        int64 tensors on the points' device.
+    name : str, optional, keyword-only
+        A label for printing and file names.
+
+    Raises
+    ------
+    ValueError
+        For points that are not (N, 3), empty, or hold NaN/inf; tets that are
+        not (M, 4) integers, empty, or index outside ``[0, N)``; flat
+        tetrahedra (``|V| <= FLAT_TET_TOLERANCE * L**3``, ``L`` the longest
+        edge); node sets with non-string names or indices outside ``[0, N)``.
+
+    Notes
+    -----
+    Nodes that belong to no tetrahedron are allowed; they are not on the
+    boundary and so count among :attr:`interior_nodes`. Faces shared by more
+    than two tetrahedra (a non-manifold or duplicated input) are not detected;
+    they count as interior faces.
+    """
+
+    def __init__(
+        self,
+        points: Tensor | np.ndarray | Sequence,
+        tets: Tensor | np.ndarray | Sequence,
+        node_sets: Mapping[str, Tensor | np.ndarray | Sequence] | None = None,
+        *,
+        name: str | None = None,
+    ) -> None:
+        dtype = None if isinstance(points, Tensor) else torch.float64
+        points = as_points(points, "points", dtype=dtype)
+        tets = _as_tets(tets, points.shape[0]).to(points.device)
+        tets = _orient(points, tets)
+        if name is not None and not isinstance(name, str):
+            raise TypeError(f"name must be a string or None, got {type(name).__name__}")
+        self._points = points
+        self._tets = tets
+        self._node_sets = _as_node_sets(node_sets, points.shape[0], points.device)
+        self.name = name
+        self._topology: dict[str, Tensor] = {}
+        self._geometry: dict[str, Any] = {}
+
+    @classmethod
+    def _from_parts(
+        cls,
+        points: Tensor,
+        tets: Tensor,
+        node_sets: dict[str, Tensor],
+        name: str | None,
+        topology: dict[str, Tensor],
+    ) -> TetMesh:
+        """Build a mesh from checked parts, skipping validation and reorientation."""
+        mesh = cls.__new__(cls)
+        mesh._points = points
+        mesh._tets = tets
+        mesh._node_sets = node_sets
+        mesh.name = name
+        mesh._topology = topology
+        mesh._geometry = {}
+        return mesh
+
+    # ------------------------------------------------------------------ data
+
+    @property
+    def points(self) -> Tensor:
+        """Node coordinates, shape (N, 3)."""
+        return self._points
+
+    @property
+    def tets(self) -> Tensor:
+        """Vertex indices, shape (M, 4), int64, positively oriented."""
+        return self._tets
+
+    @property
+    def node_sets(self) -> dict[str, Tensor]:
+        """Named node sets (a copy of the mapping; the tensors are shared)."""
+        return dict(self._node_sets)
+
+    @property
+    def num_nodes(self) -> int:
+        """Number of nodes N."""
+        return int(self._points.shape[0])
+
+    @property
+    def num_tets(self) -> int:
+        """Number of tetrahedra M."""
+        return int(self._tets.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        """Device of points and tets."""
+        return self._points.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Floating dtype of the points."""
+        return self._points.dtype
+
+    def node_set(self, name: str) -> Tensor:
+        """Indices of the node set ``name``, shape (K,), sorted unique int64.
+
+        Raises
+        ------
+        ValueError
+            If there is no node set of that name.
+        """
+        try:
+            return self._node_sets[name]
+        except (KeyError, TypeError):
+            known = ", ".join(sorted(self._node_sets)) or "(none)"
+            raise ValueError(f"unknown node set {name!r}; known: {known}") from None
+
+    def nodes_of(self, names: str | Sequence[str]) -> Tensor:
+        """Sorted unique union of one or several node sets, shape (K,), int64."""
+        names = [names] if isinstance(names, str) else list(names)
+        parts = [self.node_set(n) for n in names]
+        if not parts:
+            return torch.empty(0, dtype=torch.int64, device=self.device)
+        return torch.unique(torch.cat(parts), sorted=True)
+
+    # ------------------------------------------------------------------ topology
+
+    def _cached_topology(self, key: str, build: Callable[[], Tensor]) -> Tensor:
+        value = self._topology.get(key)
+        if value is None:
+            value = build()
+            self._topology[key] = value
+        return value
+
+    def _cached_geometry(self, key: str, build: Callable[[], Any], *, always: bool = False) -> Any:
+        """Memoise a quantity derived from this mesh's points.
+
+        Not cached while the points require grad (the cached tensor would hold
+        an autograd graph), unless ``always`` (for quantities built from
+        detached points, such as the mass matrix).
+        """
+        if key in self._geometry:
+            return self._geometry[key]
+        value = build()
+        if always or not self._points.requires_grad:
+            self._geometry[key] = value
+        return value
+
+    @property
+    def boundary_faces(self) -> Tensor:
+        """Faces that belong to exactly one tetrahedron, shape (F, 3), int64.
+
+        Each face is ordered so that its right-hand normal points out of the
+        mesh. Faces are sorted by their (sorted) vertex triples.
+        """
+        return self._cached_topology("boundary_faces", self._find_boundary_faces)
+
+    @property
+    def boundary_nodes(self) -> Tensor:
+        """Nodes on the boundary faces, shape (N_b,), sorted int64."""
+        return self._cached_topology(
+            "boundary_nodes", lambda: torch.unique(self.boundary_faces.flatten(), sorted=True)
+        )
+
+    @property
+    def interior_nodes(self) -> Tensor:
+        """All nodes not on the boundary, shape (N_int,), sorted int64.
+
+        Includes nodes that belong to no tetrahedron.
+        """
+
+        def build() -> Tensor:
+            on_boundary = torch.zeros(self.num_nodes, dtype=torch.bool, device=self.device)
+            on_boundary[self.boundary_nodes] = True
+            return torch.nonzero(~on_boundary).flatten()
+
+        return self._cached_topology("interior_nodes", build)
+
+    @property
+    def edges(self) -> Tensor:
+        """Unique undirected edges ``(i, j)`` with ``i < j``, shape (E, 2), int64, sorted."""
+        return self._cached_topology("edges", lambda: self._find_edges()[0])
+
+    def _find_boundary_faces(self) -> Tensor:
+        faces = self._tets[:, torch.tensor(_OUTWARD_FACES, device=self.device)].reshape(-1, 3)
+        ordered = torch.sort(faces, dim=1).values
+        n = self.num_nodes
+        if n <= _MAX_NODES_FOR_FACE_KEYS:
+            keys = (ordered[:, 0] * n + ordered[:, 1]) * n + ordered[:, 2]
+            keys, order = torch.sort(keys)
+            differs = keys[1:] != keys[:-1]
+            true = torch.ones(1, dtype=torch.bool, device=self.device)
+            single = torch.cat([true, differs]) & torch.cat([differs, true])
+            return faces[order[single]]
+        _, inverse, counts = torch.unique(ordered, dim=0, return_inverse=True, return_counts=True)
+        return faces[counts[inverse] == 1]
+
+    @property
+    def tet_edges(self) -> Tensor:
+        """Edge numbers of every tetrahedron, shape (M, 6), int64.
+
+        Row ``k`` holds the indices into :attr:`edges` of the edges
+        ``(0,1), (0,2), (0,3), (1,2), (1,3), (2,3)`` of tetrahedron ``k``.
+        """
+        return self._cached_topology("tet_edges", lambda: self._find_edges()[1])
+
+    def _find_edges(self) -> tuple[Tensor, Tensor]:
+        if "edges" in self._topology and "tet_edges" in self._topology:
+            return self._topology["edges"], self._topology["tet_edges"]
+        first = self._tets[:, [i for i, _ in _TET_EDGES]]
+        second = self._tets[:, [j for _, j in _TET_EDGES]]
+        n = self.num_nodes
+        keys = torch.minimum(first, second) * n + torch.maximum(first, second)
+        unique, inverse = torch.unique(keys.reshape(-1), sorted=True, return_inverse=True)
+        edges = torch.stack([unique // n, unique % n], dim=1)
+        self._topology["edges"] = edges
+        self._topology["tet_edges"] = inverse.reshape(-1, 6)
+        return edges, self._topology["tet_edges"]
+
+    # ------------------------------------------------------------------ geometry
+
+    @property
+    def volumes(self) -> Tensor:
+        """Signed volumes of the tetrahedra, shape (M,), in the points' dtype.
+
+        All > 0 for a constructed mesh; a mesh from :meth:`deformed` may have
+        negative ones (inverted tetrahedra).
+        """
+        return self._cached_geometry("volumes", lambda: _tet_volumes(self._points, self._tets))
+
+    @property
+    def bounding_box(self) -> Tensor:
+        """Lower and upper corners, shape (2, 3)."""
+        points = self._points.detach()
+        return torch.stack([points.amin(0), points.amax(0)])
+
+    # ------------------------------------------------------------------ new meshes
+
+    def deformed(self, displacement: Tensor) -> TetMesh:
+        """The mesh moved by a nodal displacement.
+
+        Parameters
+        ----------
+        displacement : Tensor, shape (N, 3)
+            Added to the points; autograd history is kept, so quantities of the
+            returned mesh are differentiable with respect to it.
+
+        Returns
+        -------
+        TetMesh
+            Same tets, node sets and name; points ``points + displacement``.
+            It is NOT re-validated or reoriented: its volumes may be <= 0,
+            which is how inverted tetrahedra are found. Topology (boundary,
+            edges) is shared with this mesh.
+
+        Raises
+        ------
+        ValueError
+            If ``displacement`` is not a finite floating (N, 3) tensor on the
+            mesh's device.
+        """
+        if isinstance(displacement, np.ndarray):
+            displacement = torch.from_numpy(displacement)
+        if not isinstance(displacement, Tensor):
+            raise TypeError(
+                f"displacement must be a torch.Tensor, got {type(displacement).__name__}"
+            )
+        if displacement.shape != (self.num_nodes, 3):
+            raise ValueError(
+                f"displacement must have shape ({self.num_nodes}, 3), "
+                f"got {tuple(displacement.shape)}"
+            )
+        if not displacement.is_floating_point():
+            raise ValueError(
+                f"displacement must be a floating-point tensor, got dtype {displacement.dtype}"
+            )
+        if displacement.device != self.device:
+            raise ValueError(
+                f"displacement is on device {displacement.device} but the mesh is on {self.device}"
+            )
+        check_finite(displacement, "displacement")
+        return TetMesh._from_parts(
+            self._points + displacement,
+            self._tets,
+            dict(self._node_sets),
+            self.name,
+            self._topology,
+        )
+
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> TetMesh:
+        """A copy on another device and/or with another floating dtype for the points."""
+        if dtype is not None and not dtype.is_floating_point:
+            raise ValueError(f"dtype must be a floating-point dtype, got {dtype}")
+        points = self._points.to(device=device, dtype=dtype)
+        target = points.device
+        return TetMesh._from_parts(
+            points,
+            self._tets.to(target),
+            {key: value.to(target) for key, value in self._node_sets.items()},
+            self.name,
+            {key: value.to(target) for key, value in self._topology.items()},
+        )
+
+    def __repr__(self) -> str:
+        sets = ", ".join(sorted(self._node_sets)) or "none"
+        label = f"{self.name!r}, " if self.name else ""
+        return (
+            f"TetMesh({label}nodes={self.num_nodes}, tets={self.num_tets}, "
+            f"node_sets=[{sets}], dtype={self.dtype}, device={self.device})"
+        )
+
+
+# ---------------------------------------------------------------------- helpers
+
+
+def _as_tets(tets: Tensor | np.ndarray | Sequence, num_nodes: int) -> Tensor:
+    if not isinstance(tets, Tensor):
+        array = np.asarray(tets)
+        if array.size == 0:
+            array = array.astype(np.int64)
+        if array.dtype.kind not in "iu":
+            raise ValueError(f"tets must hold integer vertex indices, got dtype {array.dtype}")
+        tets = torch.from_numpy(np.ascontiguousarray(array.astype(np.int64)))
+    if tets.is_floating_point() or tets.is_complex() or tets.dtype == torch.bool:
+        raise ValueError(f"tets must hold integer vertex indices, got dtype {tets.dtype}")
+    if tets.ndim != 2 or tets.shape[1] != 4:
+        raise ValueError(f"tets must have shape (M, 4), got {tuple(tets.shape)}")
+    if tets.shape[0] == 0:
+        raise ValueError("tets is empty: at least one tetrahedron is needed")
+    tets = tets.long()
+    low, high = int(tets.min()), int(tets.max())
+    if low < 0 or high >= num_nodes:
+        raise ValueError(
+            f"tets holds vertex indices outside [0, {num_nodes}): min {low}, max {high}"
+        )
+    return tets
+
+
+def _orient(points: Tensor, tets: Tensor) -> Tensor:
+    """Reject flat tetrahedra and swap the last two vertices of negative ones."""
+    with torch.no_grad():
+        exact = points.detach().to(torch.float64)
+        volumes = _tet_volumes(exact, tets)
+        # Every edge is at most the bounding-box diagonal, so only tetrahedra below
+        # the bound for that length can be flat: measure their edges alone.
+        diagonal = float(torch.linalg.vector_norm(exact.amax(0) - exact.amin(0)))
+        candidates = torch.nonzero(volumes.abs() <= FLAT_TET_TOLERANCE * diagonal**3).flatten()
+        if candidates.numel() > 0:
+            longest = _tet_edge_lengths_squared(exact, tets[candidates]).amax(-1) ** 1.5
+            flat = candidates[volumes[candidates].abs() <= FLAT_TET_TOLERANCE * longest]
+        else:
+            flat = candidates
+        if flat.numel() > 0:
+            shown = ", ".join(str(i) for i in flat[:5].tolist())
+            more = ", ..." if flat.numel() > 5 else ""
+            raise ValueError(
+                f"tets: {flat.numel()} tetrahedra have zero volume "
+                f"(|V| <= {FLAT_TET_TOLERANCE:g} * longest_edge**3), at indices {shown}{more}"
+            )
+        negative = volumes < 0
+        if bool(negative.any()):
+            swapped = torch.where(negative[:, None], tets[:, [3, 2]], tets[:, 2:])
+            tets = torch.cat([tets[:, :2], swapped], dim=1)
+    return tets
+
+
+def _as_node_sets(
+    node_sets: Mapping[str, Tensor | np.ndarray | Sequence] | None,
+    num_nodes: int,
+    device: torch.device,
+) -> dict[str, Tensor]:
+    if node_sets is None:
+        return {}
+    if not isinstance(node_sets, Mapping):
+        raise TypeError(
+            f"node_sets must be a mapping of names to node indices, got {type(node_sets).__name__}"
+        )
+    result: dict[str, Tensor] = {}
+    for key, value in node_sets.items():
+        if not isinstance(key, str) or not key:
+            raise ValueError(f"node_sets: names must be non-empty strings, got {key!r}")
+        indices = as_index(value, f"node_sets[{key!r}]", size=num_nodes)
+        result[key] = torch.unique(indices.to(device), sorted=True)
+    return result
