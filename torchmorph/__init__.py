@@ -6,11 +6,36 @@ as PyTorch modules.
 """
 
 from .idw import IDW, idw_apply, idw_weights
+from .io import read_mesh, write_mesh
+from .mesh import TetMesh
+from .morph import MeshMorph
+from .quality import (
+    count_inverted,
+    edge_ratio,
+    inverted,
+    mass_matrix,
+    quality_summary,
+    relative_l2_error,
+    signed_volumes,
+    validity_barrier,
+)
 
 __all__ = [
     "IDW",
+    "MeshMorph",
+    "TetMesh",
+    "count_inverted",
+    "edge_ratio",
     "idw_apply",
     "idw_weights",
+    "inverted",
+    "mass_matrix",
+    "quality_summary",
+    "read_mesh",
+    "relative_l2_error",
+    "signed_volumes",
+    "validity_barrier",
+    "write_mesh",
 ]
 
 __version__ = "0.1.0"

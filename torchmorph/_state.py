@@ -17,8 +17,7 @@ def resize_buffers_for_load(
 
     Call from ``_load_from_state_dict`` before delegating to ``nn.Module``: a
     selection, a fitted basis or a W whose size depends on data then loads into
-    a module built with other data instead of failing on a size mismatch. The
-    strides of a buffer (e.g. a column-major W) are kept.
+    a module built with other data instead of failing on a size mismatch.
     """
     for name in names:
         key = prefix + name
@@ -26,7 +25,5 @@ def resize_buffers_for_load(
         incoming = state_dict.get(key)
         if incoming is None or current is None or current.shape == incoming.shape:
             continue
-        fresh = torch.empty(incoming.shape, dtype=current.dtype, device=current.device)
-        if current.ndim == 2 and incoming.ndim == 2 and current.stride(0) == 1 != current.stride(1):
-            fresh = fresh.T.contiguous().T if fresh.shape[0] > 1 else fresh
-        module._buffers[name] = fresh
+        module._buffers[name] = torch.empty(incoming.shape, dtype=current.dtype,
+                                            device=current.device)

@@ -68,11 +68,14 @@ def _coincidence_radius2(targets: Tensor, controls: Tensor, tolerance: float) ->
     return (tolerance * diagonal) ** 2
 
 
-def _squared_distances(targets: Tensor, controls: Tensor) -> Tensor:
-    """(n_t, n_c) squared distances from direct coordinate differences."""
+def _squared_distances(targets: Tensor, controls: Tensor, out: Tensor | None = None) -> Tensor:
+    """(n_t, n_c) squared distances from direct coordinate differences.
+
+    Without autograd the passes run in place (into ``out`` when given).
+    """
     if torch.is_grad_enabled() and (targets.requires_grad or controls.requires_grad):
         return (targets[:, None, :] - controls[None, :, :]).square().sum(-1)
-    dist2 = torch.sub(targets[:, 0:1], controls[:, 0])
+    dist2 = torch.sub(targets[:, 0:1], controls[:, 0], out=out)
     dist2.mul_(dist2)
     diff = torch.empty_like(dist2)
     for axis in range(1, targets.shape[1]):
@@ -87,7 +90,8 @@ def _ratio_powers(nearest2: Tensor, dist2: Tensor, power: float) -> Tensor:
     Both ``m`` and ``d²`` are clamped at the dtype's smallest normal number, so a
     control that coincides exactly with its target gets ratio 1 and all others
     underflow to 0 without a branch. ``nearest2`` carries no gradient: the
-    normalised weights do not depend on the common scale ``m_i``.
+    normalised weights do not depend on the common scale ``m_i``. Without
+    autograd ``dist2`` is overwritten.
     """
     tiny = torch.finfo(dist2.dtype).tiny
     nearest2 = nearest2.detach().clamp_min(tiny)
@@ -104,22 +108,40 @@ def _rows_per_block(columns: int, itemsize: int, block_bytes: int, copies: int =
 
 
 def _weights_block(
-    targets: Tensor, controls: Tensor, power: float, radius2: float
+    targets: Tensor, controls: Tensor, power: float, radius2: float, out: Tensor | None = None
 ) -> Tensor:
-    """Rows of W for a block of targets (all controls)."""
-    dist2 = _squared_distances(targets, controls)
+    """Rows of W for a block of targets (all controls); in place into ``out`` if given."""
+    dist2 = _squared_distances(targets, controls, out)
     nearest2, nearest = dist2.detach().min(1, keepdim=True)
     weights = _ratio_powers(nearest2, dist2, power)
-    weights = weights / weights.sum(1, keepdim=True) if weights.requires_grad else (
+    if weights.requires_grad:
+        weights = weights / weights.sum(1, keepdim=True)
+    else:
         weights.div_(weights.sum(1, keepdim=True))
-    )
     coincident = (nearest2 <= radius2).flatten()
     if bool(coincident.any()):
         rows = torch.nonzero(coincident).flatten()
         one_hot = torch.zeros(rows.numel(), controls.shape[0], dtype=weights.dtype,
                               device=weights.device)
         one_hot.scatter_(1, nearest[rows], 1.0)
-        weights = weights.index_put((rows,), one_hot)
+        if weights.requires_grad:
+            weights = weights.index_put((rows,), one_hot)
+        else:
+            weights[rows] = one_hot
+    return weights
+
+
+def _assemble_weights(
+    targets: Tensor, controls: Tensor, power: float, radius2: float, block_bytes: int
+) -> Tensor:
+    """Dense W (N_t, N_c), row-major, filled block by block in place (no autograd)."""
+    weights = torch.empty(targets.shape[0], controls.shape[0], dtype=controls.dtype,
+                          device=controls.device)
+    rows = _rows_per_block(controls.shape[0], controls.element_size(), block_bytes)
+    with torch.no_grad():
+        for start in range(0, targets.shape[0], rows):
+            _weights_block(targets[start : start + rows], controls, power, radius2,
+                           out=weights[start : start + rows])
     return weights
 
 
@@ -163,21 +185,12 @@ def idw_weights(
         dtype or device.
     """
     targets, controls, power, radius2 = _prepare(targets, controls, power, coincidence_tolerance)
-    rows = _rows_per_block(controls.shape[0], controls.element_size(), block_bytes)
-    if targets.shape[0] <= rows:
-        return _weights_block(targets, controls, power, radius2)
     differentiable = torch.is_grad_enabled() and (targets.requires_grad or controls.requires_grad)
-    if differentiable:
-        return torch.cat(
-            [_weights_block(targets[s : s + rows], controls, power, radius2)
-             for s in range(0, targets.shape[0], rows)]
-        )
-    out = torch.empty(targets.shape[0], controls.shape[0], dtype=controls.dtype,
-                      device=controls.device)
-    for start in range(0, targets.shape[0], rows):
-        out[start : start + rows] = _weights_block(targets[start : start + rows], controls,
-                                                   power, radius2)
-    return out
+    if not differentiable:
+        return _assemble_weights(targets, controls, power, radius2, block_bytes)
+    rows = _rows_per_block(controls.shape[0], controls.element_size(), block_bytes, copies=4)
+    return torch.cat([_weights_block(targets[s : s + rows], controls, power, radius2)
+                      for s in range(0, targets.shape[0], rows)])
 
 
 def _prepare(targets, controls, power, coincidence_tolerance):
@@ -308,17 +321,12 @@ def idw_apply(
 
 
 def _dense_apply(weights: Tensor, displacements: Tensor) -> Tensor:
-    """``W @ d`` for d of shape (N_c, 3) or (B, N_c, 3), as one contraction.
-
-    ``weights`` is stored with column-major strides (``weights.T`` contiguous):
-    ``dᵀ Wᵀ`` then streams W once in a row-major GEMM, which measured faster
-    than ``W @ d`` with three columns.
-    """
+    """``W @ d`` for d of shape (N_c, 3) or (B, N_c, 3), as one contraction."""
     if displacements.ndim == 2:
-        return (displacements.T @ weights.T).T
+        return weights @ displacements
     batch, n_controls, _ = displacements.shape
-    stacked = displacements.transpose(1, 2).reshape(batch * 3, n_controls)
-    return (stacked @ weights.T).reshape(batch, 3, -1).transpose(1, 2)
+    stacked = displacements.permute(1, 0, 2).reshape(n_controls, batch * 3)
+    return (weights @ stacked).reshape(-1, batch, 3).permute(1, 0, 2)
 
 
 # --------------------------------------------------------------------------- #
@@ -352,7 +360,7 @@ class IDW(nn.Module):
     controls, targets : buffers
         The reference geometry.
     weights : buffer, shape (N_t, N_c), dense mode only
-        W, stored with column-major strides (``weights.T`` is contiguous).
+        W (rows sum to 1).
     assembly_time : float
         Seconds spent assembling W (0 in matrix-free mode).
 
@@ -413,15 +421,8 @@ class IDW(nn.Module):
         return self.targets.shape[0]
 
     def _assemble(self, targets: Tensor, controls: Tensor) -> Tensor:
-        """W with column-major strides, built block by block (no grad)."""
-        weights_t = torch.empty(controls.shape[0], targets.shape[0], dtype=controls.dtype,
-                                device=controls.device)
-        rows = _rows_per_block(controls.shape[0], controls.element_size(), self.block_bytes)
         radius2 = _coincidence_radius2(targets, controls, self.coincidence_tolerance)
-        for start in range(0, targets.shape[0], rows):
-            block = _weights_block(targets[start : start + rows], controls, self.power, radius2)
-            weights_t[:, start : start + rows] = block.T
-        return weights_t.T
+        return _assemble_weights(targets, controls, self.power, radius2, self.block_bytes)
 
     def weights_matrix(self) -> Tensor:
         """W of shape (N_t, N_c): the stored buffer, or assembled now (matrix-free)."""
@@ -431,7 +432,6 @@ class IDW(nn.Module):
             return self._assemble(self.targets.detach(), self.controls.detach())
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        # keep the column-major layout of W when loading a saved module
         resize_buffers_for_load(self, state_dict, prefix, ("controls", "targets", "weights"))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
