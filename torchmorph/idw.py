@@ -68,17 +68,21 @@ def _coincidence_radius2(targets: Tensor, controls: Tensor, tolerance: float) ->
     return (tolerance * diagonal) ** 2
 
 
-def _squared_distances(targets: Tensor, controls: Tensor, out: Tensor | None = None) -> Tensor:
-    """(n_t, n_c) squared distances from direct coordinate differences.
+def _squared_distances(
+    targets: Tensor, controls: Tensor, out: Tensor | None = None, *, floor: float = 0.0
+) -> Tensor:
+    """(n_t, n_c) squared distances from direct coordinate differences, plus ``floor``.
 
-    Without autograd the passes run in place (into ``out`` when given).
+    Without autograd the passes run in place (into ``out`` when given); a
+    ``floor`` (the dtype's smallest normal) then costs no extra pass.
     """
     if torch.is_grad_enabled() and (targets.requires_grad or controls.requires_grad):
         return (targets[:, None, :] - controls[None, :, :]).square().sum(-1)
-    dist2 = torch.sub(targets[:, 0:1], controls[:, 0], out=out)
-    dist2.mul_(dist2)
-    diff = torch.empty_like(dist2)
-    for axis in range(1, targets.shape[1]):
+    shape = (targets.shape[0], controls.shape[0])
+    dist2 = out if out is not None else targets.new_empty(shape)
+    dist2.fill_(floor)
+    diff = targets.new_empty(shape)
+    for axis in range(targets.shape[1]):
         torch.sub(targets[:, axis : axis + 1], controls[:, axis], out=diff)
         dist2.addcmul_(diff, diff)
     return dist2
@@ -87,18 +91,19 @@ def _squared_distances(targets: Tensor, controls: Tensor, out: Tensor | None = N
 def _ratio_powers(nearest2: Tensor, dist2: Tensor, power: float) -> Tensor:
     """Unnormalised weights ``(m_i / d²_ik)^(p/2)``, every entry in [0, 1].
 
-    Both ``m`` and ``d²`` are clamped at the dtype's smallest normal number, so a
-    control that coincides exactly with its target gets ratio 1 and all others
-    underflow to 0 without a branch. ``nearest2`` carries no gradient: the
-    normalised weights do not depend on the common scale ``m_i``. Without
-    autograd ``dist2`` is overwritten.
+    Both ``m`` and ``d²`` are kept at or above the dtype's smallest normal
+    number (``dist2`` must come from :func:`_squared_distances` with that
+    ``floor`` when autograd is off), so a control that coincides exactly with
+    its target gets ratio 1 and all others underflow to 0 without a branch.
+    ``nearest2`` carries no gradient: the normalised weights do not depend on
+    the common scale ``m_i``. Without autograd ``dist2`` is overwritten.
     """
     tiny = torch.finfo(dist2.dtype).tiny
     nearest2 = nearest2.detach().clamp_min(tiny)
     if dist2.requires_grad and torch.is_grad_enabled():
         ratio = nearest2 / dist2.clamp_min(tiny)
         return ratio.square() if power == 4.0 else ratio.pow(power / 2)
-    ratio = dist2.clamp_min_(tiny)
+    ratio = dist2  # already floored at ``tiny`` by _squared_distances
     torch.div(nearest2, ratio, out=ratio)
     return ratio.square_() if power == 4.0 else ratio.pow_(power / 2)
 
@@ -111,7 +116,7 @@ def _weights_block(
     targets: Tensor, controls: Tensor, power: float, radius2: float, out: Tensor | None = None
 ) -> Tensor:
     """Rows of W for a block of targets (all controls); in place into ``out`` if given."""
-    dist2 = _squared_distances(targets, controls, out)
+    dist2 = _squared_distances(targets, controls, out, floor=torch.finfo(controls.dtype).tiny)
     nearest2, nearest = dist2.detach().min(1, keepdim=True)
     weights = _ratio_powers(nearest2, dist2, power)
     if weights.requires_grad:
@@ -248,7 +253,8 @@ def _matrix_free_rows(
     accumulated = targets.new_zeros(targets.shape[0], values.shape[1] + 1)
     ones = values.new_ones(values.shape[0], 1)
     for k in range(0, controls.shape[0], columns):
-        dist2 = _squared_distances(targets, controls[k : k + columns])
+        dist2 = _squared_distances(targets, controls[k : k + columns],
+                                   floor=torch.finfo(controls.dtype).tiny)
         ratio = _ratio_powers(nearest2, dist2, power)
         rhs = torch.cat([values[k : k + columns], ones[k : k + columns]], 1)
         accumulated = accumulated + ratio @ rhs

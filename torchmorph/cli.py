@@ -1,0 +1,876 @@
+"""The ``torchmorph`` console command.
+
+Subcommands
+-----------
+``torchmorph info MESH``
+    Node, tetrahedron, boundary and interior counts, the node sets with their
+    sizes, the bounding box, the quality ``Q`` (max/mean edge ratio) and the
+    smallest tetrahedron volume of a mesh file.
+``torchmorph morph MESH --displacement FILE [--moving SET ...] -o OUT``
+    Morph a mesh (SPEC.md §3, Algorithm 2): prescribe the displacement of the
+    boundary nodes, interpolate the interior by IDW from all boundary nodes
+    (IDW), from a selection (``--select``/``--region``: SIDW) and from
+    enrichment sets (``--enrich``: ESIDW), and write the result.
+``torchmorph reproduce wing|fluid-wing|hull``
+    Run one of the paper's test cases (:func:`torchmorph.paper.reproduce`).
+
+Displacement files (``morph --displacement``)
+---------------------------------------------
+``.npy`` (``numpy.save``), ``.npz`` (the array named ``displacement``, or the
+only array), ``.csv`` (comma-separated) or ``.txt``/``.dat`` (whitespace
+separated, read by ``numpy.loadtxt``). Accepted shapes, with ``n_moving`` the
+number of nodes in the union of the ``--moving`` sets, ``N_b`` the number of
+boundary nodes and ``N`` the number of nodes:
+
+- ``(n_moving, 3)``: one row per node of the moving sets, in the order of the
+  sorted union of their node ids (ascending global node number);
+- ``(N_b, 3)``: one row per boundary node, in the order of the mesh's sorted
+  boundary node ids (``TetMesh.boundary_nodes``);
+- ``(N, 3)``: a nodal field; its boundary rows are used, its interior rows are
+  ignored (the interior is what IDW computes);
+- ``(3,)``: one translation applied to every node of the moving sets;
+- any of these with a leading batch axis ``(B, ..., 3)``: the field
+  ``--batch-index i`` is used (default: the only one when ``B == 1``).
+
+With ``--moving`` every boundary node outside the moving sets is fixed (zero
+displacement), whatever the file holds for it (a warning says so when those
+rows were not zero). Without ``--moving`` the file must give every boundary
+node, as ``(N_b, 3)`` or ``(N, 3)``, and all its boundary rows are used.
+When two layouts have the same number of rows they coincide (the moving nodes
+are then all the boundary nodes, or every node is a boundary node), so a shape
+is never ambiguous.
+
+Output (``morph -o``)
+---------------------
+The *reference* mesh (``--write-deformed``: the deformed one) with its node sets
+(point data ``set:<name>``), point data ``displacement`` (N, 3) — ParaView's
+"Warp By Vector" on it shows the morph — and ``control_point`` (1 for the
+control points of the IDW), and cell data ``quality`` (``Q`` after the morph),
+``quality_reference`` (``Q`` before) and ``inverted`` (1 for a tetrahedron whose
+signed volume is <= 0 after the morph). Formats: ``.vtu``, ``.vtk``,
+``.xdmf``/``.xmf``, ``.msh``.
+
+Exit codes
+----------
+0 success; 1 runtime error (missing or unreadable file, unknown node set, bad
+displacement shape, invalid selection, missing optional dependency); 2 usage
+error (argparse: unknown option, bad number, out-of-range ``R``/``a``/``b``);
+3 the morph inverted tetrahedra and ``--strict`` was given (without
+``--strict`` inverted tetrahedra only print a WARNING and the output is still
+written); 130 interrupted. Error messages go to stderr, one line, without a
+Python traceback (``--debug`` shows it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from torchmorph.mesh import TetMesh
+
+__all__ = [
+    "DISPLACEMENT_FORMATS",
+    "EXIT_ERROR",
+    "EXIT_INTERRUPTED",
+    "EXIT_INVERTED",
+    "EXIT_OK",
+    "EXIT_USAGE",
+    "build_parser",
+    "main",
+]
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_USAGE = 2
+EXIT_INVERTED = 3
+EXIT_INTERRUPTED = 130
+
+#: Displacement file extensions understood by ``morph --displacement``.
+DISPLACEMENT_FORMATS = (".npy", ".npz", ".csv", ".txt", ".dat")
+
+#: Case names of ``reproduce`` and the aliases accepted for them.
+_CASES = ("wing", "fluid-wing", "hull")
+_CASE_ALIASES = {"a": "wing", "b": "fluid-wing", "c": "hull", "fluid_wing": "fluid-wing",
+                 "fluidwing": "fluid-wing"}
+
+_MESH_EXTRA_HINT = "install the optional mesh dependencies: pip install 'torchmorph[mesh]'"
+
+# Name of the temporary node set that holds every boundary node for --select.
+_ALL_BOUNDARY = "(boundary)"
+
+
+class CommandError(Exception):
+    """A failure reported to the user as one line on stderr, with an exit code."""
+
+    def __init__(self, message: str, code: int = EXIT_ERROR) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+# --------------------------------------------------------------------------- parser
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+
+        return version("torchmorph")
+    except (ImportError, PackageNotFoundError):  # running from a source tree
+        from torchmorph import __version__
+
+        return __version__
+
+
+def _selection_parameters(text: str) -> tuple[float, float, float]:
+    """Parse ``R[,a[,b]]`` and validate it with :class:`~torchmorph.selection.Region`."""
+    parts = [part.strip() for part in text.split(",")]
+    if not 1 <= len(parts) <= 3 or not all(parts):
+        raise argparse.ArgumentTypeError(
+            f"expected R, R,a or R,a,b (radius and factors, e.g. 0.3,0.8,1.3), got {text!r}"
+        )
+    try:
+        numbers = [float(part) for part in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected numbers R[,a[,b]] (e.g. 0.3,0.8,1.3), got {text!r}"
+        ) from None
+    from torchmorph.selection import Region
+
+    try:
+        region = Region("region", *numbers)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return region.parameters
+
+
+def _region_option(text: str) -> tuple[tuple[str, ...], tuple[float, float, float]]:
+    """Parse ``SET[+SET...]=R[,a[,b]]``."""
+    names, equals, parameters = text.rpartition("=")
+    names_list = tuple(name.strip() for name in names.split("+"))
+    if not equals or not all(names_list):
+        raise argparse.ArgumentTypeError(
+            f"expected SET=R[,a,b] or SET1+SET2=R[,a,b] (e.g. top=0.5,0.8,1.3), got {text!r}"
+        )
+    return names_list, _selection_parameters(parameters)
+
+
+def _positive_float(text: str) -> float:
+    try:
+        number = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (np.isfinite(number) and number > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return number
+
+
+def _case_name(text: str) -> str:
+    name = _CASE_ALIASES.get(text.strip().lower(), text.strip().lower())
+    if name not in _CASES:
+        raise argparse.ArgumentTypeError(
+            f"unknown case {text!r}; choose from {', '.join(_CASES)} (or A, B, C)"
+        )
+    return name
+
+
+def _split_names(values: Sequence[str] | None) -> list[str] | None:
+    """Names given as ``a b`` or ``a,b`` (or both), in order, without repeats."""
+    if values is None:
+        return None
+    names: list[str] = []
+    for value in values:
+        for name in value.split(","):
+            name = name.strip()
+            if name and name not in names:
+                names.append(name)
+    return names
+
+
+def _common_options() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--debug", action="store_true",
+        help="show the Python traceback of an error instead of a one-line message",
+    )
+    return common
+
+
+def _progress_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--progress", action=argparse.BooleanOptionalAction, default=None,
+        help="progress bars on stderr (default: when stderr is a terminal)",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``torchmorph`` command (subcommands info, morph, reproduce)."""
+    common = _common_options()
+    parser = argparse.ArgumentParser(
+        prog="torchmorph",
+        description="IDW / Selective IDW morphing of tetrahedral meshes (SPEC.md §1-3) and the "
+                    "reproduction of the POD-Selective IDW paper's test cases.",
+        epilog="Run 'torchmorph COMMAND --help' for the options of a command. Exit codes: "
+               "0 ok, 1 runtime error, 2 usage error, 3 inverted tetrahedra with --strict.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
+    commands.required = True
+
+    # ---------------------------------------------------------------- info
+    info = commands.add_parser(
+        "info", parents=[common], help="describe a tetrahedral mesh file",
+        description="Print node and tetrahedron counts, boundary/interior node counts, the node "
+                    "sets and their sizes, the bounding box, the quality Q (edge ratio, max and "
+                    "mean) and the smallest tetrahedron volume of a mesh.",
+    )
+    info.add_argument("mesh", metavar="MESH", help="mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)")
+    _progress_option(info)
+    info.set_defaults(run=_run_info, parser=info)
+
+    # --------------------------------------------------------------- morph
+    morph = commands.add_parser(
+        "morph", parents=[common], help="morph a mesh from a boundary displacement",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Morph a tetrahedral mesh: boundary nodes take the prescribed displacement\n"
+                    "exactly, interior nodes are interpolated by IDW from the control points (all\n"
+                    "boundary nodes, or a selection: --select / --region, with --enrich).",
+        epilog=_MORPH_EPILOG,
+    )
+    morph.add_argument("mesh", metavar="MESH", help="mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)")
+    morph.add_argument(
+        "--moving", nargs="+", action="extend", metavar="SET",
+        help="node sets that move (names separated by spaces or commas); every other boundary "
+             "node is fixed. Without it the file must give every boundary node",
+    )
+    morph.add_argument(
+        "--displacement", "-d", required=True, metavar="FILE",
+        help="displacement file (.npy, .npz, .csv, .txt, .dat); accepted shapes below",
+    )
+    morph.add_argument("--output", "-o", required=True, metavar="OUT",
+                       help="output mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)")
+    selection = morph.add_argument_group(
+        "control-point selection (default: every boundary node, plain IDW)")
+    exclusive = selection.add_mutually_exclusive_group()
+    exclusive.add_argument(
+        "--select", type=_selection_parameters, metavar="R[,a,b]",
+        help="Selective IDW on all boundary nodes as one region: radius R > 0, "
+             "0 < a < 1 (default 0.8), b > 1 (default 1.3)",
+    )
+    exclusive.add_argument(
+        "--region", type=_region_option, action="append", metavar="SET=R[,a,b]",
+        help="Selective IDW per node set (repeatable; SET1+SET2=R for a union); every boundary "
+             "node must be in a region or an --enrich set unless --uncovered ignore",
+    )
+    selection.add_argument(
+        "--enrich", nargs="+", action="extend", metavar="SET",
+        help="node sets whose nodes are always control points (ESIDW); needs --select or --region",
+    )
+    selection.add_argument(
+        "--strategy", choices=("random", "centroid", "farthest"), default="random",
+        help="SelectControlPoint strategy (default: random, the paper's)",
+    )
+    selection.add_argument(
+        "--overlap", choices=("error", "first", "share"), default="error",
+        help="nodes in several --region sets with different parameters: error (default), give "
+             "them to the first region, or let every region keep them",
+    )
+    selection.add_argument(
+        "--uncovered", choices=("error", "ignore"), default="error",
+        help="boundary nodes in no --region and no --enrich set: error (default), or never "
+             "select them",
+    )
+    selection.add_argument("--seed", type=int, default=0,
+                           help="seed of the random selection (default 0)")
+    idw = morph.add_argument_group("interpolation")
+    idw.add_argument("--power", type=_positive_float, default=4.0,
+                     help="IDW exponent p (default 4, the paper's)")
+    idw.add_argument(
+        "--mode", choices=("auto", "dense", "matrix_free"), default="auto",
+        help="store W (dense), recompute it in tiles (matrix_free), or choose by size (auto)",
+    )
+    idw.add_argument("--batch-index", type=int, default=None, metavar="I",
+                     help="field to use from a batched file (B, ..., 3); negative counts from the "
+                          "end")
+    idw.add_argument("--device", default="cpu", help="torch device (default cpu), e.g. cuda")
+    idw.add_argument("--dtype", choices=("float64", "float32"), default="float64",
+                     help="floating-point precision (default float64)")
+    out = morph.add_argument_group("result")
+    out.add_argument("--write-deformed", action="store_true",
+                     help="write the deformed coordinates instead of the reference mesh")
+    out.add_argument("--strict", action="store_true",
+                     help=f"exit with code {EXIT_INVERTED} when the morph inverts tetrahedra "
+                          "(the output is written all the same)")
+    _progress_option(out)
+    morph.set_defaults(run=_run_morph, parser=morph)
+
+    # ----------------------------------------------------------- reproduce
+    reproduce = commands.add_parser(
+        "reproduce", parents=[common], help="run one of the paper's test cases",
+        description="Reproduce a test case of the POD-Selective IDW paper: build its mesh, run "
+                    "IDW, SIDW (wing), ESIDW, POD-IDW and POD-ESIDW with the paper's parameters "
+                    "and print the results beside the paper's (with progress bars). Needs the "
+                    "optional mesh dependencies: pip install 'torchmorph[mesh]'.",
+    )
+    reproduce.add_argument("case", type=_case_name, metavar="CASE",
+                           help="wing (A), fluid-wing (B) or hull (C)")
+    reproduce.add_argument("--size", choices=("small", "paper"), default="paper",
+                           help="mesh size: paper (node counts near the paper's, default) or "
+                                "small (a quick run)")
+    reproduce.add_argument("--out", metavar="DIR", default=None,
+                           help="directory for the VTU and PNG files (default: none written)")
+    reproduce.add_argument("--mesher", choices=("gmsh", "pytetwild"), default="gmsh",
+                           help="mesh generator (default gmsh)")
+    reproduce.add_argument("--seed", type=int, default=0,
+                           help="seed of the random selection and training set (default 0)")
+    reproduce.set_defaults(run=_run_reproduce, parser=reproduce)
+    return parser
+
+
+_MORPH_EPILOG = """\
+displacement file layouts (n_moving = nodes in the union of the --moving sets,
+N_b = boundary nodes, N = all nodes):
+  (n_moving, 3)  rows of the moving nodes, in ascending global node id
+  (N_b, 3)       rows of the boundary nodes, in ascending global node id
+  (N, 3)         a nodal field; its boundary rows are used
+  (3,)           one translation of every moving node
+  (B, ..., 3)    a batch of any of these; pick one with --batch-index
+Boundary nodes outside the --moving sets are fixed (zero displacement).
+
+output: the reference mesh with point data 'displacement' (use ParaView's
+Warp By Vector) and 'control_point', cell data 'quality' (Q after the morph),
+'quality_reference' and 'inverted'.
+
+examples:
+  torchmorph morph wing.vtu --moving tip -d tip.npy -o out.vtu
+  torchmorph morph wing.vtu --moving upper lower -d d.npy --region root+tip=0.05 \\
+      --region upper+lower=0.5 --enrich leading_edge trailing_edge -o out.vtu
+"""
+
+
+# --------------------------------------------------------------------------- output
+
+
+class _Stages:
+    """A progress bar over the named steps of a command (on stderr)."""
+
+    def __init__(self, total: int, enabled: bool | None) -> None:
+        from tqdm.auto import tqdm
+
+        self._bar = tqdm(total=total, file=sys.stderr, disable=None if enabled is None
+                         else not enabled, leave=False, unit="step",
+                         bar_format="{desc:<32} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
+
+    @contextmanager
+    def step(self, name: str) -> Iterator[None]:
+        self._bar.set_description_str(name)
+        self._bar.refresh()
+        yield
+        self._bar.update(1)
+
+    def close(self) -> None:
+        self._bar.close()
+
+
+def _line(label: str, text: str) -> None:
+    print(f"{label:<16}{text}")
+
+
+def _warn(command: str, message: str) -> None:
+    print(f"torchmorph {command}: WARNING: {message}", file=sys.stderr)
+
+
+def _seconds(value: float) -> str:
+    return f"{value:.3g} s" if value >= 1e-3 else f"{value * 1e3:.3g} ms"
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _read(path_text: str, what: str = "mesh") -> tuple[TetMesh, dict, dict]:
+    from torchmorph.io import read_mesh
+
+    path = Path(path_text)
+    if not path.exists():
+        raise CommandError(f"{what} file {path_text!r} does not exist")
+    if not path.is_file():
+        raise CommandError(f"{what} file {path_text!r} is not a file")
+    try:
+        return read_mesh(path, return_data=True)
+    except ValueError as error:
+        message = str(error).removeprefix("path: ").rstrip()
+        if message.endswith(":"):  # parsers that raise without a message
+            message += " the file is not a valid mesh in that format"
+        raise CommandError(message) from error
+
+
+def _check_names(mesh: TetMesh, names: Sequence[str], option: str) -> None:
+    known = sorted(mesh.node_sets)
+    for name in names:
+        if name not in mesh.node_sets:
+            listing = ", ".join(known) if known else "none (the mesh has no node sets)"
+            raise CommandError(f"unknown node set {name!r} in {option}; known: {listing}")
+
+
+def _load_displacement(path_text: str) -> np.ndarray:
+    path = Path(path_text)
+    suffix = path.suffix.lower()
+    if suffix not in DISPLACEMENT_FORMATS:
+        raise CommandError(
+            f"displacement file {path_text!r}: unsupported extension {suffix or '(none)'!r}; "
+            f"supported: {', '.join(DISPLACEMENT_FORMATS)}"
+        )
+    if not path.is_file():
+        raise CommandError(f"displacement file {path_text!r} does not exist")
+    try:
+        if suffix == ".npy":
+            array = np.load(path, allow_pickle=False)
+        elif suffix == ".npz":
+            with np.load(path, allow_pickle=False) as archive:
+                if "displacement" in archive.files:
+                    array = archive["displacement"]
+                elif len(archive.files) == 1:
+                    array = archive[archive.files[0]]
+                else:
+                    names = ", ".join(archive.files) or "none"
+                    raise CommandError(
+                        f"displacement file {path_text!r} holds several arrays ({names}) and "
+                        "none named 'displacement'"
+                    )
+        else:
+            delimiter = "," if suffix == ".csv" else None
+            array = np.loadtxt(path, delimiter=delimiter, comments="#")
+    except CommandError:
+        raise
+    except (OSError, ValueError, EOFError) as error:
+        raise CommandError(
+            f"could not read displacement file {path_text!r}: {type(error).__name__}: {error}"
+        ) from error
+    if array.dtype.kind not in "fiu":
+        raise CommandError(
+            f"displacement file {path_text!r} must hold numbers, got dtype {array.dtype}"
+        )
+    array = array.astype(np.float64)
+    if not np.isfinite(array).all():
+        raise CommandError(f"displacement file {path_text!r} holds NaN or infinite values")
+    return array
+
+
+def _boundary_rows(
+    array: np.ndarray,
+    *,
+    source: str,
+    num_nodes: int,
+    boundary_nodes: np.ndarray,
+    moving_nodes: np.ndarray | None,
+    moving_label: str,
+    batch_index: int | None,
+) -> tuple[np.ndarray, str, float]:
+    """The (N_b, 3) boundary displacement a file's array stands for.
+
+    Returns the rows, a description of the layout used and the largest
+    absolute value of the rows that were dropped because they belong to
+    boundary nodes outside the moving sets (0 when none).
+    """
+    num_boundary = boundary_nodes.size
+    accepted = []
+    if moving_nodes is not None:
+        accepted.append(f"({moving_nodes.size}, 3) for the {moving_nodes.size} moving nodes "
+                        f"of {moving_label} in ascending node id")
+    accepted.append(f"({num_boundary}, 3) for the boundary nodes in ascending node id")
+    accepted.append(f"({num_nodes}, 3) for every node")
+    if moving_nodes is not None:
+        accepted.append("(3,) for one translation of the moving nodes")
+    accepted.append("any of these with a leading batch axis and --batch-index")
+
+    def wrong_shape(extra: str = "") -> CommandError:
+        return CommandError(
+            f"displacement file {source!r} has shape {tuple(array.shape)}{extra}; accepted "
+            f"shapes: {'; '.join(accepted)}"
+        )
+
+    if array.ndim == 3:
+        count = array.shape[0]
+        if batch_index is None:
+            if count != 1:
+                raise CommandError(
+                    f"displacement file {source!r} holds a batch of {count} fields (shape "
+                    f"{tuple(array.shape)}); choose one with --batch-index I (0 <= I < {count})"
+                )
+            batch_index = 0
+        if not -count <= batch_index < count:
+            raise CommandError(
+                f"--batch-index {batch_index} is out of range for a batch of {count} fields "
+                f"in {source!r}"
+            )
+        field = array[batch_index]
+    elif batch_index is not None:
+        raise CommandError(
+            f"--batch-index was given but displacement file {source!r} holds one field, shape "
+            f"{tuple(array.shape)}, not a batch (B, ..., 3)"
+        )
+    else:
+        field = array
+
+    if field.ndim == 1 and field.shape == (3,) and moving_nodes is not None:
+        rows = np.zeros((num_boundary, 3))
+        rows[np.searchsorted(boundary_nodes, moving_nodes)] = field
+        return rows, f"one translation {tuple(float(v) for v in field)}", 0.0
+    if field.ndim != 2 or field.shape[1] != 3:
+        raise wrong_shape()
+    count = field.shape[0]
+    if moving_nodes is not None and count == moving_nodes.size:
+        rows = np.zeros((num_boundary, 3))
+        rows[np.searchsorted(boundary_nodes, moving_nodes)] = field
+        return rows, f"moving-node rows ({count}, 3)", 0.0
+    if count == num_boundary:
+        rows, layout = field.copy(), f"boundary-node rows ({count}, 3)"
+    elif count == num_nodes:
+        rows, layout = field[boundary_nodes], f"nodal field ({count}, 3), boundary rows used"
+    else:
+        raise wrong_shape("" if moving_nodes is not None else
+                          " (to give only the rows of the moving nodes, name their node sets "
+                          "with --moving)")
+    dropped = 0.0
+    if moving_nodes is not None:
+        keep = np.zeros(num_boundary, dtype=bool)
+        keep[np.searchsorted(boundary_nodes, moving_nodes)] = True
+        if (~keep).any():
+            dropped = float(np.abs(rows[~keep]).max())
+        rows[~keep] = 0.0
+    return rows, layout, dropped
+
+
+def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMesh, str]:
+    """The SelectionPlan of the options (or None), the mesh to select on, and a description."""
+    from torchmorph.mesh import TetMesh
+    from torchmorph.selection import Region, SelectionPlan
+
+    enrich = _split_names(args.enrich) or []
+    if args.select is None and not args.region:
+        return None, mesh, "IDW: every boundary node is a control point"
+    method = "ESIDW" if enrich else "SIDW"
+    if args.select is not None:
+        radius, a, b = args.select
+        sets = {**mesh.node_sets, _ALL_BOUNDARY: mesh.boundary_nodes}
+        selection_mesh = TetMesh(mesh.points, mesh.tets, sets, name=mesh.name)
+        regions = [Region(_ALL_BOUNDARY, radius, a, b)]
+        text = f"all boundary nodes R={radius:g}, a={a:g}, b={b:g}"
+    else:
+        for names, _ in args.region:
+            _check_names(mesh, names, "--region")
+        selection_mesh = mesh
+        regions = [Region(names, *parameters) for names, parameters in args.region]
+        text = "; ".join(f"{region.label} R={region.radius:g}, a={region.a:g}, b={region.b:g}"
+                         for region in regions)
+    if enrich:
+        text += f"; enriched with {', '.join(enrich)}"
+    if args.region and args.uncovered == "error":
+        _check_covered(mesh, [names for names, _ in args.region], enrich)
+    plan = SelectionPlan(regions, enrich=enrich, strategy=args.strategy, overlap=args.overlap,
+                         uncovered=args.uncovered)
+    return plan, selection_mesh, f"{method} ({args.strategy}): {text}"
+
+
+def _check_covered(mesh: TetMesh, regions: Sequence[Sequence[str]], enrich: Sequence[str]) -> None:
+    """Raise a CommandError naming where the boundary nodes in no region or enrichment set lie."""
+    covered = np.zeros(mesh.num_nodes, dtype=bool)
+    for name in [name for names in regions for name in names] + list(enrich):
+        covered[mesh.node_set(name).cpu().numpy()] = True
+    boundary = mesh.boundary_nodes.cpu().numpy()
+    missing = boundary[~covered[boundary]]
+    if missing.size == 0:
+        return
+    is_missing = np.zeros(mesh.num_nodes, dtype=bool)
+    is_missing[missing] = True
+    where = []
+    in_some_set = np.zeros(mesh.num_nodes, dtype=bool)
+    for name in sorted(mesh.node_sets):
+        nodes = mesh.node_sets[name].cpu().numpy()
+        in_some_set[nodes] = True
+        count = int(is_missing[nodes].sum())
+        if count:
+            where.append(f"{count} in {name}")
+    outside = int((is_missing & ~in_some_set).sum())
+    if outside:
+        where.append(f"{outside} in no node set")
+    examples = ", ".join(str(int(node)) for node in missing[:5])
+    raise CommandError(
+        f"{missing.size} of the {boundary.size} boundary nodes are in no --region and no "
+        f"--enrich set ({'; '.join(where)}; e.g. node(s) {examples}); add their sets with "
+        "--region SET=R or --enrich SET, or pass --uncovered ignore to never select them"
+    )
+
+
+def _cli_hint(message: str) -> str:
+    """Library messages name keyword arguments; add the matching command-line option."""
+    if "overlap='first'" in message:
+        message += " [command line: --overlap first or --overlap share]"
+    if "uncovered='ignore'" in message:
+        message += " [command line: --region for those nodes, --enrich, or --uncovered ignore]"
+    return message
+
+
+# --------------------------------------------------------------------------- commands
+
+
+def _run_info(args: argparse.Namespace) -> int:
+    from torchmorph.quality import quality_summary
+
+    stages = _Stages(2, args.progress)
+    try:
+        with stages.step("reading mesh"):
+            start = time.perf_counter()
+            mesh, point_data, cell_data = _read(args.mesh)
+            read_time = time.perf_counter() - start
+        with stages.step("quality"):
+            summary = quality_summary(mesh)
+            boundary = mesh.boundary_nodes
+            in_a_set = np.zeros(mesh.num_nodes, dtype=bool)
+            for nodes in mesh.node_sets.values():
+                in_a_set[nodes.cpu().numpy()] = True
+            uncovered = int((~in_a_set[boundary.cpu().numpy()]).sum())
+            box = mesh.points.min(0).values.tolist(), mesh.points.max(0).values.tolist()
+    finally:
+        stages.close()
+
+    _line("mesh", f"{args.mesh} (read in {_seconds(read_time)})")
+    _line("nodes", f"{mesh.num_nodes} ({boundary.numel()} boundary, "
+                   f"{mesh.interior_nodes.numel()} interior)")
+    _line("tetrahedra", f"{mesh.num_tets}")
+    _line("boundary faces", f"{mesh.boundary_faces.shape[0]}")
+    _line("node sets", f"{len(mesh.node_sets)}" if mesh.node_sets else "none")
+    width = max((len(name) for name in mesh.node_sets), default=0)
+    boundary_mask = np.zeros(mesh.num_nodes, dtype=bool)
+    boundary_mask[boundary.cpu().numpy()] = True
+    for name in sorted(mesh.node_sets):
+        nodes = mesh.node_sets[name].cpu().numpy()
+        on_boundary = int(boundary_mask[nodes].sum())
+        note = "" if on_boundary == nodes.size else f" ({on_boundary} on the boundary)"
+        print(f"  {name:<{width}}  {nodes.size} nodes{note}")
+    _line("", f"{uncovered} boundary node(s) in no node set")
+    low, high = box
+    extent = [h - lo for lo, h in zip(low, high, strict=True)]
+    _line("bounding box", f"[{', '.join(f'{v:.6g}' for v in low)}] .. "
+                          f"[{', '.join(f'{v:.6g}' for v in high)}]")
+    _line("extent", " x ".join(f"{v:.6g}" for v in extent))
+    _line("quality Q", f"max {summary['max_edge_ratio']:.4g}, mean {summary['mean_edge_ratio']:.4g}"
+                       " (edge ratio, 1 is best)")
+    _line("min volume", f"{summary['min_volume']:.6g}")
+    for label, data in (("point data", point_data), ("cell data", cell_data)):
+        if data:
+            _line(label, ", ".join(f"{name} {tuple(value.shape)}"
+                                   for name, value in sorted(data.items())))
+    return EXIT_OK
+
+
+def _run_morph(args: argparse.Namespace) -> int:
+    import torch
+
+    from torchmorph.io import MESH_FORMATS, write_mesh
+    from torchmorph.morph import MeshMorph
+    from torchmorph.quality import edge_ratio, quality_summary
+
+    output = Path(args.output)
+    if output.suffix.lower() not in MESH_FORMATS:
+        args.parser.error(f"argument --output/-o: unsupported mesh file extension "
+                          f"{output.suffix or '(none)'!r}; supported: "
+                          f"{', '.join(sorted(MESH_FORMATS))}")
+    if args.enrich and args.select is None and not args.region:
+        args.parser.error("argument --enrich: needs --select or --region (without a selection "
+                          "every boundary node is a control point already)")
+    try:
+        device = torch.device(args.device)
+    except RuntimeError as error:
+        args.parser.error(f"argument --device: {error}")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise CommandError(f"--device {args.device}: CUDA is not available in this torch build "
+                           "or on this machine")
+    dtype = getattr(torch, args.dtype)
+    moving = _split_names(args.moving)
+
+    stages = _Stages(5, args.progress)
+    try:
+        with stages.step("reading mesh"):
+            mesh, _, _ = _read(args.mesh)
+            array = _load_displacement(args.displacement)
+        mesh_cpu = mesh
+        boundary = mesh.boundary_nodes.cpu().numpy()
+        moving_nodes = None
+        if moving is not None:
+            _check_names(mesh, moving, "--moving")
+            moving_nodes = mesh.nodes_of(moving).cpu().numpy()
+            is_boundary = np.zeros(mesh.num_nodes, dtype=bool)
+            is_boundary[boundary] = True
+            for name in moving:
+                nodes = mesh.node_set(name).cpu().numpy()
+                inside = nodes[~is_boundary[nodes]]
+                if inside.size:
+                    raise CommandError(
+                        f"--moving node set {name!r} holds {inside.size} interior node(s) (e.g. "
+                        f"node {int(inside[0])}); only boundary nodes can be prescribed, the "
+                        "interior is interpolated"
+                    )
+        if args.enrich:
+            _check_names(mesh, _split_names(args.enrich), "--enrich")
+        moving_label = ", ".join(moving) if moving else ""
+        rows, layout, dropped = _boundary_rows(
+            array, source=args.displacement, num_nodes=mesh.num_nodes, boundary_nodes=boundary,
+            moving_nodes=moving_nodes, moving_label=moving_label, batch_index=args.batch_index,
+        )
+        if dropped > 0:
+            _warn("morph", f"the displacement file gives non-zero rows (max |value| {dropped:.3g}) "
+                           f"for boundary nodes outside the moving sets ({moving_label}); they "
+                           "are fixed (zero displacement)")
+        mesh = mesh.to(device=device, dtype=dtype)
+        plan, selection_mesh, method = _selection_plan(args, mesh)
+        generator = torch.Generator().manual_seed(args.seed)
+        with stages.step("selecting controls, assembling W"):
+            try:
+                morph = MeshMorph(selection_mesh, plan, power=args.power, mode=args.mode,
+                                  generator=generator)
+            except ValueError as error:
+                raise CommandError(_cli_hint(str(error))) from error
+        boundary_displacement = torch.as_tensor(rows, dtype=dtype, device=device)
+        with stages.step("morphing"):
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            start = time.perf_counter()
+            with torch.no_grad():
+                field = morph(boundary_displacement)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            morph_time = time.perf_counter() - start
+        with stages.step("mesh quality"):
+            before = quality_summary(mesh)
+            after = quality_summary(mesh, field)
+            deformed_points = mesh.points + field
+            quality_after = edge_ratio(deformed_points, mesh.tets)
+            quality_before = edge_ratio(mesh.points, mesh.tets)
+            inverted = (mesh.deformed(field).volumes <= 0).to(torch.uint8)
+        with stages.step("writing output"):
+            control_flag = torch.zeros(mesh.num_nodes, dtype=torch.uint8)
+            control_flag[morph.control_nodes.cpu()] = 1
+            written = mesh_cpu.deformed(field.cpu().to(mesh_cpu.dtype)) if args.write_deformed \
+                else mesh_cpu
+            output.parent.mkdir(parents=True, exist_ok=True)
+            write_mesh(output, written,
+                       point_data={"displacement": field.cpu(), "control_point": control_flag},
+                       cell_data={"quality": quality_after.cpu(),
+                                  "quality_reference": quality_before.cpu(),
+                                  "inverted": inverted.cpu()})
+    finally:
+        stages.close()
+
+    num_inverted = int(after["num_inverted"])
+    _line("mesh", f"{args.mesh}: {mesh.num_nodes} nodes, {mesh.num_tets} tets "
+                  f"({morph.num_boundary} boundary, {morph.num_interior} interior nodes)")
+    if moving is not None:
+        _line("moving", f"{moving_label}: {moving_nodes.size} nodes; the other "
+                        f"{boundary.size - moving_nodes.size} boundary nodes are fixed")
+    else:
+        _line("moving", "every boundary node, as given in the file")
+    _line("displacement", f"{args.displacement}: {layout}; max |d| on the boundary "
+                          f"{float(np.abs(rows).max()) if rows.size else 0.0:.4g}")
+    _line("method", method)
+    _line("controls", f"{morph.num_controls} of {morph.num_boundary} boundary nodes")
+    _line("selection", _seconds(morph.selection_time))
+    storage = ("matrix-free: weights recomputed at every morph" if morph.idw.mode == "matrix_free"
+               else "dense, stored")
+    _line("assembly", f"{_seconds(morph.assembly_time)} (W {morph.num_interior} x "
+                      f"{morph.num_controls}, {storage}; p={args.power:g}, "
+                      f"{args.dtype} on {device})")
+    _line("morph", _seconds(morph_time))
+    _line("quality Q", f"max {before['max_edge_ratio']:.4g} -> {after['max_edge_ratio']:.4g}, "
+                       f"mean {before['mean_edge_ratio']:.4g} -> {after['mean_edge_ratio']:.4g}")
+    _line("min vol. ratio", f"{after['min_volume_ratio']:.4g} (deformed / reference volume)")
+    _line("inverted tets", f"{num_inverted} of {mesh.num_tets}")
+    _line("wrote", f"{output} ({'deformed' if args.write_deformed else 'reference'} mesh; point "
+                   "data displacement, control_point; cell data quality, quality_reference, "
+                   "inverted)")
+    if num_inverted:
+        _warn("morph", f"the morph inverts {num_inverted} of {mesh.num_tets} tetrahedra (cell "
+                       "data 'inverted' marks them); try a smaller displacement, more control "
+                       "points (smaller R, --enrich) or a larger --power")
+        if args.strict:
+            return EXIT_INVERTED
+    return EXIT_OK
+
+
+def _run_reproduce(args: argparse.Namespace) -> int:
+    try:
+        from torchmorph import paper
+    except ModuleNotFoundError as error:
+        if error.name == "torchmorph.paper":
+            raise CommandError("torchmorph.paper is not part of this installation") from error
+        raise
+    if args.out is not None:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+    # verbose: progress bars, the tables beside the paper's values and the files written
+    paper.reproduce(args.case, size=args.size, out=args.out, mesher=args.mesher, seed=args.seed,
+                    verbose=True)
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------- main
+
+
+def _import_error_message(error: ImportError) -> str:
+    message = str(error) or type(error).__name__
+    if "torchmorph[mesh]" in message:
+        return message
+    return f"{message}; {_MESH_EXTRA_HINT}"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``torchmorph`` command.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        The arguments without the program name; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        The exit code: 0 ok, 1 runtime error, 2 usage error, 3 inverted
+        tetrahedra with ``morph --strict``, 130 interrupted.
+    """
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as done:  # --help, --version and usage errors
+        return done.code if isinstance(done.code, int) else EXIT_USAGE
+    prefix = f"torchmorph {args.command}: error:"
+    try:
+        return args.run(args)
+    except SystemExit as done:  # parser.error() from a command's own checks
+        return done.code if isinstance(done.code, int) else EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"torchmorph {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception as error:  # reported as one line; --debug shows the traceback
+        if args.debug:
+            raise
+        if isinstance(error, CommandError):
+            print(f"{prefix} {error}", file=sys.stderr)
+            return error.code
+        if isinstance(error, ImportError):
+            print(f"{prefix} {_import_error_message(error)}", file=sys.stderr)
+        elif isinstance(error, (FileNotFoundError, ValueError, TypeError, OSError)):
+            print(f"{prefix} {error}", file=sys.stderr)
+        else:
+            print(f"{prefix} {type(error).__name__}: {error} (run with --debug for the "
+                  "traceback)", file=sys.stderr)
+        return EXIT_ERROR
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
