@@ -7,7 +7,7 @@ as PyTorch modules.
 
 from .idw import IDW, idw_apply, idw_weights
 from .io import read_mesh, write_mesh
-from .mesh import TetMesh
+from .mesh import TetMesh, box_mesh
 from .morph import MeshMorph
 from .quality import (
     count_inverted,
@@ -24,6 +24,7 @@ __all__ = [
     "IDW",
     "MeshMorph",
     "TetMesh",
+    "box_mesh",
     "count_inverted",
     "edge_ratio",
     "idw_apply",

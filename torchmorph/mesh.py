@@ -18,7 +18,7 @@ from torch import Tensor
 from torchmorph._checks import as_index, as_points, check_finite
 from torchmorph.quality import _tet_edge_lengths_squared, _tet_volumes
 
-__all__ = ["FLAT_TET_TOLERANCE", "TetMesh"]
+__all__ = ["FLAT_TET_TOLERANCE", "TetMesh", "box_mesh"]
 
 #: A tetrahedron is rejected as flat when ``|V| <= FLAT_TET_TOLERANCE * L**3``,
 #: ``L`` its longest edge. The bound is relative to the element's own size, so
@@ -432,3 +432,57 @@ def _as_node_sets(
         indices = as_index(value, f"node_sets[{key!r}]", size=num_nodes)
         result[key] = torch.unique(indices.to(device), sorted=True)
     return result
+
+
+def box_mesh(
+    cells: int | Sequence[int] = 4,
+    size: float | Sequence[float] = 1.0,
+    *,
+    origin: Sequence[float] = (0.0, 0.0, 0.0),
+) -> TetMesh:
+    """A structured tetrahedral mesh of a box, for examples and tests.
+
+    The box ``origin + [0, size_x] × [0, size_y] × [0, size_z]`` is split into
+    ``cells`` hexahedra per axis, each cut into 6 tetrahedra around its main
+    diagonal (Kuhn split; conforming across cells).
+
+    Parameters
+    ----------
+    cells : int or (3,) ints
+        Number of cells along each axis (>= 1).
+    size : float or (3,) floats
+        Edge lengths of the box (> 0).
+    origin : (3,) floats
+        The corner with the smallest coordinates.
+
+    Returns
+    -------
+    TetMesh
+        ``(nx+1)(ny+1)(nz+1)`` nodes, ``6 nx ny nz`` tetrahedra (float64), with
+        the six faces as node sets ``"x0", "x1", "y0", "y1", "z0", "z1"``.
+    """
+    counts = np.broadcast_to(np.asarray(cells), (3,)).astype(np.int64)
+    lengths = np.broadcast_to(np.asarray(size, dtype=np.float64), (3,))
+    if (counts < 1).any():
+        raise ValueError(f"cells must be >= 1 along every axis, got {tuple(counts)}")
+    if not np.isfinite(lengths).all() or (lengths <= 0).any():
+        raise ValueError(f"size must be finite and > 0 along every axis, got {tuple(lengths)}")
+    nx, ny, nz = (int(c) for c in counts)
+    ticks = [np.arange(n + 1) / n for n in (nx, ny, nz)]
+    grid = np.meshgrid(*ticks, indexing="ij")
+    unit = np.stack([g.ravel() for g in grid], 1)
+    points = np.asarray(origin, dtype=np.float64) + unit * lengths
+    index = np.arange(unit.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
+    corner = {(i, j, k): index[i : nx + i, j : ny + j, k : nz + k].ravel()
+              for i in (0, 1) for j in (0, 1) for k in (0, 1)}
+    paths = (((1, 0, 0), (1, 1, 0)), ((1, 0, 0), (1, 0, 1)), ((0, 1, 0), (1, 1, 0)),
+             ((0, 1, 0), (0, 1, 1)), ((0, 0, 1), (1, 0, 1)), ((0, 0, 1), (0, 1, 1)))
+    tets = np.concatenate([
+        np.stack([corner[(0, 0, 0)], corner[a], corner[b], corner[(1, 1, 1)]], 1)
+        for a, b in paths
+    ])
+    node_sets = {}
+    for axis, name in enumerate("xyz"):
+        node_sets[f"{name}0"] = np.nonzero(unit[:, axis] == 0.0)[0]
+        node_sets[f"{name}1"] = np.nonzero(unit[:, axis] == 1.0)[0]
+    return TetMesh(points, tets, node_sets, name="box")
