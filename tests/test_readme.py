@@ -19,7 +19,7 @@ def test_python_examples_run_as_written(capsys):
     for block in blocks:
         exec(compile(block, "README.md", "exec"), {"__name__": "readme"})  # noqa: S102
     printed = capsys.readouterr().out
-    controls, _, total, _, error = printed.split()[:5]
+    controls, _, total, _, _, error = printed.split()[:6]
     assert int(controls) < int(total) == 386
     assert 0.0 < float(error) < 0.1
 
