@@ -19,10 +19,13 @@ from .quality import (
     signed_volumes,
     validity_barrier,
 )
+from .selection import Region, SelectionPlan, select_control_points
 
 __all__ = [
     "IDW",
     "MeshMorph",
+    "Region",
+    "SelectionPlan",
     "TetMesh",
     "box_mesh",
     "count_inverted",
@@ -34,6 +37,7 @@ __all__ = [
     "quality_summary",
     "read_mesh",
     "relative_l2_error",
+    "select_control_points",
     "signed_volumes",
     "validity_barrier",
     "write_mesh",

@@ -1,0 +1,672 @@
+"""Selection of control points: Algorithm 1 (SIDW) and per-region selection plans.
+
+:func:`select_control_points` implements Algorithm 1 of SPEC.md §2 on a cloud of
+candidate points of any dimension; :class:`SelectionPlan` runs it on named node sets
+of a :class:`~torchmorph.mesh.TetMesh`, each with its own radius ``R`` and factors
+``a``, ``b``, takes the union and adds enrichment node sets (ESIDW, SPEC.md §3).
+
+Definitions used throughout (SPEC.md §2): ``B(c; r)`` is the open ball
+``|x - c| < r`` and ``B(c; r_i, r_e)`` the shell ``r_i <= |x - c| < r_e``, so that a
+point at distance exactly ``R`` of a selected point survives the removal and may be
+selected itself. Consequences kept by the implementation: every candidate lies within
+distance ``R`` of a selected point, and selected points are pairwise at least ``R``
+apart.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import Tensor
+
+from torchmorph._checks import as_index, as_points, check_positive
+
+__all__ = [
+    "DEFAULT_SEED",
+    "STRATEGIES",
+    "Region",
+    "SelectionPlan",
+    "select_control_points",
+]
+
+#: Names accepted by the ``strategy`` argument (the ``SelectControlPoint`` function).
+STRATEGIES = ("random", "centroid", "farthest")
+
+#: Seed of the generator used when ``generator=None``: such calls are reproducible.
+DEFAULT_SEED = 0
+
+# Ball queries on the KD-tree use a radius enlarged by this relative amount; the
+# exact membership tests are then made with the distances computed here, so the
+# tree's own rounding never decides whether a point is in a ball.
+_QUERY_SLACK = 1e-8
+
+# With "farthest", a restart needs each point's distance to the nearest selected
+# point; this many nearest neighbours are looked at, so that near-ties are resolved
+# with the same arithmetic as everywhere else.
+_FARTHEST_NEIGHBOURS = 8
+# ... and the KD-tree over the selected points is rebuilt once more than this many
+# points have been selected since its last build (those are compared by brute force).
+_TAIL_LIMIT = 64
+
+
+# --------------------------------------------------------------------------------------
+# Algorithm 1
+# --------------------------------------------------------------------------------------
+
+
+def select_control_points(
+    points: Tensor | np.ndarray | Sequence,
+    radius: float,
+    *,
+    a: float = 0.8,
+    b: float = 1.3,
+    start: int | None = None,
+    strategy: str = "random",
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Select a uniformly spread subset of ``points`` by Algorithm 1 (SIDW), SPEC.md §2.
+
+    Around the start point ``c1`` the candidates farther than ``R`` from it are split
+    into concentric annuli ``α_1 .. α_n`` of thickness ``a R``; the points of
+    ``B(c1; R)`` are dropped. The annuli are then swept outward: a point is chosen in
+    the selection area ``β`` (first ``α_1 ∩ B(c1; R, bR)``), the ball ``B(c; R)`` of
+    the chosen point ``c`` is removed from every remaining annulus and ``β`` becomes
+    ``α_m ∩ B(c; R, bR)``. When ``β`` is empty the sweep moves on to the next annulus,
+    with ``β = α_{m+1} ∩ B(c_last; R, bR)``, or, if ``α_m`` still holds points that
+    are disconnected from the last choice, restarts inside it with ``β = α_m``.
+
+    Parameters
+    ----------
+    points : Tensor or ndarray, shape (N, D)
+        Candidate points, ``N >= 1``, any dimension ``D >= 1`` (the paper's
+        illustration is 2-D, meshes are 3-D). Computations run in float64 on the CPU.
+    radius : float
+        Selection radius ``R > 0``: the radius of each selected point's area of
+        influence.
+    a : float, default 0.8
+        Annulus thickness factor, ``0 < a < 1``.
+    b : float, default 1.3
+        Selection-shell factor, ``b > 1``: the next point is sought in
+        ``B(c; R, bR)`` around the last one.
+    start : int, optional
+        Index of the start point ``c1``. ``None`` draws it uniformly from
+        ``generator``.
+    strategy : {"random", "centroid", "farthest"}, default "random"
+        ``SelectControlPoint``: ``"random"`` picks uniformly in ``β`` (the paper's
+        choice); ``"centroid"`` the point of ``β`` closest to ``β``'s centroid;
+        ``"farthest"`` the point of ``β`` whose distance to the nearest selected point
+        is largest. Ties go to the lowest index.
+    generator : torch.Generator, optional
+        CPU generator for the start point and the ``"random"`` strategy. ``None`` uses
+        a fresh generator seeded with :data:`DEFAULT_SEED`, so repeated calls return
+        the same selection; pass a generator to draw different ones.
+
+    Returns
+    -------
+    Tensor, shape (N_sel,), int64
+        Indices into ``points`` in the order of selection; the first is ``c1``. On the
+        device of ``points`` when it is a tensor, else on the CPU.
+
+    Raises
+    ------
+    ValueError
+        For points that are not a non-empty finite (N, D) array, ``radius`` not finite
+        and > 0, ``a`` outside (0, 1), ``b`` not finite and > 1, ``start`` out of
+        range, an unknown ``strategy`` or a generator that is not on the CPU.
+
+    Notes
+    -----
+    Every candidate ends within distance ``R`` of a selected point and the selected
+    points are pairwise at least ``R`` apart. The cost is ``O(N log N)`` for the
+    KD-tree plus, per selected point, one ball query of radius ``bR``; ``β`` is never
+    found by scanning all points (only a restart inside a disconnected annulus scans
+    that annulus). Coincident candidates are allowed: at most one of them is
+    selected.
+    """
+    array, device = _points_array(points)
+    selection_radius = check_positive(radius, "radius")
+    thickness = _check_factor(a, "a", low=0.0, high=1.0)
+    shell_factor = _check_factor(b, "b", low=1.0, high=np.inf)
+    _check_strategy(strategy)
+    generator = _check_generator(generator)
+    start_index = _check_start(start, array.shape[0], generator)
+    selected = _sidw(array, start_index, selection_radius, thickness, shell_factor,
+                     strategy, generator)
+    return torch.as_tensor(np.asarray(selected, dtype=np.int64), device=device)
+
+
+def _sidw(
+    points: np.ndarray,
+    start: int,
+    radius: float,
+    a: float,
+    b: float,
+    strategy: str,
+    generator: torch.Generator,
+) -> list[int]:
+    """Algorithm 1 on a float64 (N, D) array; returns the selected indices."""
+    count = points.shape[0]
+    outer = b * radius
+    step = a * radius
+
+    # Initialisation: annulus of every point (0 = inside B(c1; R), dropped). Annuli
+    # that hold no point are skipped, which the algorithm does anyway (an empty α_m
+    # gives an empty β and the sweep moves on with the same last point), so they are
+    # numbered densely here: annulus[i] in 0..n_annuli-1, -1 for dropped points.
+    distance_to_start = _distances(points, points[start])
+    annulus, n_annuli = _dense_annuli(_annulus_index(distance_to_start, radius, step))
+    alive = annulus >= 0
+    remaining = np.bincount(annulus[alive], minlength=n_annuli)  # |α_m|
+    members_of: list[np.ndarray] = []  # by_annulus, annulus_start; built at the first restart
+
+    tree = cKDTree(points, balanced_tree=False)
+    query_radius = outer * (1.0 + _QUERY_SLACK)
+    farthest = strategy == "farthest"
+    # distance to the nearest selected point, exact wherever it is < bR (else inf)
+    nearest_selected = np.full(count, np.inf) if farthest else None
+    nearest_distance = _NearestSelected(points)
+
+    def visit(center: int) -> np.ndarray:
+        """Remove B(c; R) from the annuli; return the live points of B(c; R, bR), sorted."""
+        ball = np.asarray(tree.query_ball_point(points[center], query_radius), dtype=np.int64)
+        distance = _distances(points[ball], points[center])
+        inside = distance < outer
+        ball, distance = ball[inside], distance[inside]
+        if farthest:
+            nearest_selected[ball] = np.minimum(nearest_selected[ball], distance)
+        live = alive[ball]
+        near = distance < radius
+        removed = ball[live & near]
+        if removed.size:
+            alive[removed] = False
+            np.subtract.at(remaining, annulus[removed], 1)
+        return np.sort(ball[live & ~near])
+
+    def restart_members(m: int) -> np.ndarray:
+        """The live points of α_m, sorted."""
+        if not members_of:
+            order = np.argsort(annulus.astype(_small_int_dtype(n_annuli)), kind="stable")
+            members_of.extend([order, np.searchsorted(annulus[order], np.arange(n_annuli + 1))])
+        order, offsets = members_of
+        members = order[offsets[m]:offsets[m + 1]]
+        return members[alive[members]]
+
+    def choose(beta: np.ndarray, selected: list[int]) -> int:
+        if strategy == "random":
+            return int(beta[int(torch.randint(beta.size, (1,), generator=generator))])
+        if strategy == "centroid":
+            members = points[beta]
+            return int(beta[np.argmin(_distances(members, members.mean(axis=0)))])
+        gap = nearest_selected[beta]
+        unknown = np.isinf(gap)
+        if unknown.any():  # only after a restart: no selected point within bR
+            gap = gap.copy()
+            gap[unknown] = nearest_distance(points[beta[unknown]], selected)
+        return int(beta[np.argmax(gap)])
+
+    selected = [start]
+    shell = visit(start)
+    m = 0
+    while m < n_annuli and remaining[m] == 0:
+        m += 1
+    if m < n_annuli:
+        beta = shell[annulus[shell] == m]
+    while m < n_annuli:
+        while beta.size:
+            center = choose(beta, selected)
+            selected.append(center)
+            shell = visit(center)
+            beta = shell[annulus[shell] == m]
+        if remaining[m] == 0:
+            # next non-empty annulus, β around the last selected point (unchanged
+            # since its visit: nothing has been removed in between)
+            m += 1
+            while m < n_annuli and remaining[m] == 0:
+                m += 1
+            if m < n_annuli:
+                beta = shell[annulus[shell] == m]
+        else:
+            # α_m is disconnected from the last choice: restart inside it
+            beta = restart_members(m)
+    return selected
+
+
+def _distances(points: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """Euclidean distances |points - center| over the last axis."""
+    return np.sqrt(_squared_norm(points - center))
+
+
+def _squared_norm(diff: np.ndarray) -> np.ndarray:
+    """``(diff ** 2).sum(axis=-1)``, bit for bit, only faster.
+
+    For fewer than 8 columns NumPy sums them in order, as this loop does; a
+    reduction over a short last axis is several times slower than the loop.
+    """
+    if diff.shape[-1] >= 8:
+        return (diff**2).sum(axis=-1)
+    squared = diff[..., 0] ** 2
+    for column in range(1, diff.shape[-1]):
+        squared += diff[..., column] ** 2
+    return squared
+
+
+def _annulus_index(distance: np.ndarray, radius: float, step: float) -> np.ndarray:
+    """Annulus number k >= 1 with R + (k-1) aR <= d < R + k aR; 0 for d < R.
+
+    The edges are ``radius + k * step`` evaluated in float64, and the index is made
+    consistent with those comparisons (the floor of the quotient alone can be off by
+    one through rounding).
+    """
+    index = np.floor((distance - radius) / step)
+    index = np.maximum(index, 0.0)
+    for _ in range(2):
+        index -= (index > 0) & (distance < radius + index * step)
+        index += distance >= radius + (index + 1.0) * step
+    index = index.astype(np.int64) + 1
+    index[distance < radius] = 0
+    return index
+
+
+def _dense_annuli(raw: np.ndarray) -> tuple[np.ndarray, int]:
+    """Renumber the non-empty annuli 0, 1, ... in order; dropped points (raw 0) get -1."""
+    inside = raw > 0
+    if raw.size and int(raw.max()) <= 4 * raw.size:
+        occupied = np.bincount(raw[inside], minlength=int(raw.max()) + 1) > 0
+        dense = np.cumsum(occupied) - 1
+        return np.where(inside, dense[raw], -1), int(occupied.sum())
+    annulus = np.full(raw.size, -1, dtype=np.int64)
+    occupied, annulus[inside] = np.unique(raw[inside], return_inverse=True)
+    return annulus, int(occupied.size)
+
+
+def _small_int_dtype(count: int) -> type:
+    """Narrowest signed integer type holding -1..count (a faster stable sort)."""
+    return np.int16 if count < 2**15 else np.int32 if count < 2**31 else np.int64
+
+
+class _NearestSelected:
+    """Distance from query points to the nearest selected point.
+
+    A KD-tree over the selected points is rebuilt only when more than
+    ``_TAIL_LIMIT`` points have been selected since the last build; those are
+    compared by brute force. Distances are recomputed here from the
+    ``_FARTHEST_NEIGHBOURS`` nearest candidates so that near-ties are settled by the
+    same arithmetic as in the rest of the selection.
+    """
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = points
+        self.built = 0
+        self.tree: cKDTree | None = None
+
+    def __call__(self, queries: np.ndarray, selected: list[int]) -> np.ndarray:
+        if len(selected) - self.built > _TAIL_LIMIT:
+            self.built = len(selected)
+            self.tree = cKDTree(self.points[np.asarray(selected)], balanced_tree=False)
+        tail = self.points[np.asarray(selected[self.built:], dtype=np.int64)]
+        if self.tree is not None:
+            neighbours = min(_FARTHEST_NEIGHBOURS, self.built)
+            _, index = self.tree.query(queries, k=neighbours)
+            candidates = np.concatenate(
+                [self.tree.data[index.reshape(queries.shape[0], neighbours)],
+                 np.broadcast_to(tail, (queries.shape[0],) + tail.shape)], axis=1)
+        else:
+            candidates = np.broadcast_to(tail, (queries.shape[0],) + tail.shape)
+        return np.sqrt(_squared_norm(queries[:, None, :] - candidates).min(axis=1))
+
+
+# --------------------------------------------------------------------------------------
+# argument checks
+# --------------------------------------------------------------------------------------
+
+
+def _points_array(points: Any) -> tuple[np.ndarray, torch.device]:
+    """Validate ``points`` (N, D) and return it as a float64 array and its device."""
+    device = points.device if isinstance(points, Tensor) else torch.device("cpu")
+    shape = tuple(points.shape) if hasattr(points, "shape") else np.shape(points)
+    if len(shape) != 2 or shape[1] < 1:
+        raise ValueError(f"points must have shape (N, D) with D >= 1, got {shape}")
+    checked = as_points(points, "points", dim=shape[1])
+    return checked.detach().to("cpu", torch.float64).numpy(), device
+
+
+def _check_factor(value: float, name: str, *, low: float, high: float) -> float:
+    number = float(value)
+    if not (np.isfinite(number) and low < number < high):
+        bounds = f"0 < {name} < 1" if high == 1.0 else f"{name} > 1 (finite)"
+        raise ValueError(f"{name} must satisfy {bounds}, got {value!r}")
+    return number
+
+
+def _check_strategy(strategy: str) -> None:
+    if strategy not in STRATEGIES:
+        raise ValueError(f"strategy must be one of {', '.join(STRATEGIES)}; got {strategy!r}")
+
+
+def _check_generator(generator: torch.Generator | None) -> torch.Generator:
+    if generator is None:
+        return torch.Generator().manual_seed(DEFAULT_SEED)
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator or None, got {type(generator)}")
+    if generator.device.type != "cpu":
+        raise ValueError(f"generator must be a CPU generator, got one on {generator.device}")
+    return generator
+
+
+def _check_start(start: int | None, count: int, generator: torch.Generator) -> int:
+    if start is None:
+        return int(torch.randint(count, (1,), generator=generator))
+    if isinstance(start, Tensor):
+        if start.numel() != 1 or start.is_floating_point() or start.dtype == torch.bool:
+            raise TypeError(f"start must be an integer index, got {start!r}")
+        start = int(start)
+    if isinstance(start, (bool, np.bool_)) or not isinstance(start, (int, np.integer)):
+        raise TypeError(f"start must be an integer index or None, got {start!r}")
+    if not 0 <= int(start) < count:
+        raise ValueError(f"start must lie in [0, {count}) for {count} points, got {start}")
+    return int(start)
+
+
+# --------------------------------------------------------------------------------------
+# regions and plans
+# --------------------------------------------------------------------------------------
+
+_OVERLAP = ("error", "first", "share")
+_UNCOVERED = ("error", "ignore")
+
+
+@dataclass(frozen=True)
+class Region:
+    """Node sets selected together with one set of Algorithm-1 parameters.
+
+    Parameters
+    ----------
+    nodes : str or tuple of str
+        Name(s) of mesh node sets (``TetMesh.node_set``); their union is the region.
+    radius : float
+        Selection radius ``R > 0``.
+    a : float, default 0.8
+        Annulus thickness factor, ``0 < a < 1``.
+    b : float, default 1.3
+        Selection-shell factor, ``b > 1``.
+    """
+
+    nodes: str | tuple[str, ...]
+    radius: float
+    a: float = 0.8
+    b: float = 1.3
+
+    def __post_init__(self) -> None:
+        nodes = self.nodes
+        if isinstance(nodes, str):
+            names: tuple[str, ...] = (nodes,)
+        elif isinstance(nodes, Sequence):
+            names = tuple(nodes)
+        else:
+            raise TypeError(f"nodes must be a node-set name or a sequence of names, got {nodes!r}")
+        if not names or not all(isinstance(name, str) and name for name in names):
+            raise ValueError(f"nodes must name at least one node set, got {nodes!r}")
+        object.__setattr__(self, "nodes", nodes if isinstance(nodes, str) else names)
+        object.__setattr__(self, "radius", check_positive(self.radius, "radius"))
+        object.__setattr__(self, "a", _check_factor(self.a, "a", low=0.0, high=1.0))
+        object.__setattr__(self, "b", _check_factor(self.b, "b", low=1.0, high=np.inf))
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The node-set names, always as a tuple."""
+        return (self.nodes,) if isinstance(self.nodes, str) else self.nodes
+
+    @property
+    def label(self) -> str:
+        """A readable name for messages: the node-set names joined by '+'."""
+        return "+".join(self.names)
+
+    @property
+    def parameters(self) -> tuple[float, float, float]:
+        """``(radius, a, b)``."""
+        return (self.radius, self.a, self.b)
+
+
+def _as_region(key: Any, value: Any) -> Region:
+    nodes = key if isinstance(key, str) else tuple(key)
+    if isinstance(value, Region):
+        raise TypeError(f"regions[{key!r}]: give a radius or (radius, a, b), not a Region")
+    if isinstance(value, Mapping):
+        return Region(nodes, **value)
+    if isinstance(value, (tuple, list)):
+        if not 1 <= len(value) <= 3:
+            raise ValueError(
+                f"regions[{key!r}] must be radius or (radius[, a[, b]]), got {value!r}"
+            )
+        return Region(nodes, *value)
+    return Region(nodes, value)
+
+
+@dataclass
+class SelectionPlan:
+    """Per-region control-point selection with enrichment (SPEC.md §2 regions, §3 ESIDW).
+
+    Parameters
+    ----------
+    regions : sequence of Region, or mapping
+        The regions, in priority order. A mapping is shorthand: its keys are node-set
+        names (or tuples of names) and its values a radius, ``(radius, a, b)`` (a
+        shorter tuple keeps the remaining defaults) or a dict of ``Region`` keywords,
+        e.g. ``{"root": 0.05, "tip": 0.05, "upper": 0.5, "lower": 0.5}``.
+    enrich : sequence of str, default ()
+        Node sets whose nodes are always control points (ESIDW), e.g. the end profiles
+        and leading/trailing edges of a wing, or nodes held fixed.
+    strategy : {"random", "centroid", "farthest"}, default "random"
+        ``SelectControlPoint`` used in every region (see :func:`select_control_points`).
+    overlap : {"error", "first", "share"}, default "error"
+        Nodes listed by several regions. With ``"error"``, regions with different
+        ``(radius, a, b)`` must not share nodes (``ValueError`` naming both); a node
+        shared by regions with equal parameters goes to the first of them. With
+        ``"first"`` every shared node goes to the first region listing it. With
+        ``"share"`` every region keeps all its nodes: each runs Algorithm 1 on its full
+        node set and a shared node may be chosen by several regions.
+    uncovered : {"error", "ignore"}, default "error"
+        Candidate nodes in no region and no enrichment set. ``"error"`` raises
+        ``ValueError``; ``"ignore"`` leaves them out: they are never selected, and no
+        selected point is guaranteed within any distance of them (e.g. a far wall
+        deliberately left out of the controls).
+
+    Notes
+    -----
+    The candidates are the mesh's boundary nodes unless ``candidates`` is given to
+    :meth:`select`; region and enrichment nodes must be candidates (Algorithm 2 draws
+    its controls from the boundary and interpolates only the interior). Regions run
+    in order, each drawing its start point (and, with ``"random"``, its choices) from
+    the same generator. An empty region (e.g. all of its nodes taken by an earlier
+    region under ``"first"``) selects nothing. After construction ``regions`` is a
+    tuple of :class:`Region` and ``enrich`` a tuple of names.
+    """
+
+    regions: Sequence[Region] | Mapping[Any, Any]
+    enrich: Sequence[str] = ()
+    strategy: str = "random"
+    overlap: str = "error"
+    uncovered: str = "error"
+
+    def __post_init__(self) -> None:
+        regions = self.regions
+        if isinstance(regions, Mapping):
+            regions = tuple(_as_region(key, value) for key, value in regions.items())
+        elif isinstance(regions, Region):
+            regions = (regions,)
+        elif isinstance(regions, Sequence) and not isinstance(regions, str):
+            regions = tuple(regions)
+            for position, region in enumerate(regions):
+                if not isinstance(region, Region):
+                    raise TypeError(
+                        f"regions[{position}] must be a Region, got {type(region).__name__}"
+                    )
+        else:
+            raise TypeError(
+                f"regions must be a sequence of Region or a mapping, got {type(regions).__name__}"
+            )
+        self.regions = regions
+        enrich = (self.enrich,) if isinstance(self.enrich, str) else tuple(self.enrich)
+        if not all(isinstance(name, str) and name for name in enrich):
+            raise ValueError(f"enrich must be a sequence of node-set names, got {self.enrich!r}")
+        self.enrich = enrich
+        _check_strategy(self.strategy)
+        if self.overlap not in _OVERLAP:
+            raise ValueError(f"overlap must be one of {', '.join(_OVERLAP)}; got {self.overlap!r}")
+        if self.uncovered not in _UNCOVERED:
+            raise ValueError(
+                f"uncovered must be one of {', '.join(_UNCOVERED)}; got {self.uncovered!r}"
+            )
+
+    def region_nodes(self, mesh: Any, *, candidates: Any = None) -> list[Tensor]:
+        """Global node ids each region selects from, after resolving overlaps.
+
+        Parameters
+        ----------
+        mesh : TetMesh
+            Needs ``points``, ``boundary_nodes`` and ``node_set(name)``.
+        candidates : Tensor or array of int, optional
+            Global ids of the nodes that may be control points; default
+            ``mesh.boundary_nodes``.
+
+        Returns
+        -------
+        list of Tensor (int64, sorted unique)
+            One per region, in the order of ``self.regions``, on the CPU.
+
+        Raises
+        ------
+        ValueError
+            Unknown node-set names (listing the known ones), region or enrichment nodes
+            that are not candidates, conflicting overlaps under ``overlap="error"``, or
+            uncovered candidates under ``uncovered="error"``.
+        """
+        return self._resolve(mesh, candidates)[0]
+
+    def select(
+        self,
+        mesh: Any,
+        *,
+        generator: torch.Generator | None = None,
+        candidates: Any = None,
+    ) -> Tensor:
+        """Run Algorithm 1 on every region, take the union and add the enrichment sets.
+
+        Parameters
+        ----------
+        mesh : TetMesh
+            Needs ``points``, ``boundary_nodes`` and ``node_set(name)``.
+        generator : torch.Generator, optional
+            CPU generator for start points and random choices; ``None`` uses a fresh
+            generator seeded with :data:`DEFAULT_SEED` (reproducible).
+        candidates : Tensor or array of int, optional
+            Global ids of the nodes that may be control points; default
+            ``mesh.boundary_nodes``.
+
+        Returns
+        -------
+        Tensor, shape (N_sel,), int64
+            Sorted unique global node ids of the control points, on the device of
+            ``mesh.points``.
+
+        Raises
+        ------
+        ValueError
+            As :meth:`region_nodes`, or for a generator that is not on the CPU.
+        """
+        generator = _check_generator(generator)
+        per_region, enriched, points = self._resolve(mesh, candidates)
+        chosen = [enriched]
+        for region, nodes in zip(self.regions, per_region, strict=True):
+            if nodes.numel() == 0:
+                continue
+            node_ids = nodes.numpy()
+            local = select_control_points(
+                points[node_ids], region.radius, a=region.a, b=region.b,
+                strategy=self.strategy, generator=generator,
+            )
+            chosen.append(node_ids[local.numpy()])
+        control_nodes = np.unique(np.concatenate(chosen))
+        return torch.as_tensor(control_nodes, dtype=torch.int64, device=mesh.points.device)
+
+    def _resolve(
+        self, mesh: Any, candidates: Any
+    ) -> tuple[list[Tensor], np.ndarray, np.ndarray]:
+        """Region node ids (after overlap rules), enrichment ids and the points array."""
+        points = mesh.points
+        points = (points.detach().to("cpu", torch.float64).numpy() if isinstance(points, Tensor)
+                  else np.asarray(points, dtype=np.float64))
+        num_nodes = points.shape[0]
+        if candidates is None:
+            candidate_ids = _id_array(mesh.boundary_nodes)
+            what = "boundary nodes"
+        else:
+            candidate_ids = as_index(candidates, "candidates", size=num_nodes).cpu().numpy()
+            what = "candidates"
+        is_candidate = np.zeros(num_nodes, dtype=bool)
+        is_candidate[candidate_ids] = True
+
+        def nodes_of(name: str, role: str) -> np.ndarray:
+            ids = _id_array(mesh.node_set(name))
+            outside = ids[~is_candidate[ids]]
+            if outside.size:
+                raise ValueError(
+                    f"{role} node set {name!r} holds {outside.size} node(s) that are not "
+                    f"{what} (e.g. node {int(outside[0])}); control points are drawn from "
+                    f"the {what} only"
+                )
+            return ids
+
+        region_ids = [
+            np.unique(np.concatenate([nodes_of(name, "region") for name in region.names]))
+            for region in self.regions
+        ]
+        enrich_ids = [nodes_of(name, "enrichment") for name in self.enrich]
+        enriched = (np.unique(np.concatenate(enrich_ids)) if enrich_ids
+                    else np.zeros(0, dtype=np.int64))
+
+        if self.overlap != "share":
+            owner = np.full(num_nodes, -1, dtype=np.int64)
+            for position, ids in enumerate(region_ids):
+                taken = owner[ids]
+                shared = taken >= 0
+                if self.overlap == "error":
+                    for other in np.unique(taken[shared]):
+                        first, second = self.regions[other], self.regions[position]
+                        if first.parameters != second.parameters:
+                            count = int((taken == other).sum())
+                            raise ValueError(
+                                f"regions {first.label!r} (R={first.radius:g}, a={first.a:g}, "
+                                f"b={first.b:g}) and {second.label!r} (R={second.radius:g}, "
+                                f"a={second.a:g}, b={second.b:g}) share {count} node(s) but "
+                                "have different parameters; pass overlap='first' (a shared "
+                                "node goes to the first region listing it) or overlap='share' "
+                                "(each region keeps all its nodes)"
+                            )
+                owner[ids[~shared]] = position
+                region_ids[position] = ids[~shared]
+
+        if self.uncovered == "error":
+            covered = np.zeros(num_nodes, dtype=bool)
+            for ids in region_ids:
+                covered[ids] = True
+            covered[enriched] = True
+            missing = candidate_ids[~covered[candidate_ids]]
+            if missing.size:
+                raise ValueError(
+                    f"{missing.size} of the {candidate_ids.size} {what} are in no region and "
+                    f"no enrichment set (e.g. node {int(missing[0])}); add them to a region, "
+                    "enrich them, or pass uncovered='ignore' to leave them out of the selection"
+                )
+        return [torch.from_numpy(ids) for ids in region_ids], enriched, points
+
+
+def _id_array(ids: Any) -> np.ndarray:
+    if isinstance(ids, Tensor):
+        ids = ids.detach().cpu().numpy()
+    return np.asarray(ids, dtype=np.int64).reshape(-1)
