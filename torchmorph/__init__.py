@@ -9,6 +9,7 @@ from .idw import IDW, idw_apply, idw_weights
 from .io import read_mesh, write_mesh
 from .mesh import TetMesh, box_mesh
 from .morph import MeshMorph
+from .pod import PODReducer
 from .quality import (
     count_inverted,
     edge_ratio,
@@ -24,6 +25,7 @@ from .selection import Region, SelectionPlan, select_control_points
 __all__ = [
     "IDW",
     "MeshMorph",
+    "PODReducer",
     "Region",
     "SelectionPlan",
     "TetMesh",
