@@ -1,0 +1,50 @@
+"""Command-line plumbing shared by the demo scripts (not part of the library)."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+
+import torch
+
+from torchmorph.paper import CaseResult, get_case, reproduce
+
+__all__ = ["case_main", "set_threads"]
+
+
+def set_threads(threads: int | None) -> None:
+    """Use ``threads`` intra-op threads in torch (None: torch's default)."""
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+
+
+def case_main(case: str, argv: Sequence[str] | None = None) -> CaseResult:
+    """Parse the demo options and run :func:`torchmorph.paper.reproduce` for ``case``."""
+    spec = get_case(case)
+    parser = argparse.ArgumentParser(
+        description=f"Reproduce case {spec.letter} of the paper: {spec.title} "
+                    f"(Tables {spec.mesh_table} and {spec.results_table}).",
+    )
+    parser.add_argument("--size", choices=("small", "paper"), default="paper",
+                        help="mesh size: 'paper' (near the paper's node counts, default) or "
+                             "'small' (seconds)")
+    parser.add_argument("--out", default=f"out/{spec.key}",
+                        help="output directory for VTU meshes, the PNG and results.json "
+                             "(default: %(default)s); '' writes nothing")
+    parser.add_argument("--mesher", choices=("gmsh", "pytetwild"), default="gmsh",
+                        help="mesh generator (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the control-point selection and the POD training set")
+    parser.add_argument("--repeats", type=int, default=5,
+                        help="timed repeats of each online morph (median; default %(default)s)")
+    parser.add_argument("--online", choices=("projection", "paper"), default="projection",
+                        help="POD online coefficients: orthogonal projection (default) or the "
+                             "paper's eq. 16 (needs W's pseudo-inverse: slow offline)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch intra-op threads (default: torch's choice)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars or tables")
+    args = parser.parse_args(argv)
+    set_threads(args.threads)
+    return reproduce(spec.key, size=args.size, out=args.out or None, mesher=args.mesher,
+                     seed=args.seed, verbose=not args.quiet, repeats=args.repeats,
+                     online=args.online)
