@@ -7,6 +7,7 @@ traceback knows which input was wrong and how.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -20,6 +21,8 @@ __all__ = [
     "check_positive",
     "check_same_device_dtype",
     "check_vectors",
+    "is_traced",
+    "plain_tensor",
 ]
 
 
@@ -91,10 +94,51 @@ def as_index(value: Tensor | np.ndarray | Sequence, name: str, *, size: int | No
     return value
 
 
+def plain_tensor(value: Tensor) -> tuple[Tensor, bool]:
+    """The plain tensor under ``torch.func`` wrappers, and whether one of them is a
+    ``vmap`` batch.
+
+    A batched tensor's plain tensor holds the whole batch (an extra dimension);
+    ``grad``/``jacrev``/``jvp`` wrappers hold the primal value. A plain ``value`` is
+    returned as is, with False.
+    """
+    functorch = getattr(torch._C, "_functorch", None)
+    batched = False
+    if functorch is None:
+        return value, batched
+    while functorch.is_functorch_wrapped_tensor(value):
+        batched = batched or bool(functorch.is_batchedtensor(value))
+        value = functorch.get_unwrapped(value)
+    return value, batched
+
+
+def is_traced(value: Tensor | None = None) -> bool:
+    """Whether the caller runs under ``torch.compile`` tracing, or ``value`` is a
+    functorch-wrapped tensor (inside ``vmap``, ``grad``, ``jacrev``, ``jacfwd``).
+
+    Code on a hot path uses this to avoid data-dependent Python control flow
+    (``bool(tensor)``), which vmap cannot batch and which breaks a compiled graph.
+    """
+    if torch.compiler.is_compiling():
+        return True
+    if value is None:
+        return False
+    functorch = getattr(torch._C, "_functorch", None)
+    return functorch is not None and functorch.is_functorch_wrapped_tensor(value)
+
+
 def check_finite(value: Tensor, name: str) -> None:
-    """Raise ``ValueError`` if ``value`` holds NaN or infinite entries."""
+    """Raise ``ValueError`` if ``value`` holds NaN or infinite entries.
+
+    Inside ``torch.func`` transforms the check runs on the underlying plain tensor
+    (for ``vmap`` the whole batch), so NaN inputs are still reported. Under
+    ``torch.compile`` tracing the check is skipped: it would need the tensor's values
+    in Python and break the graph; NaN inputs then give NaN outputs.
+    """
+    if torch.compiler.is_compiling():
+        return
     if value.is_floating_point() and value.numel() > 0:
-        finite = torch.isfinite(value.detach())
+        finite = torch.isfinite(plain_tensor(value)[0].detach())
         if not bool(finite.all()):
             bad = int((~finite).sum())
             raise ValueError(f"{name} holds {bad} NaN or infinite value(s)")
@@ -103,7 +147,7 @@ def check_finite(value: Tensor, name: str) -> None:
 def check_positive(value: float, name: str) -> float:
     """Return ``value`` as float if it is finite and > 0, else raise ``ValueError``."""
     number = float(value)
-    if not np.isfinite(number) or number <= 0.0:
+    if not math.isfinite(number) or number <= 0.0:
         raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
     return number
 

@@ -72,6 +72,11 @@ class MeshMorph(nn.Module):
     -----
     Does not check the morphed mesh for inverted tetrahedra on its own: call
     :meth:`count_inverted` (or :func:`torchmorph.quality.count_inverted`).
+
+    :meth:`forward` is differentiable with respect to the boundary displacement
+    and to ``points``, works under ``torch.func`` transforms (``vmap`` over a
+    parameter, ``jacrev``/``jacfwd`` with respect to it) and, with a dense W, under
+    ``torch.compile(fullgraph=True)``; see :class:`~torchmorph.idw.IDW`.
     """
 
     def __init__(

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_same_device_dtype
+from ._checks import check_finite, check_same_device_dtype, is_traced
 from .idw import IDW
 from .mesh import TetMesh
 from .morph import MeshMorph
@@ -762,7 +762,10 @@ class PODReducer(nn.Module):
             product(beta, basis, out=out.view(batch, -1))
             field = out
         if self.kind_ == "mesh":
-            field.index_copy_(1, self.boundary_nodes_, displacement)
+            if is_traced(field):  # vmap has no batching rule for the in-place index_copy_
+                field = field.index_copy(1, self.boundary_nodes_, displacement)
+            else:
+                field.index_copy_(1, self.boundary_nodes_, displacement)
         return field
 
     def _expand_by_runs(self, beta: Tensor, displacement: Tensor, out: Tensor | None) -> Tensor:
@@ -819,7 +822,10 @@ class PODReducer(nn.Module):
             out = self._check_out(out, displacement)
             out = out if batched else out.unsqueeze(0)
         beta = self._coefficients(inputs)
-        if self._runs is not None and not (torch.is_grad_enabled() and beta.requires_grad):
+        # the slice copies write into out= tensors: not for autograd, vmap, jvp or compile
+        slices = self._runs is not None and not is_traced(beta) and not (
+            torch.is_grad_enabled() and beta.requires_grad)
+        if slices:
             result = self._expand_by_runs(beta, inputs, out)
         else:
             result = self._expand(beta, inputs, out)
