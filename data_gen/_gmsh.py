@@ -1,0 +1,262 @@
+"""Meshing with gmsh's OpenCASCADE kernel (the default mesher).
+
+The wing is the NACA0012 profile as two interpolating splines (upper and lower
+side, tangent-continuous at the leading edge, meeting at a sharp trailing
+edge) extruded along z; the tunnel is a box with the wing cut out. The Wigley
+hull is exact: each side, ``z = ±(B/2) g(x) h(y)`` with g and h quadratic, is a
+bi-quadratic Bézier patch (3 × 3 control points, all zero in z but the middle
+one, 2B). Node sets come from the gmsh surfaces each node lies on.
+
+Meshing is deterministic: one thread, a fixed ``Mesh.RandomSeed``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+import numpy as np
+
+from data_gen._arrays import compact
+from data_gen.geometry import (
+    BOX_WALLS,
+    CHORD,
+    HULL_BEAM,
+    HULL_BOX_BOUNDS,
+    HULL_DRAFT,
+    HULL_LENGTH,
+    SPAN,
+    TUNNEL_BOUNDS,
+    naca_half_thickness,
+    naca_profile,
+)
+
+__all__ = ["mesh_fluid_wing", "mesh_hull", "mesh_wing"]
+
+_FLAT = 1e-5  # a surface whose bounding box is thinner than this [m] is planar (OCC pads by 1e-7)
+
+
+@contextlib.contextmanager
+def _session(name: str, *, seed: int, verbose: bool) -> Iterator[object]:
+    """A fresh gmsh model with deterministic settings; gmsh is finalised after
+    use unless it was initialised by the caller."""
+    import gmsh
+
+    started = not gmsh.isInitialized()
+    if started:
+        gmsh.initialize(readConfigFiles=False, interruptible=False)
+    try:
+        gmsh.model.add(name)
+        gmsh.option.setNumber("General.Terminal", 1 if verbose else 0)
+        gmsh.option.setNumber("General.Verbosity", 5 if verbose else 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.option.setNumber("Mesh.RandomSeed", seed)
+        yield gmsh
+    finally:
+        if started:
+            gmsh.finalize()
+        else:
+            with contextlib.suppress(Exception):
+                gmsh.model.remove()
+
+
+def _profile_splines(occ, num_points: int) -> int:
+    """The wing's profile face in the plane z = 0; returns its surface tag."""
+    x, y = naca_profile(num_points)
+    upper = [occ.addPoint(float(a), float(b), 0.0) for a, b in zip(x[::-1], y[::-1])]  # TE -> LE
+    leading, trailing = upper[-1], upper[0]
+    lower = [leading]
+    lower += [occ.addPoint(float(a), float(-b), 0.0) for a, b in zip(x[1:-1], y[1:-1])]
+    lower.append(trailing)
+    # end tangents: vertical at the leading edge (G1 there), along the sides at the sharp TE
+    h = 1e-6 * CHORD
+    slope = float((naca_half_thickness(CHORD) - naca_half_thickness(CHORD - h)) / h)
+    upper_curve = occ.addSpline(upper, tangents=[-1.0, -slope, 0.0, 0.0, -1.0, 0.0])
+    lower_curve = occ.addSpline(lower, tangents=[0.0, -1.0, 0.0, 1.0, -slope, 0.0])
+    loop = occ.addCurveLoop([upper_curve, lower_curve])
+    face = occ.addPlaneSurface([loop])
+    # the interpolation points are free vertices now: remove them
+    occ.remove([(0, tag) for tag in upper[1:-1] + lower[1:-1]])
+    return face
+
+
+def _wing_volume(occ, num_points: int) -> int:
+    face = _profile_splines(occ, num_points)
+    extruded = occ.extrude([(2, face)], 0.0, 0.0, SPAN)
+    return next(tag for dim, tag in extruded if dim == 3)
+
+
+def _classify_surfaces(gmsh, bounds, body: str) -> dict[str, list[int]]:
+    """Name every surface: box walls by plane, end faces by z, sides by centre."""
+    names: dict[str, list[int]] = {}
+    for _, tag in gmsh.model.getEntities(2):
+        lo = gmsh.model.getBoundingBox(2, tag)
+        box = (lo[:3], lo[3:])
+        name = None
+        if bounds is not None:
+            for wall, axis, side in BOX_WALLS:
+                if (
+                    box[1][axis] - box[0][axis] < _FLAT
+                    and abs(box[0][axis] - bounds[side][axis]) < _FLAT
+                ):
+                    name = wall
+        if name is None:
+            centre = gmsh.model.occ.getCenterOfMass(2, tag)
+            if body == "wing":
+                if box[1][2] - box[0][2] < _FLAT:
+                    name = "root" if centre[2] < SPAN / 2 else "tip"
+                else:
+                    name = "upper" if centre[1] > 0 else "lower"
+            else:
+                name = "starboard" if centre[2] > 0 else "port"
+        names.setdefault(name, []).append(tag)
+    return names
+
+
+def _threshold(
+    field, surfaces: list[int], size_min: float, size_max: float, distance: float
+) -> int:
+    dist = field.add("Distance")
+    field.setNumbers(dist, "SurfacesList", surfaces)
+    field.setNumber(dist, "Sampling", 100)
+    threshold = field.add("Threshold")
+    field.setNumber(threshold, "InField", dist)
+    field.setNumber(threshold, "SizeMin", size_min)
+    field.setNumber(threshold, "SizeMax", size_max)
+    field.setNumber(threshold, "DistMin", 0.0)
+    field.setNumber(threshold, "DistMax", distance)
+    return threshold
+
+
+def _mesh_and_collect(gmsh, names: dict[str, list[int]], *, algorithm: int, optimize: str):
+    gmsh.option.setNumber("Mesh.Algorithm3D", algorithm)
+    gmsh.model.mesh.generate(3)
+    if optimize:
+        gmsh.model.mesh.optimize(optimize)
+    node_tags, coords, _ = gmsh.model.mesh.getNodes()
+    index = np.full(int(node_tags.max()) + 1, -1, dtype=np.int64)
+    index[node_tags.astype(np.int64)] = np.arange(len(node_tags))
+    points = coords.reshape(-1, 3).astype(np.float64)
+    _, tet_nodes = gmsh.model.mesh.getElementsByType(4)
+    tets = index[tet_nodes.astype(np.int64)].reshape(-1, 4)
+    patches = {}
+    for name, tags in names.items():
+        nodes = [gmsh.model.mesh.getNodes(2, tag, includeBoundary=True)[0] for tag in tags]
+        patches[name] = np.unique(index[np.concatenate(nodes).astype(np.int64)])
+    points, tets, patches = compact(points, tets, patches)
+    return points, tets, patches
+
+
+def mesh_wing(params: dict, *, seed: int, verbose: bool):
+    """Case A: the wing alone. Returns (points, tets, patches)."""
+    with _session("torchmorph_wing", seed=seed, verbose=verbose) as gmsh:
+        occ = gmsh.model.occ
+        volume = _wing_volume(occ, params["profile_points"])
+        occ.synchronize()
+        names = _classify_surfaces(gmsh, None, "wing")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", params["h_surface"])
+        gmsh.option.setNumber("Mesh.MeshSizeMin", params["h_min"])
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+        # a finer size inside the volume only: the thin wing gets interior nodes
+        field = gmsh.model.mesh.field
+        constant = field.add("MathEval")
+        field.setString(constant, "F", repr(float(params["h_volume"])))
+        restrict = field.add("Restrict")
+        field.setNumber(restrict, "InField", constant)
+        field.setNumbers(restrict, "VolumesList", [volume])
+        field.setNumber(restrict, "IncludeBoundary", 0)
+        field.setAsBackgroundMesh(restrict)
+        return _mesh_and_collect(
+            gmsh, names, algorithm=params["algorithm"], optimize=params["optimize"]
+        )
+
+
+def _graded_fields(gmsh, names, body_patches, bounds, params) -> None:
+    """Mesh size growing linearly with the distance from the body and from the walls.
+
+    The size is ``min(h_far, h_body + (h_far - h_body) d_body / grading_body,
+    h_wall + (h_far - h_wall) d_wall / grading_wall)``. The distance to the
+    body comes from a sampled Distance field, the distance to the box walls
+    from a closed formula (a Distance field on the large walls makes the 1-D
+    meshing several times slower).
+    """
+    field = gmsh.model.mesh.field
+    body = [tag for name in body_patches for tag in names.get(name, [])]
+    near_body = _threshold(field, body, params["h_body"], params["h_far"], params["grading_body"])
+    (x0, y0, z0), (x1, y1, z1) = bounds
+    wall_distance = (
+        f"min(min(min(x - ({x0!r}), ({x1!r}) - x), min(y - ({y0!r}), ({y1!r}) - y)),"
+        f" min(z - ({z0!r}), ({z1!r}) - z))"
+    )
+    h_wall, h_far = float(params["h_wall"]), float(params["h_far"])
+    rate = (h_far - h_wall) / float(params["grading_wall"])
+    near_walls = field.add("MathEval")
+    field.setString(
+        near_walls, "F", f"min({h_far!r}, {h_wall!r} + {rate!r} * max(0, {wall_distance}))"
+    )
+    smallest = field.add("Min")
+    field.setNumbers(smallest, "FieldsList", [near_body, near_walls])
+    field.setAsBackgroundMesh(smallest)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeMin", params["h_min"])
+    # integrating the size field along the curves to 1e-9 (the default) triples the time
+    gmsh.option.setNumber("Mesh.LcIntegrationPrecision", 1e-5)
+
+
+def _add_box(occ, bounds) -> int:
+    (x0, y0, z0), (x1, y1, z1) = bounds
+    return occ.addBox(x0, y0, z0, x1 - x0, y1 - y0, z1 - z0)
+
+
+def mesh_fluid_wing(params: dict, *, seed: int, verbose: bool):
+    """Case B: the tunnel around the wing. Returns (points, tets, patches)."""
+    with _session("torchmorph_fluid_wing", seed=seed, verbose=verbose) as gmsh:
+        occ = gmsh.model.occ
+        wing = _wing_volume(occ, params["profile_points"])
+        box = _add_box(occ, TUNNEL_BOUNDS)
+        occ.cut([(3, box)], [(3, wing)])
+        occ.synchronize()
+        names = _classify_surfaces(gmsh, TUNNEL_BOUNDS, "wing")
+        if "root" in names:
+            raise RuntimeError("gmsh kept the wing's root face inside the tunnel")
+        _graded_fields(gmsh, names, ("upper", "lower", "tip"), TUNNEL_BOUNDS, params)
+        return _mesh_and_collect(
+            gmsh, names, algorithm=params["algorithm"], optimize=params["optimize"]
+        )
+
+
+def _wigley_volume(occ) -> int:
+    """The Wigley double body as two exact Bézier patches sewn into a volume."""
+    half_length = HULL_LENGTH / 2.0
+    xs = (-half_length, 0.0, half_length)
+    ys = (-HULL_DRAFT, 0.0, HULL_DRAFT)
+    patches = []
+    for side in (1.0, -1.0):
+        control = []
+        for j in range(3):
+            for i in range(3):
+                z = side * 2.0 * HULL_BEAM if (i, j) == (1, 1) else 0.0
+                control.append(occ.addPoint(xs[i], ys[j], z))
+        patches.append(occ.addBezierSurface(control, 3))
+        occ.remove([(0, tag) for tag in control])  # control points are free vertices
+    shell = occ.addSurfaceLoop(patches, sewing=True)
+    volume = occ.addVolume([shell])
+    occ.remove([(2, tag) for tag in patches], recursive=True)  # sewing made copies
+    return volume
+
+
+def mesh_hull(params: dict, *, seed: int, verbose: bool):
+    """Case C: the box around the hull. Returns (points, tets, patches)."""
+    with _session("torchmorph_hull", seed=seed, verbose=verbose) as gmsh:
+        occ = gmsh.model.occ
+        hull = _wigley_volume(occ)
+        box = _add_box(occ, HULL_BOX_BOUNDS)
+        occ.cut([(3, box)], [(3, hull)])
+        occ.synchronize()
+        names = _classify_surfaces(gmsh, HULL_BOX_BOUNDS, "hull")
+        _graded_fields(gmsh, names, ("starboard", "port"), HULL_BOX_BOUNDS, params)
+        return _mesh_and_collect(
+            gmsh, names, algorithm=params["algorithm"], optimize=params["optimize"]
+        )
