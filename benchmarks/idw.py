@@ -6,8 +6,10 @@ paper's three cases, each dtype and mode, the median time (after a warm-up) of
 - ``build+morph``: assemble (dense: store W) and morph one displacement field;
 - ``morph B=1/10/100``: one more morph of a batch of B fields (dense: stored W;
   matrix-free: recomputed weights);
-- ``peak MB``: peak resident memory above the process's baseline, measured in a
-  fresh child process per configuration;
+- ``peak MB``: peak resident memory above the process's baseline (inputs made),
+  measured in a fresh child process per configuration, over all its calls;
+- ``B=1 apply MB`` (matrix-free): the peak of one single-field apply, measured
+  first in that process: the tile budget plus O(N_t + N_c) vectors;
 
 and the same for a plain NumPy dense implementation (cdist, power, normalise,
 matmul) with the ratio NumPy / torch. The point clouds are synthetic: controls
@@ -27,6 +29,7 @@ import statistics
 import time
 
 import numpy as np
+import scipy.spatial  # noqa: F401  (imported before any memory baseline is taken)
 import torch
 
 from torchmorph.idw import IDW, idw_apply
@@ -101,6 +104,11 @@ def run_config(args) -> dict:
     controls = torch.from_numpy(controls_np).to(dtype)
     single = torch.from_numpy(fields[batches[0]][0]).to(dtype)
     with torch.no_grad():
+        if mode == "matrix_free":  # first, so the process's peak is this apply's
+            before = peak_rss_mb()
+            idw_apply(targets, controls, single, block_bytes=block_bytes)
+            result["apply MB"] = peak_rss_mb() - before
+
         def build_and_morph():
             return IDW(controls, targets, mode=mode, block_bytes=block_bytes)(single)
 
@@ -113,11 +121,6 @@ def run_config(args) -> dict:
                 field = field[0]
             reps = repeats if (batch < 100 or mode == "dense") else max(1, repeats // 2)
             result[f"morph B={batch}"] = median_time(lambda f=field: morph(f), reps)
-        if mode == "matrix_free":
-            del morph
-            before = peak_rss_mb()
-            idw_apply(targets, controls, single, block_bytes=block_bytes)
-            result["apply peak MB"] = peak_rss_mb() - before
     result["peak MB"] = peak_rss_mb() - baseline
     return result
 
@@ -136,8 +139,10 @@ def main(argv=None) -> None:
           f"{torch.get_num_threads()} threads, torch {torch.__version__}, numpy {np.__version__}")
     print(f"median of {args.repeats} repeats after a warm-up; matrix-free tiles of "
           f"{args.block_bytes / 2**20:g} MiB; peak MB = peak RSS above the process baseline\n")
-    columns = ["build+morph", *[f"morph B={b}" for b in args.batches], "peak MB"]
-    print("| N_t × N_c | dtype | mode | " + " | ".join(columns) + " | NumPy / torch (build+morph) |")
+    columns = ["build+morph", *[f"morph B={b}" for b in args.batches], "peak MB", "apply MB"]
+    print("| N_t × N_c | dtype | mode | build+morph | "
+          + " | ".join(f"morph B={b}" for b in args.batches)
+          + " | peak MB | B=1 apply MB | NumPy / torch (build+morph) |")
     print("|---" * (len(columns) + 4) + "|")
     context = mp.get_context("spawn")
     for index in args.sizes:
@@ -151,13 +156,15 @@ def main(argv=None) -> None:
                 with context.Pool(1, maxtasksperchild=1) as pool:
                     row = pool.apply(run_config, ((size, dtype_name, mode, args.batches,
                                                    args.repeats, args.block_bytes),))
-                cells = [f"{row[c]:.4f}" if c != "peak MB" else f"{row[c]:.0f}" for c in columns]
+                cells = [f"{row[c]:.0f}" if c.endswith("MB") else f"{row[c]:.4f}"
+                         for c in columns if c in row]
+                cells += ["–"] * (len(columns) - len(cells))
                 ratio = numpy_row["build+morph"] / row["build+morph"]
                 print(f"| {size[0]} × {size[1]} | {dtype_name} | {mode} | " + " | ".join(cells)
                       + f" | {ratio:.1f}× |", flush=True)
             print(f"| {size[0]} × {size[1]} | {dtype_name} | NumPy dense | "
                   f"{numpy_row['build+morph']:.4f} | " + " | ".join("–" for _ in args.batches)
-                  + f" | {numpy_row['peak MB']:.0f} | 1.0× |", flush=True)
+                  + f" | {numpy_row['peak MB']:.0f} | – | 1.0× |", flush=True)
 
 
 if __name__ == "__main__":
