@@ -2,38 +2,16 @@
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
 import torch
+from _grids import kuhn_grid
 
 from torchmorph.mesh import FLAT_TET_TOLERANCE, TetMesh
 
 F64 = torch.float64
 
 REFERENCE_POINTS = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-
-
-def kuhn_grid(n: int, size: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Cube [0, size]^3 in n^3 cells, each split into the 6 Kuhn tetrahedra.
-
-    Half of the tetrahedra come out negatively oriented (odd permutations).
-    """
-    axis = np.linspace(0.0, size, n + 1)
-    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
-    points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
-    index = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
-    i, j, k = (a.ravel() for a in np.meshgrid(*[np.arange(n)] * 3, indexing="ij"))
-    blocks = []
-    for order in itertools.permutations(range(3)):
-        corner = [0, 0, 0]
-        path = [index[i, j, k]]
-        for axis_number in order:
-            corner[axis_number] = 1
-            path.append(index[i + corner[0], j + corner[1], k + corner[2]])
-        blocks.append(np.stack(path, axis=1))
-    return points, np.concatenate(blocks)
 
 
 @pytest.fixture
@@ -266,3 +244,34 @@ def test_to_changes_dtype_and_keeps_everything_else(cube_grid):
 def test_repr_names_the_mesh(reference_tet):
     mesh = TetMesh(reference_tet.points, reference_tet.tets, {"root": [0]}, name="wing")
     assert "TetMesh('wing', nodes=4, tets=1, node_sets=[root]" in repr(mesh)
+
+
+def test_folded_reference_tetrahedra_are_rejected():
+    # An interior node pushed through its neighbours: orientation fixing alone would
+    # hide the inversion, but the tets on both sides of some face then overlap.
+    points, tets = kuhn_grid(3)
+    points = torch.as_tensor(points, dtype=F64).clone()
+    inner = int(np.flatnonzero((points > 0).all(1) & (points < 1).all(1))[0])
+    points[inner] += torch.tensor([0.5, 0.45, 0.4], dtype=F64)
+    with pytest.raises(ValueError, match=r"tets: \d+ interior face\(s\) have both of their "
+                                         r"tetrahedra on the same side"):
+        TetMesh(points, tets)
+
+
+def test_faces_shared_by_three_tetrahedra_are_rejected():
+    points, tets = kuhn_grid(2)
+    duplicated = np.concatenate([tets, tets[:1]])
+    with pytest.raises(ValueError, match="belong to more than two tetrahedra"):
+        TetMesh(points, duplicated)
+
+
+def test_fold_check_agrees_without_int64_face_keys(monkeypatch):
+    import torchmorph.mesh as mesh_module
+
+    points, tets = kuhn_grid(3)
+    reference = TetMesh(points, tets).boundary_faces
+    monkeypatch.setattr(mesh_module, "_MAX_NODES_FOR_FACE_KEYS", 0)
+    assert torch.equal(torch.sort(TetMesh(points, tets).boundary_faces.sort(1).values, 0).values,
+                       torch.sort(reference.sort(1).values, 0).values)
+    with pytest.raises(ValueError, match="belong to more than two tetrahedra"):
+        TetMesh(points, np.concatenate([tets, tets[:1]]))

@@ -68,8 +68,9 @@ class TetMesh:
     -----
     Nodes that belong to no tetrahedron are allowed; they are not on the
     boundary and so count among :attr:`interior_nodes`. Faces shared by more
-    than two tetrahedra (a non-manifold or duplicated input) are not detected;
-    they count as interior faces.
+    than two tetrahedra (a non-manifold or duplicated input) and tetrahedra
+    folded over a neighbour (inverted reference elements: the two tetrahedra of
+    an interior face on the same side of it) raise ``ValueError``.
     """
 
     def __init__(
@@ -86,11 +87,12 @@ class TetMesh:
         tets = _orient(points, tets)
         if name is not None and not isinstance(name, str):
             raise TypeError(f"name must be a string or None, got {type(name).__name__}")
+        boundary_faces = _checked_faces(points, tets)
         self._points = points
         self._tets = tets
         self._node_sets = _as_node_sets(node_sets, points.shape[0], points.device)
         self.name = name
-        self._topology: dict[str, Tensor] = {}
+        self._topology: dict[str, Tensor] = {"boundary_faces": boundary_faces}
         self._geometry: dict[str, Any] = {}
 
     @classmethod
@@ -230,18 +232,7 @@ class TetMesh:
         return self._cached_topology("edges", lambda: self._find_edges()[0])
 
     def _find_boundary_faces(self) -> Tensor:
-        faces = self._tets[:, torch.tensor(_OUTWARD_FACES, device=self.device)].reshape(-1, 3)
-        ordered = torch.sort(faces, dim=1).values
-        n = self.num_nodes
-        if n <= _MAX_NODES_FOR_FACE_KEYS:
-            keys = (ordered[:, 0] * n + ordered[:, 1]) * n + ordered[:, 2]
-            keys, order = torch.sort(keys)
-            differs = keys[1:] != keys[:-1]
-            true = torch.ones(1, dtype=torch.bool, device=self.device)
-            single = torch.cat([true, differs]) & torch.cat([differs, true])
-            return faces[order[single]]
-        _, inverse, counts = torch.unique(ordered, dim=0, return_inverse=True, return_counts=True)
-        return faces[counts[inverse] == 1]
+        return _face_structure(self._tets, self.num_nodes)[0]
 
     @property
     def tet_edges(self) -> Tensor:
@@ -412,6 +403,74 @@ def _orient(points: Tensor, tets: Tensor) -> Tensor:
             swapped = torch.where(negative[:, None], tets[:, [3, 2]], tets[:, 2:])
             tets = torch.cat([tets[:, :2], swapped], dim=1)
     return tets
+
+
+def _face_structure(tets: Tensor, num_nodes: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Boundary faces and the interior face pairs of a tetrahedral mesh.
+
+    Returns the faces that belong to one tetrahedron (F, 3), outward oriented,
+    and for every face shared by two tetrahedra the positions ``first`` and
+    ``second`` of its two copies in the (4M, 3) array of outward faces (face
+    ``k`` of tet ``t`` is position ``4 t + k``; vertex ``k`` is opposite it).
+
+    Raises
+    ------
+    ValueError
+        If a face belongs to more than two tetrahedra (a non-manifold mesh or
+        duplicated tetrahedra).
+    """
+    device = tets.device
+    faces = tets[:, torch.tensor(_OUTWARD_FACES, device=device)].reshape(-1, 3)
+    ordered = torch.sort(faces, dim=1).values
+    if num_nodes <= _MAX_NODES_FOR_FACE_KEYS:
+        keys = (ordered[:, 0] * num_nodes + ordered[:, 1]) * num_nodes + ordered[:, 2]
+        keys, order = torch.sort(keys)
+        same = keys[1:] == keys[:-1]
+    else:  # lexicographic order by three stable sorts
+        order = torch.arange(faces.shape[0], device=device)
+        for column in (2, 1, 0):
+            order = order[torch.sort(ordered[order, column], stable=True).indices]
+        rows = ordered[order]
+        same = (rows[1:] == rows[:-1]).all(1)
+    shared_thrice = same[1:] & same[:-1]
+    if bool(shared_thrice.any()):
+        count = int(shared_thrice.sum())
+        raise ValueError(
+            f"tets: {count} face(s) belong to more than two tetrahedra "
+            "(a non-manifold mesh or duplicated tetrahedra)"
+        )
+    true = torch.ones(1, dtype=torch.bool, device=device)
+    single = torch.cat([true, ~same]) & torch.cat([~same, true])
+    return faces[order[single]], order[:-1][same], order[1:][same]
+
+
+def _checked_faces(points: Tensor, tets: Tensor) -> Tensor:
+    """Boundary faces, after checking that no reference tetrahedron is folded.
+
+    In a valid (positively oriented) mesh the two tetrahedra of an interior face
+    lie on opposite sides of it: the vertex of the second opposite the face is on
+    the outward side of the face as seen from the first. A tetrahedron folded over
+    its neighbour (an inverted reference element that orientation alone cannot
+    reveal) puts both on the same side.
+    """
+    boundary, first, second = _face_structure(tets, points.shape[0])
+    if first.numel() == 0:
+        return boundary
+    with torch.no_grad():
+        exact = points.detach().to(torch.float64)
+        outward = tets[:, torch.tensor(_OUTWARD_FACES, device=tets.device)].reshape(-1, 3)
+        opposite = tets[second // 4, second % 4]
+        sides = _tet_volumes(exact, torch.cat([outward[first], opposite[:, None]], 1))
+        folded = torch.nonzero(sides <= 0).flatten()
+    if folded.numel() > 0:
+        pairs = ", ".join(f"({int(first[k]) // 4}, {int(second[k]) // 4})"
+                          for k in folded[:5].tolist())
+        more = ", ..." if folded.numel() > 5 else ""
+        raise ValueError(
+            f"tets: {folded.numel()} interior face(s) have both of their tetrahedra on the same "
+            f"side (inverted, folded reference tetrahedra), e.g. tetrahedra {pairs}{more}"
+        )
+    return boundary
 
 
 def _as_node_sets(
