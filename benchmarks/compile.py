@@ -22,34 +22,19 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository's data_gen
 
+from _timing import median_time, seconds
+
 from torchmorph.morph import MeshMorph
 from torchmorph.paper import CASES, load_mesh
 from torchmorph.pod import PODReducer
-
-
-def median_seconds(function: Callable[[], object], repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
-def seconds(value: float) -> str:
-    if value < 1e-3:
-        return f"{value * 1e6:,.1f} µs"
-    return f"{value * 1e3:,.2f} ms" if value < 1 else f"{value:,.2f} s"
 
 
 def compare(module: torch.nn.Module, argument: torch.Tensor, repeats: int) -> dict:
@@ -58,7 +43,7 @@ def compare(module: torch.nn.Module, argument: torch.Tensor, repeats: int) -> di
     with torch.no_grad():
         eager_result = module(argument)
         module(argument)
-        eager = median_seconds(lambda: module(argument), repeats)
+        eager = median_time(lambda: module(argument), repeats, warmup=0)
         compiled = torch.compile(module, fullgraph=True)
         start = time.perf_counter()
         try:
@@ -68,7 +53,7 @@ def compare(module: torch.nn.Module, argument: torch.Tensor, repeats: int) -> di
             return {"eager": eager, "error": f"{type(error).__name__}: {str(error)[:200]}"}
         compile_time = time.perf_counter() - start
         compiled(argument)
-        fast = median_seconds(lambda: compiled(argument), repeats)
+        fast = median_time(lambda: compiled(argument), repeats, warmup=0)
     difference = float((compiled_result - eager_result).abs().max())
     scale = float(eager_result.abs().max())
     return {"eager": eager, "compiled": fast, "compile": compile_time,

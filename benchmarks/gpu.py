@@ -23,15 +23,16 @@ test of the script, not a benchmark).
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
-from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository's data_gen
+
+from _timing import median_time, seconds, synchronise
 
 from torchmorph.idw import IDW
 from torchmorph.morph import MeshMorph
@@ -39,31 +40,6 @@ from torchmorph.pod import PODReducer
 
 PAPER_COUNTS = (14126, 21910)  # case B: boundary (control) and interior nodes
 DOMAIN = (0.0, 0.05)  # the paper's D for case B
-
-
-def synchronise(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def median_seconds(function: Callable[[], object], repeats: int, device: torch.device,
-                   warmup: int = 2) -> float:
-    for _ in range(warmup):
-        function()
-    synchronise(device)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        synchronise(device)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
-def seconds(value: float) -> str:
-    if value < 1e-3:
-        return f"{value * 1e6:,.1f} µs"
-    return f"{value * 1e3:,.2f} ms" if value < 1 else f"{value:,.2f} s"
 
 
 def load_problem(size: str, dtype: torch.dtype):
@@ -124,32 +100,34 @@ def main() -> int:
     else:
         inputs = family(mus)
     rows: list[tuple[str, float]] = []
+    # median of the repeats after two warm-up calls, CUDA-synchronised
+    timed = partial(median_time, warmup=2, device=device)
 
     with torch.no_grad():
-        assembly = median_seconds(lambda: IDW(controls, targets, mode="dense"),
-                                  max(1, args.repeats // 3), device, warmup=1)
+        assembly = timed(lambda: IDW(controls, targets, mode="dense"),
+                         max(1, args.repeats // 3), warmup=1)
         rows.append((f"IDW dense: assemble W ({targets.shape[0]:,} x {controls.shape[0]:,})",
                      assembly))
         dense = IDW(controls, targets, mode="dense")
         one = inputs[0].contiguous()
         rows.append(("IDW dense: apply, one displacement",
-                     median_seconds(lambda: dense(one), args.repeats * 10, device)))
+                     timed(lambda: dense(one), args.repeats * 10)))
         rows.append((f"IDW dense: apply, batch of {args.batch}",
-                     median_seconds(lambda: dense(inputs), args.repeats, device)))
+                     timed(lambda: dense(inputs), args.repeats)))
     probe = one.clone().requires_grad_(True)
 
     def apply_backward():
         dense(probe).square().sum().backward()
 
     rows.append(("IDW dense: apply + backward, one displacement",
-                 median_seconds(apply_backward, args.repeats * 10, device)))
+                 timed(apply_backward, args.repeats * 10)))
     with torch.no_grad():
         free = IDW(controls, targets, mode="matrix_free")
         rows.append(("IDW matrix-free: one displacement",
-                     median_seconds(lambda: free(one), args.repeats, device)))
+                     timed(lambda: free(one), args.repeats)))
         ten = inputs[:10].contiguous()
         rows.append(("IDW matrix-free: batch of 10",
-                     median_seconds(lambda: free(ten), max(1, args.repeats // 2), device)))
+                     timed(lambda: free(ten), max(1, args.repeats // 2))))
         if morph is not None:
             dense_morph = _with_dense_weights(morph)
             training = DOMAIN[0] + (DOMAIN[1] - DOMAIN[0]) * torch.rand(
@@ -162,12 +140,11 @@ def main() -> int:
                          time.perf_counter() - start))
             single = boundary[0].contiguous()
             rows.append(("POD online: one μ",
-                         median_seconds(lambda: reducer(single), args.repeats * 10, device)))
+                         timed(lambda: reducer(single), args.repeats * 10)))
             rows.append((f"POD online: batch of {args.batch}",
-                         median_seconds(lambda: reducer(boundary), args.repeats, device)))
+                         timed(lambda: reducer(boundary), args.repeats)))
             rows.append(("MeshMorph (Algorithm 2, dense W): one μ",
-                         median_seconds(lambda: dense_morph(single), args.repeats * 10,
-                                        device)))
+                         timed(lambda: dense_morph(single), args.repeats * 10)))
 
     print(f"## GPU: {name}")
     print(f"torch {torch.__version__}, CUDA {torch.version.cuda or '-'}, {args.dtype}; {label}; "

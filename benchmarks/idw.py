@@ -25,12 +25,11 @@ import argparse
 import multiprocessing as mp
 import platform
 import resource
-import statistics
-import time
 
 import numpy as np
 import scipy.spatial  # noqa: F401  (imported before any memory baseline is taken)
 import torch
+from _timing import median_time
 
 from torchmorph.idw import IDW, idw_apply
 
@@ -57,16 +56,6 @@ def point_clouds(n_targets: int, n_controls: int, seed: int = 0) -> tuple[np.nda
     targets = rng.uniform(-1, 1, size=(4 * n_targets, 3)) * np.array([5.0, 2.5, 6.3])
     outside = ((targets / np.array([0.5, 0.06, 3.0])) ** 2).sum(1) > 1.05
     return targets[outside][:n_targets], controls
-
-
-def median_time(function, repeats: int) -> float:
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def numpy_dense(targets, controls, displacements):

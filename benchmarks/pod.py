@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _timing import median_and_min
 
 from torchmorph.idw import IDW
 from torchmorph.pod import PODReducer
@@ -47,18 +48,6 @@ CHORD, SPAN = 1.01, 2.0 * math.pi
 WING_X, WING_Y = 3.0, 2.5  # leading edge position in the tunnel
 DOMAIN = (0.0, 0.05)  # the paper's D for case B
 PAPER = {"offline": 2479.51, "online": 0.55, "idw": 83.09}  # POD-IDW and IDW, case B
-
-
-def median_time(function, repeats: int, warmup: int = 1) -> tuple[float, float]:
-    """(median, minimum) wall time of ``repeats`` calls after ``warmup`` calls."""
-    for _ in range(warmup):
-        function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), min(times)
 
 
 def naca0012_half_thickness(x: np.ndarray) -> np.ndarray:
@@ -207,20 +196,20 @@ def main() -> None:
     mu_batch = random_mu(args.batch)
     d_batch = family(mu_batch)
     with torch.no_grad():
-        single = median_time(lambda: reducer(d_one), 1000, warmup=20)
-        single_mu = median_time(lambda: reducer.morph_parameters(mu_one), 1000, warmup=20)
-        batch = median_time(lambda: reducer(d_batch), args.repeats)
+        single = median_and_min(lambda: reducer(d_one), 1000, warmup=20)
+        single_mu = median_and_min(lambda: reducer.morph_parameters(mu_one), 1000, warmup=20)
+        batch = median_and_min(lambda: reducer(d_batch), args.repeats)
         buffer = torch.empty(args.batch, reducer.num_outputs, 3, dtype=dtype)
-        batch_out = median_time(lambda: reducer(d_batch, out=buffer), args.repeats)
-        batch_mu = median_time(lambda: reducer.morph_parameters(mu_batch), args.repeats)
-        full_single = median_time(lambda: morph(d_one), args.repeats * 2)
+        batch_out = median_and_min(lambda: reducer(d_batch, out=buffer), args.repeats)
+        batch_mu = median_and_min(lambda: reducer.morph_parameters(mu_batch), args.repeats)
+        full_single = median_and_min(lambda: morph(d_one), args.repeats * 2)
         d_full_batch = d_batch[: args.full_batch]
-        full_batch = median_time(lambda: morph(d_full_batch), max(1, args.repeats // 2))
+        full_batch = median_and_min(lambda: morph(d_full_batch), max(1, args.repeats // 2))
         error = reducer.relative_error(family(random_mu(20)))
         paper_error = paper_single = None
         if paper_fit is not None:
             paper_error = paper_fit.relative_error(family(random_mu(20)))
-            paper_single = median_time(lambda: paper_fit(d_one), 1000, warmup=20)
+            paper_single = median_and_min(lambda: paper_fit(d_one), 1000, warmup=20)
     full_extrapolated = full_batch[0] * args.batch / args.full_batch
     load_after = os.getloadavg()[0]
 

@@ -1,21 +1,48 @@
-"""Command-line plumbing shared by the demo scripts (not part of the library)."""
+"""Command-line plumbing and timing shared by the demo scripts (not part of the library)."""
 
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 
 from torchmorph.paper import CaseResult, get_case, reproduce
 
-__all__ = ["case_main", "set_threads"]
+__all__ = ["case_main", "median_seconds", "set_threads", "synchronise"]
 
 
 def set_threads(threads: int | None) -> None:
     """Use ``threads`` intra-op threads in torch (None: torch's default)."""
     if threads is not None:
         torch.set_num_threads(int(threads))
+
+
+def synchronise(device: torch.device | None) -> None:
+    """Wait for the work queued on ``device`` when it is a CUDA device; nothing otherwise."""
+    if device is not None and device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def median_seconds(function: Callable[[], Any], repeats: int,
+                   device: torch.device | None = None) -> float:
+    """Median wall time of ``repeats`` calls of ``function`` after one untimed call.
+
+    With a CUDA ``device``, the device is synchronised after the warm-up call and after
+    each timed call; with None (the default) nothing is synchronised here.
+    """
+    function()
+    synchronise(device)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        synchronise(device)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
 
 
 def case_main(case: str, argv: Sequence[str] | None = None) -> CaseResult:

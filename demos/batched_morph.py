@@ -23,7 +23,7 @@ vertical (z) axis, μ in D = [-36°, 0°], the box fixed. The demo
 from __future__ import annotations
 
 import argparse
-import statistics
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -32,6 +32,10 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the demos' shared helpers
+
+from _common import median_seconds
+
 from torchmorph.mesh import TetMesh
 from torchmorph.morph import MeshMorph
 from torchmorph.paper import CASES, load_mesh
@@ -39,23 +43,6 @@ from torchmorph.pod import PODReducer
 from torchmorph.quality import signed_volumes
 
 PROBE = (1.6, 0.0, 0.0)  # m: in the water, 0.35 m ahead of the bow (x = 1.25)
-
-
-def synchronise(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def median_seconds(function: Callable[[], Any], repeats: int, device: torch.device) -> float:
-    function()
-    synchronise(device)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        synchronise(device)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def volume_ratios(mesh: TetMesh, displacement: Tensor, chunk: int = 64) -> Tensor:

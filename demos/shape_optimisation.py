@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import argparse
 import math
-import statistics
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -53,6 +53,10 @@ from typing import Any
 
 import torch
 from torch import Tensor
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the demos' shared helpers
+
+from _common import median_seconds, synchronise
 
 from torchmorph.mesh import TetMesh
 from torchmorph.morph import MeshMorph
@@ -218,21 +222,6 @@ def optimise(problem: Problem, morph: Callable[[Tensor], Tensor], *, iterations:
         history.evaluations += 1
     history.seconds = time.perf_counter() - start
     return mu.detach(), history
-
-
-def median_seconds(function: Callable[[], Any], repeats: int) -> float:
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
-def synchronise(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def plot(histories: dict[str, History], problem: Problem, path: Path) -> None:

@@ -1,8 +1,9 @@
-"""Shared fixtures: small analytic tetrahedral meshes."""
+"""Shared fixtures: small analytic tetrahedral meshes, and one torch thread."""
 
 from __future__ import annotations
 
 import pytest
+import torch
 
 from torchmorph import TetMesh
 from torchmorph.mesh import box_mesh
@@ -16,3 +17,15 @@ def structured_cube(cells: int = 4, size: float = 1.0) -> TetMesh:
 @pytest.fixture
 def cube() -> TetMesh:
     return structured_cube(4)
+
+
+@pytest.fixture
+def one_thread():
+    """Run the test with one torch thread, restoring the count after it.
+
+    The small meshes gain nothing from threads, and a shared CPU makes them much slower.
+    """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -15,23 +15,13 @@ import sys
 from pathlib import Path
 
 import pytest
-import torch
 
 pytest.importorskip("gmsh")
 pytest.importorskip("matplotlib")
 
 DEMOS = Path(__file__).resolve().parents[1] / "demos"
 
-pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """The small meshes gain nothing from threads, and a shared CPU makes them much slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_thread")]
 
 
 def load_demo(name: str):

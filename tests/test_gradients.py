@@ -15,61 +15,18 @@ from __future__ import annotations
 
 import pytest
 import torch
+from _families import F64, KINDS, scalar_family, vector_family
+from _families import build as build_morph
 from torch.autograd import gradcheck
 
-from torchmorph.idw import IDW
 from torchmorph.mesh import TetMesh, box_mesh
 from torchmorph.morph import MeshMorph
-from torchmorph.pod import PODReducer
 from torchmorph.quality import signed_volumes, validity_barrier
-from torchmorph.selection import SelectionPlan
-
-F64 = torch.float64
-FACES = ("x0", "x1", "y0", "y1", "z0", "z1")
-KINDS = ("idw-dense", "idw-matrix-free", "morph-dense", "morph-matrix-free", "morph-selective",
-         "pod")
-
-
-def vector_family(points: torch.Tensor):
-    """μ (P=3,) or (B, 3) -> displacement of ``points``; nonlinear in μ."""
-    x, y, z = points.unbind(-1)
-
-    def family(mu: torch.Tensor) -> torch.Tensor:
-        a, b, c = (mu[..., k, None] for k in range(3))
-        dx = a * z * z + 0.1 * torch.sin(c) * y
-        dy = b * z**3 * x
-        dz = 0.1 * (torch.cos(c) - 1.0) * x * y + 0.05 * a * b * z
-        return torch.stack([dx, dy, dz], -1)
-
-    return family
-
-
-def scalar_family(points: torch.Tensor):
-    """μ () or (B,) -> displacement: the vector family along a line of parameter space."""
-    family = vector_family(points)
-    return lambda mu: family(torch.stack([mu, 0.5 * mu, 2.0 * mu], -1))
 
 
 def build(kind: str):
     """(morph, reference points of its inputs, reference points of its outputs)."""
-    if kind.startswith("idw"):
-        generator = torch.Generator().manual_seed(11)
-        controls = torch.rand(25, 3, generator=generator, dtype=F64)
-        targets = torch.rand(30, 3, generator=generator, dtype=F64)
-        mode = "dense" if kind == "idw-dense" else "matrix_free"
-        return IDW(controls, targets, mode=mode, block_bytes=2000), controls, targets
-    cube = box_mesh(3)
-    if kind == "morph-selective":
-        morph = MeshMorph(cube, SelectionPlan({face: 0.5 for face in FACES}),
-                          generator=torch.Generator().manual_seed(0))
-    else:
-        morph = MeshMorph(cube, mode="matrix_free" if kind == "morph-matrix-free" else "dense")
-    if kind == "pod":
-        training = torch.rand(25, 3, generator=torch.Generator().manual_seed(1), dtype=F64)
-        reducer = PODReducer(energy_tolerance=1e-10)
-        reducer.fit(morph, family=vector_family(morph.boundary_points), parameters=training)
-        return reducer, morph.boundary_points, morph.points
-    return morph, morph.boundary_points, morph.points
+    return build_morph(kind, idw_seed=11, num_controls=25, num_targets=30)
 
 
 def output_weights(shape, seed: int = 0) -> torch.Tensor:

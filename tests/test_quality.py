@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import numpy as np
 import pytest
 import torch
+from _grids import kuhn_grid
 from torch.autograd import gradcheck
 
 from torchmorph.mesh import TetMesh
@@ -25,24 +25,6 @@ from torchmorph.quality import (
 F64 = torch.float64
 
 REFERENCE_POINTS = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-
-
-def kuhn_grid(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unit cube in n^3 cells, each split into the 6 Kuhn tetrahedra."""
-    axis = np.linspace(0.0, 1.0, n + 1)
-    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
-    points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
-    index = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
-    i, j, k = (a.ravel() for a in np.meshgrid(*[np.arange(n)] * 3, indexing="ij"))
-    blocks = []
-    for order in itertools.permutations(range(3)):
-        corner = [0, 0, 0]
-        path = [index[i, j, k]]
-        for axis_number in order:
-            corner[axis_number] = 1
-            path.append(index[i + corner[0], j + corner[1], k + corner[2]])
-        blocks.append(np.stack(path, axis=1))
-    return points, np.concatenate(blocks)
 
 
 @pytest.fixture
