@@ -333,14 +333,16 @@ def _wing_distance(points: np.ndarray) -> np.ndarray:
     return np.sqrt(dx**2 + points[:, 1] ** 2 + dz**2)
 
 
-def mesh_fluid_wing(params: dict, *, seed: int, verbose: bool):
-    """Case B with fTetWild. Returns (points, tets, patches)."""
-    del seed
-    box = _box_surface(TUNNEL_BOUNDS)
-    wing = _wing_surface(params["profile_points"], params["span_points"], -_ROOT_OVERLAP, SPAN)
-    vertices, faces = _merge((*box, False), (*wing, True))
-    body_bounds = ((0.0, -0.1, 0.0), (CHORD, 0.1, SPAN))
-    sizing = _sizing_field(TUNNEL_BOUNDS, body_bounds, _wing_distance, params)
+def _mesh_body_in_box(bounds, body, body_bounds, distance, params: dict, verbose: bool):
+    """Tetrahedralize the fluid between a box and a closed body, then label the walls.
+
+    Returns points, tets, the boundary faces, their centres and their normals
+    (pointing out of the fluid), and a label per face: a wall name, or "" for
+    the faces of the body, which the caller names.
+    """
+    box = _box_surface(bounds)
+    vertices, faces = _merge((*box, False), (*body, True))
+    sizing = _sizing_field(bounds, body_bounds, distance, params)
     points, tets = _tetrahedralize(
         vertices,
         faces,
@@ -352,9 +354,17 @@ def mesh_fluid_wing(params: dict, *, seed: int, verbose: bool):
         verbose=verbose,
     )
     faces, centre, outward = _faces_geometry(points, tets)
-    labels = _wall_labels(
-        centre, outward, TUNNEL_BOUNDS, _wall_tolerance(TUNNEL_BOUNDS, params["epsilon"])
-    )
+    labels = _wall_labels(centre, outward, bounds, _wall_tolerance(bounds, params["epsilon"]))
+    return points, tets, faces, centre, outward, labels
+
+
+def mesh_fluid_wing(params: dict, *, seed: int, verbose: bool):
+    """Case B with fTetWild. Returns (points, tets, patches)."""
+    del seed
+    wing = _wing_surface(params["profile_points"], params["span_points"], -_ROOT_OVERLAP, SPAN)
+    body_bounds = ((0.0, -0.1, 0.0), (CHORD, 0.1, SPAN))
+    points, tets, faces, centre, outward, labels = _mesh_body_in_box(
+        TUNNEL_BOUNDS, wing, body_bounds, _wing_distance, params, verbose)
     _wing_labels(centre, -outward, labels, with_root=False)
     names = ("upper", "lower", "tip") + tuple(name for name, _, _ in BOX_WALLS)
     return points, tets, _patches(faces, labels, names)
@@ -369,26 +379,11 @@ def _hull_distance(points: np.ndarray) -> np.ndarray:
 def mesh_hull(params: dict, *, seed: int, verbose: bool):
     """Case C with fTetWild. Returns (points, tets, patches)."""
     del seed
-    box = _box_surface(HULL_BOX_BOUNDS)
     body = _hull_surface(params["hull_points"])
-    vertices, faces = _merge((*box, False), (*body, True))
     half = HULL_LENGTH / 2.0
     body_bounds = ((-half, -HULL_DRAFT, -0.2 * HULL_DRAFT), (half, HULL_DRAFT, 0.2 * HULL_DRAFT))
-    sizing = _sizing_field(HULL_BOX_BOUNDS, body_bounds, _hull_distance, params)
-    points, tets = _tetrahedralize(
-        vertices,
-        faces,
-        edge_length=params["h_far"],
-        epsilon=params["epsilon"],
-        stop_energy=params["stop_energy"],
-        iterations=params["iterations"],
-        sizing=sizing,
-        verbose=verbose,
-    )
-    faces, centre, outward = _faces_geometry(points, tets)
-    labels = _wall_labels(
-        centre, outward, HULL_BOX_BOUNDS, _wall_tolerance(HULL_BOX_BOUNDS, params["epsilon"])
-    )
+    points, tets, faces, centre, outward, labels = _mesh_body_in_box(
+        HULL_BOX_BOUNDS, body, body_bounds, _hull_distance, params, verbose)
     free = labels == ""
     starboard = np.where(np.abs(centre[:, 2]) > 1e-12, centre[:, 2] > 0, outward[:, 2] < 0)
     labels[free & starboard] = "starboard"
