@@ -1,22 +1,21 @@
-"""GPU timings of the morphs at case-B size (fluid wing in a tunnel).
+"""GPU timings of IDW and the morphs at case-B size (fluid wing in a tunnel).
 
-Rows (median of ``--repeats`` after warm-up, CUDA-synchronised):
+First table, the IDW kernels (median of ``--repeats`` after warm-up, CUDA-synchronised),
+float32 and float64, at the paper's case-B counts (14,126 controls on a sphere, 21,910
+targets inside it): the fused Triton kernels (matrix-free one displacement, a batch of
+16, forward + backward; dense assembly and apply), beside the torch implementation and
+the naive five-line ``torch.cdist`` code a user would write, with the rate (Gpair/s or
+GB/s), the fraction of the device's floor and the error against a float64 reference;
+and a 1e5 x 1e6 matrix-free row.
 
-- IDW dense: assembly of W (every boundary node a control point, every interior
-  node a target), apply to one displacement, to a batch of ``--batch``, and one
-  apply with its backward pass (gradient to the displacement);
-- IDW matrix-free: one displacement, and a batch of 10;
-- POD online forward (POD-IDW fitted to the case-B family δy = μ z² on the wing):
-  one μ, and a batch of ``--batch``;
-- the full Algorithm 2 morph (``MeshMorph.forward``), one μ.
+Second table, the morphs: dense IDW on a batch of ``--batch``, POD fit and online
+(POD-IDW fitted to the case-B family δy = μ z² on the wing), and the full Algorithm 2
+morph (``MeshMorph.forward``). The mesh is the case-B mesh of ``data_gen``; without the
+``mesh`` extra (gmsh) a random point cloud of the paper's counts is used (said so).
 
-The mesh is ``data_gen.build("fluid_wing", size)``; without the ``mesh`` extra (gmsh)
-a random point cloud of the paper's case-B counts is used instead (14,126 controls,
-21,910 targets; IDW rows only, said so in the title).
-
-Run ``python benchmarks/gpu.py`` on a machine with a CUDA device; it prints a
-markdown table headed with the device's name. Without a GPU it says so and exits
-with status 0. ``--device cpu --size small`` runs the same code on the CPU (a smoke
+Run ``python benchmarks/gpu.py`` on a machine with a CUDA device; it prints markdown
+tables headed with the device's name. Without a GPU it says so and exits with status
+0. ``--device cpu --counts 300 500 --no-large`` runs the same code on the CPU (a smoke
 test of the script, not a benchmark).
 """
 
@@ -34,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository's
 
 from _timing import median_time, seconds, synchronise
 
-from torchmorph.idw import IDW
+from torchmorph.idw import IDW, fused_available, idw_apply, idw_weights
 from torchmorph.morph import MeshMorph
 from torchmorph.pod import PODReducer
 
@@ -70,6 +69,118 @@ def load_problem(size: str, dtype: torch.dtype):
     return morph, controls, targets, family, label
 
 
+def naive_cdist(targets: torch.Tensor, controls: torch.Tensor, values: torch.Tensor,
+                power: float = 4.0) -> torch.Tensor:
+    """IDW as a user would write it in five lines of torch (W materialised; cdist's
+    |x|² + |c|² − 2x·c expansion cancels for near points)."""
+    weights = torch.cdist(targets, controls).pow(-power)
+    return (weights / weights.sum(1, keepdim=True)) @ values
+
+
+def sphere_cloud(n_controls: int, n_targets: int, dtype: torch.dtype, device: torch.device):
+    """Controls on the unit sphere, targets inside it, graded towards it (seed 0)."""
+    generator = torch.Generator().manual_seed(0)
+    controls = torch.randn(n_controls, 3, generator=generator, dtype=torch.float64)
+    controls /= controls.norm(dim=1, keepdim=True)
+    targets = torch.randn(n_targets, 3, generator=generator, dtype=torch.float64)
+    targets *= (torch.rand(n_targets, 1, generator=generator, dtype=torch.float64) ** 0.25
+                * 0.999 / targets.norm(dim=1, keepdim=True))
+    return controls.to(device, dtype), targets.to(device, dtype)
+
+
+def copy_bandwidth(device: torch.device) -> float:
+    """Device-memory bandwidth (bytes read + written per second) of a 2 GB copy."""
+    source = torch.empty(2**28, dtype=torch.float32, device=device)
+    target = torch.empty_like(source)
+    elapsed = median_time(lambda: target.copy_(source), 10, warmup=2, device=device)
+    return 2 * source.numel() * 4 / elapsed
+
+
+def idw_table(device: torch.device, repeats: int, large: bool,
+              counts: tuple[int, int] = PAPER_COUNTS) -> tuple[list[tuple], float]:
+    """Rows (path, dtype, seconds, rate, floor fraction, error) and the copy bandwidth."""
+    n_controls, n_targets = counts
+    fused_kind = "fused" if fused_available(device) else "auto"  # a CPU smoke test without numba
+    pairs = n_controls * n_targets
+    bandwidth = copy_bandwidth(device)
+    timed = partial(median_time, warmup=2, device=device)
+    rows = []
+    for dtype in (torch.float32, torch.float64):
+        name = str(dtype)[6:]
+        controls, targets = sphere_cloud(n_controls, n_targets, dtype, device)
+        generator = torch.Generator().manual_seed(1)
+        one = torch.randn(n_controls, 3, generator=generator, dtype=torch.float64)
+        sixteen = torch.randn(16, n_controls, 3, generator=generator, dtype=torch.float64)
+        reference = idw_apply(targets.double(), controls.double(), one.to(device),
+                              implementation="torch")
+        scale = reference.norm()
+        sixteen[0] = one  # the batch rows' error is that of its first entry
+        one, sixteen = one.to(device, dtype), sixteen.to(device, dtype)
+
+        def error(result):
+            return float((result.double() - reference).norm() / scale)
+
+        with torch.no_grad():
+            fused = IDW(controls, targets, mode="matrix_free", implementation=fused_kind)
+            plain = IDW(controls, targets, mode="matrix_free", implementation="torch")
+            for label, run in (
+                    ("matrix-free, one displacement (module)", lambda: fused(one)),
+                    ("matrix-free, one displacement (idw_apply)",
+                     lambda: idw_apply(targets, controls, one, implementation=fused_kind)),
+                    ("matrix-free, batch of 16 (module)", lambda: fused(sixteen)),
+                    ("matrix-free, one displacement, torch implementation", lambda: plain(one)),
+                    ("matrix-free, one displacement, naive cdist code",
+                     lambda: naive_cdist(targets, controls, one))):
+                seconds_ = timed(run, repeats if "torch" not in label else 3)
+                result = run()
+                count = pairs * (16 if "16" in label else 1)
+                rows.append((label, name, seconds_, f"{count / seconds_ / 1e9:,.0f} Gpair/s",
+                             f"{count / seconds_ / 1e12:.2f}",
+                             error(result[0] if result.ndim == 3 else result)))
+        probe = one.clone().requires_grad_(True)
+
+        def backward():
+            (fused(probe) * 1.0).sum().backward()
+
+        seconds_ = timed(backward, repeats)
+        rows.append(("matrix-free, forward + backward to d (module)", name, seconds_,
+                     f"{2 * pairs / seconds_ / 1e9:,.0f} Gpair/s",
+                     f"{2 * pairs / seconds_ / 1e12:.2f}", float("nan")))
+        with torch.no_grad():
+            w_bytes = pairs * controls.element_size()
+            for label, implementation in (("dense: assemble W", fused_kind),
+                                          ("dense: assemble W, torch implementation", "torch")):
+                seconds_ = timed(lambda: idw_weights(targets, controls,
+                                                     implementation=implementation), 3,
+                                 warmup=1)
+                rows.append((label, name, seconds_, f"{w_bytes / seconds_ / 1e9:,.0f} GB/s",
+                             f"{w_bytes / seconds_ / bandwidth:.2f}", float("nan")))
+            dense = IDW(controls, targets, mode="dense", implementation=fused_kind)
+            for label, run in (("dense: apply one displacement", lambda: dense(one)),
+                               ("dense: apply one displacement, plain W @ d",
+                                lambda: dense.weights @ one),
+                               ("dense: apply a batch of 16", lambda: dense(sixteen))):
+                seconds_ = timed(run, repeats * 3)
+                result = run()
+                rows.append((label, name, seconds_, f"{w_bytes / seconds_ / 1e9:,.0f} GB/s",
+                             f"{w_bytes / seconds_ / bandwidth:.2f}",
+                             error(result[0] if result.ndim == 3 else result)))
+            del dense
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+    if large:
+        controls, targets = sphere_cloud(100_000, 1_000_000, torch.float32, device)
+        one = torch.randn(100_000, 3, dtype=torch.float32, device=device)
+        with torch.no_grad():
+            seconds_ = timed(lambda: idw_apply(targets, controls, one, implementation=fused_kind), 3,
+                             warmup=1)
+        count = 100_000 * 1_000_000
+        rows.append(("matrix-free, 1e5 controls x 1e6 targets (idw_apply)", "float32", seconds_,
+                     f"{count / seconds_ / 1e9:,.0f} Gpair/s", f"{count / seconds_ / 1e12:.2f}",
+                     float("nan")))
+    return rows, bandwidth
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cuda", help="default cuda")
@@ -77,6 +188,10 @@ def main() -> int:
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--batch", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--no-large", action="store_true", help="skip the 1e5 x 1e6 row")
+    parser.add_argument("--idw-only", action="store_true", help="only the IDW kernel table")
+    parser.add_argument("--counts", type=int, nargs=2, metavar=("CONTROLS", "TARGETS"),
+                        default=PAPER_COUNTS, help="point counts of the IDW table")
     args = parser.parse_args()
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -84,10 +199,32 @@ def main() -> int:
               f"{torch.__version__}, CUDA build: {torch.version.cuda or 'none'}); nothing to "
               "time. Run it on a machine with a GPU.")
         return 0
-    dtype = getattr(torch, args.dtype)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    generator = torch.Generator().manual_seed(0)
+    print(f"## GPU: {name}")
+    print(f"torch {torch.__version__}, CUDA {torch.version.cuda or '-'}; medians of "
+          f"{args.repeats}+ after warm-up")
+    print()
+    rows, bandwidth = idw_table(device, args.repeats, not args.no_large, tuple(args.counts))
+    print(f"IDW kernels ({args.counts[0]:,} controls on a sphere x "
+          f"{args.counts[1]:,} targets inside); error = ‖result − float64 reference‖ / "
+          f"‖reference‖; floor: 1 Tpair/s for matrix-free rows, the measured copy bandwidth "
+          f"({bandwidth / 1e12:.2f} TB/s) for dense rows")
+    print()
+    print("| path | dtype | time | rate | fraction of floor | error |")
+    print("|---|---|---|---|---|---|")
+    for label, dtype_name, value, rate, fraction, err in rows:
+        shown = "–" if err != err else f"{err:.1e}"
+        print(f"| {label} | {dtype_name} | {seconds(value)} | {rate} | {fraction} | {shown} |")
+    if args.idw_only:
+        return 0
+    print()
+    return morph_table(args, device, name)
 
+
+def morph_table(args, device: torch.device, name: str) -> int:
+    """The morph-level rows: dense IDW, POD and Algorithm 2 on the case-B mesh."""
+    dtype = getattr(torch, args.dtype)
+    generator = torch.Generator().manual_seed(0)
     morph, controls, targets, family, label = load_problem(args.size, dtype)
     controls, targets = controls.to(device), targets.to(device)
     mus = DOMAIN[0] + (DOMAIN[1] - DOMAIN[0]) * torch.rand(args.batch, generator=generator,
@@ -100,34 +237,11 @@ def main() -> int:
     else:
         inputs = family(mus)
     rows: list[tuple[str, float]] = []
-    # median of the repeats after two warm-up calls, CUDA-synchronised
     timed = partial(median_time, warmup=2, device=device)
-
     with torch.no_grad():
-        assembly = timed(lambda: IDW(controls, targets, mode="dense"),
-                         max(1, args.repeats // 3), warmup=1)
-        rows.append((f"IDW dense: assemble W ({targets.shape[0]:,} x {controls.shape[0]:,})",
-                     assembly))
         dense = IDW(controls, targets, mode="dense")
-        one = inputs[0].contiguous()
-        rows.append(("IDW dense: apply, one displacement",
-                     timed(lambda: dense(one), args.repeats * 10)))
         rows.append((f"IDW dense: apply, batch of {args.batch}",
                      timed(lambda: dense(inputs), args.repeats)))
-    probe = one.clone().requires_grad_(True)
-
-    def apply_backward():
-        dense(probe).square().sum().backward()
-
-    rows.append(("IDW dense: apply + backward, one displacement",
-                 timed(apply_backward, args.repeats * 10)))
-    with torch.no_grad():
-        free = IDW(controls, targets, mode="matrix_free")
-        rows.append(("IDW matrix-free: one displacement",
-                     timed(lambda: free(one), args.repeats)))
-        ten = inputs[:10].contiguous()
-        rows.append(("IDW matrix-free: batch of 10",
-                     timed(lambda: free(ten), max(1, args.repeats // 2))))
         if morph is not None:
             dense_morph = _with_dense_weights(morph)
             training = DOMAIN[0] + (DOMAIN[1] - DOMAIN[0]) * torch.rand(
@@ -145,10 +259,7 @@ def main() -> int:
                          timed(lambda: reducer(boundary), args.repeats)))
             rows.append(("MeshMorph (Algorithm 2, dense W): one μ",
                          timed(lambda: dense_morph(single), args.repeats * 10)))
-
-    print(f"## GPU: {name}")
-    print(f"torch {torch.__version__}, CUDA {torch.version.cuda or '-'}, {args.dtype}; {label}; "
-          f"medians of {args.repeats} (single applies: {args.repeats * 10})")
+    print(f"Morphs, {args.dtype}; {label}")
     print()
     print("| step | time |")
     print("|---|---|")

@@ -2,11 +2,20 @@
 
 from __future__ import annotations
 
-import pytest
+import os
+
 import torch
 
-from torchmorph import TetMesh
-from torchmorph.mesh import box_mesh
+# Without a CUDA device, Triton kernels run in Triton's interpreter (on the CPU). The
+# switch must be set before triton is first imported: its own helpers (tl.sum, tl.max
+# ...) are compiled or interpreted from then on.
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
+import pytest  # noqa: E402
+
+from torchmorph import TetMesh  # noqa: E402
+from torchmorph.mesh import box_mesh  # noqa: E402
 
 
 def structured_cube(cells: int = 4, size: float = 1.0) -> TetMesh:

@@ -232,11 +232,48 @@ def test_state_dict_round_trip():
     targets, controls, generator = cloud()
     morph = IDW(controls, targets)
     state = morph.state_dict()
-    assert set(state) == {"controls", "targets", "weights"}
+    assert set(state) == {"controls", "targets", "weights", "_extra_state"}
+    assert state["_extra_state"] == {"power": 4.0, "coincidence_tolerance": 1e-10,
+                                     "mode": "dense"}
     shifted = IDW(controls + 1.0, targets)
     shifted.load_state_dict(state)
     displacements = torch.randn(controls.shape[0], 3, generator=generator, dtype=F64)
     torch.testing.assert_close(shifted(displacements), morph(displacements), rtol=0, atol=0)
+
+
+def test_state_with_another_power_or_tolerance_fails_to_load():
+    targets, controls, _ = cloud()
+    state = IDW(controls, targets, power=2.0).state_dict()
+    with pytest.raises(ValueError, match="power: the state was saved with power=2.0 but this "
+                                         "module has power=4.0"):
+        IDW(controls, targets).load_state_dict(state)
+    state = IDW(controls, targets, coincidence_tolerance=1e-6).state_dict()
+    with pytest.raises(ValueError, match="coincidence_tolerance: the state was saved with"):
+        IDW(controls, targets).load_state_dict(state)
+
+
+@pytest.mark.parametrize(("saved", "loaded"), [("dense", "matrix_free"), ("matrix_free", "dense")])
+def test_state_loads_across_modes(saved, loaded):
+    targets, controls, generator = cloud()
+    other_targets, other_controls, _ = cloud(seed=3)
+    source = IDW(controls, targets, mode=saved)
+    receiver = IDW(other_controls, other_targets, mode=loaded)
+    receiver.load_state_dict(source.state_dict())
+    assert receiver.mode == loaded
+    displacements = torch.randn(controls.shape[0], 3, generator=generator, dtype=F64)
+    torch.testing.assert_close(receiver(displacements), source(displacements))
+
+
+def test_module_copies_its_inputs():
+    targets, controls, generator = cloud()
+    displacements = torch.randn(controls.shape[0], 3, generator=generator, dtype=F64)
+    for mode in ("dense", "matrix_free"):
+        moved_controls, moved_targets = controls.clone(), targets.clone()
+        morph = IDW(moved_controls, moved_targets, mode=mode)
+        before = morph(displacements)
+        moved_controls.mul_(2.0)  # the caller edits its tensors in place
+        moved_targets.add_(1.0)
+        torch.testing.assert_close(morph(displacements), before, rtol=0, atol=0)
 
 
 def test_to_dtype_moves_buffers():

@@ -1,4 +1,4 @@
-"""Inverse Distance Weighting (SPEC.md §1, paper eqs. 1–4).
+"""Inverse Distance Weighting (the paper's Section 2, eqs. 1–4).
 
 Pure functions (:func:`idw_weights`, :func:`idw_apply`) over point tensors, and
 the :class:`IDW` module that holds the reference geometry and, in dense mode,
@@ -6,21 +6,38 @@ the weight matrix ``W`` as registered buffers.
 
 Numerics
 --------
-Row ``i`` of ``W`` is computed as ``(m_i / d²_ik)^(p/2)`` normalised by its sum,
-with ``d²_ik`` the squared distance from target ``i`` to control ``k`` (direct
-coordinate differences, never the ``|x|² + |c|² − 2x·c`` expansion, which
-cancels catastrophically) and ``m_i`` the row's smallest squared distance.
-This equals eq. (2) exactly, and every term lies in [0, 1], so nothing
-overflows or underflows harmfully in float32 or float64. A target closer to a
-control than ``coincidence_tolerance`` times the point cloud's size takes that
-control's row exactly (1 there, 0 elsewhere): exact interpolation.
+Both point clouds are first translated and scaled so that their joint bounding
+box has diagonal 1 (W is invariant under that map), so coordinates from 1e-30 to
+1e30 give the same weights. Row ``i`` of ``W`` is then ``(m_i / d²_ik)^(p/2)``
+normalised by its sum, with ``d²_ik`` the squared distance from target ``i`` to
+control ``k`` (direct coordinate differences, never the ``|x|² + |c|² − 2x·c``
+expansion, which cancels catastrophically) and ``m_i`` the row's smallest
+squared distance. This equals eq. (2) exactly, and every term lies in [0, 1], so
+nothing overflows or underflows harmfully in float32 or float64.
+
+A target closer than ``coincidence_tolerance`` times the bounding-box diagonal to
+a control takes that control's displacement exactly (exact interpolation). If it
+lies that close to several controls (duplicated control points), it takes the
+mean of their displacements, whatever their order; :class:`IDW` warns about such
+duplicates when it is built.
+
+Implementations
+---------------
+``implementation="fused"`` runs kernels that compute the weights in registers and
+never store a pairwise tile: Triton on CUDA devices (:mod:`torchmorph._triton_kernels`)
+and numba on the CPU (:mod:`torchmorph._cpu_kernels`, when numba is installed).
+``"torch"`` runs the same arithmetic in blocks of torch operations, which works
+everywhere and under ``torch.compile`` and ``torch.func``. ``"auto"`` (the
+default) takes the fused kernels where they apply and torch elsewhere.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+import os
 import time
+import warnings
 from typing import Literal
 
 import torch
@@ -41,22 +58,30 @@ __all__ = [
     "DEFAULT_BLOCK_BYTES",
     "DEFAULT_DENSE_BYTES",
     "IDW",
+    "fused_available",
     "idw_apply",
     "idw_weights",
 ]
 
 DEFAULT_BLOCK_BYTES = 4 * 2**20
-"""Working-set size of one block of pairwise temporaries (bytes). Blocks of a few
-MB stay in cache; much larger blocks were measured slower."""
+"""Working-set size of one block of pairwise temporaries of the torch implementation
+on the CPU (bytes). Blocks of a few MB stay in cache; much larger ones were slower."""
 
-DEFAULT_DENSE_BYTES = 4 * 2**30
-"""``mode="auto"`` stores W (dense) when it takes at most this many bytes."""
+DEFAULT_CUDA_BLOCK_BYTES = 256 * 2**20
+"""The same on a CUDA device, where a block is one launch: large blocks keep the
+device busy between launches (64 MiB to 1 GiB measured alike on an H100)."""
+
+DEFAULT_DENSE_BYTES: int | None = None
+"""``mode="auto"`` stores W (dense) when it takes at most this many bytes; ``None``
+means half of the memory the device has free when the module is built."""
 
 DEFAULT_COINCIDENCE_TOLERANCE = 1e-10
 """Targets closer to a control than this fraction of the cloud's bounding-box
 diagonal take that control's displacement exactly."""
 
 Mode = Literal["auto", "dense", "matrix_free"]
+Implementation = Literal["auto", "fused", "torch"]
+IMPLEMENTATIONS = ("auto", "fused", "torch")
 
 
 # --------------------------------------------------------------------------- #
@@ -74,20 +99,208 @@ def _functional(*tensors: Tensor) -> bool:
     return any(is_traced(t) for t in tensors)
 
 
-def _coincidence_radius2(targets: Tensor, controls: Tensor, tolerance: float) -> float | Tensor:
-    """Squared absolute coincidence radius: ``(tolerance * bbox diagonal)²``.
-
-    A Python float, or a 0-d tensor when the geometry is traced (``torch.compile``,
-    ``torch.func`` transforms of the positions), so that no value is read in Python.
-    """
+def _check_tolerance(tolerance: float) -> float:
+    tolerance = float(tolerance)
     if tolerance < 0 or not math.isfinite(tolerance):
         raise ValueError(f"coincidence_tolerance must be finite and >= 0, got {tolerance!r}")
+    return tolerance
+
+
+def _normalise(targets: Tensor, controls: Tensor, tolerance: float
+               ) -> tuple[Tensor, Tensor, float | Tensor]:
+    """Both clouds scaled by a power of two so that every coordinate lies in [-1, 1],
+    and the squared coincidence radius ``(tolerance · bounding-box diagonal)²`` in
+    those units (at least the dtype's smallest normal, so that a target exactly on a
+    control always counts as coincident).
+
+    Scaling by a power of two is exact, and W is invariant under it (gradients
+    included: the factor is a constant), so coordinates from 1e-30 to 1e30 give the
+    same weights; squared distances then neither overflow nor underflow. The points
+    are not translated: a translation would round the coordinates of a cloud
+    centred away from its own fine details. The radius is a Python float, or a
+    0-d tensor when the call is traced (no value is read in Python then).
+    """
     with torch.no_grad():
-        both = torch.cat([targets.detach(), controls.detach()]) if targets.numel() else controls
-        diagonal = torch.linalg.vector_norm(both.amax(0) - both.amin(0))
-        if is_traced(both):
-            return (tolerance * diagonal.detach()) ** 2
-    return (tolerance * float(diagonal)) ** 2
+        t, c = targets.detach(), controls.detach()
+        low, high, largest = c.amin(0), c.amax(0), c.abs().amax()
+        if t.shape[0]:
+            low = torch.minimum(low, t.amin(0))
+            high = torch.maximum(high, t.amax(0))
+            largest = torch.maximum(largest, t.abs().amax())
+        _, exponent = torch.frexp(largest)
+        scale = torch.ldexp(torch.ones_like(largest), -exponent)
+        diagonal = torch.linalg.vector_norm(high * scale - low * scale)
+        radius2 = (tolerance * diagonal).square().clamp_min(torch.finfo(c.dtype).tiny)
+        if not (is_traced(t) or is_traced(c)):
+            radius2 = float(radius2)
+    return targets * scale, controls * scale, radius2
+
+
+# --------------------------------------------------------------------------- #
+# fused kernels: one table of backends
+# --------------------------------------------------------------------------- #
+class _TritonBackend:
+    """Triton kernels on CUDA; geometry laid out axis by axis, (D, N)."""
+
+    def __init__(self):
+        from . import _triton_kernels
+
+        self.kernels = _triton_kernels
+
+    @staticmethod
+    def layout(points: Tensor) -> Tensor:
+        return points.T.contiguous()
+
+    def nearest(self, targets, controls):
+        return self.kernels.nearest_squared(targets, controls)
+
+    def apply(self, targets, controls, values, power, radius2, nearest2):
+        out, nearest2, sums = self.kernels.apply(targets, controls, values, power, radius2,
+                                                 nearest2)
+        return out, sums
+
+    def apply_transposed(self, targets, controls, grad, power, radius2, nearest2, sums):
+        return self.kernels.apply_transposed(targets, controls, grad, nearest2, sums, power,
+                                             radius2)
+
+    def weights(self, targets, controls, power, radius2, out=None):
+        return self.kernels.weights(targets, controls, power, radius2, out=out)
+
+    def dense_columns(self) -> int:
+        """Up to how many columns :meth:`dense_apply` beats the BLAS product."""
+        return self.kernels.SMALL_COLUMNS
+
+    def dense_apply(self, weights, values):
+        return self.kernels.dense_apply(weights, values)
+
+
+class _NumbaBackend:
+    """numba kernels on the CPU; geometry as given, (N, D) rows."""
+
+    def __init__(self):
+        from . import _cpu_kernels
+
+        if not _cpu_kernels.available():
+            raise ImportError("numba is not installed")
+        self.kernels = _cpu_kernels
+
+    @staticmethod
+    def layout(points: Tensor) -> Tensor:
+        return points.contiguous()
+
+    def nearest(self, targets, controls):
+        tiny = torch.finfo(targets.dtype).tiny
+        return self.kernels.nearest_squared(targets, controls).clamp_min(tiny)
+
+    def apply(self, targets, controls, values, power, radius2, nearest2):
+        return self.kernels.apply(targets, controls, values, power, radius2, nearest2)
+
+    def apply_transposed(self, targets, controls, grad, power, radius2, nearest2, sums):
+        return self.kernels.apply_transposed(targets, controls, grad, power, radius2, nearest2,
+                                             sums)
+
+    def weights(self, targets, controls, power, radius2, out=None):
+        return self.kernels.weights(targets, controls, power, radius2, out=out)
+
+    def dense_columns(self) -> int:
+        return 3 if hasattr(self.kernels, "dense_apply") else 0
+
+    def dense_apply(self, weights, values):
+        return self.kernels.dense_apply(weights, values)
+
+
+_BACKENDS = {"cuda": _TritonBackend, "cpu": _NumbaBackend}
+_LOADED: dict[str, object] = {}
+
+
+def _backend(device: torch.device):
+    """The fused backend for ``device``, or None where there is none (or it cannot load)."""
+    kind = device.type
+    if kind not in _LOADED:
+        factory = _BACKENDS.get(kind)
+        try:
+            _LOADED[kind] = factory() if factory is not None else None
+        except ImportError:
+            _LOADED[kind] = None
+    return _LOADED[kind]
+
+
+def fused_available(device: torch.device | str = "cpu") -> bool:
+    """Whether fused kernels run on ``device`` (Triton on CUDA, numba on the CPU)."""
+    return _backend(torch.device(device)) is not None
+
+
+def _check_implementation(implementation: str) -> str:
+    if implementation not in IMPLEMENTATIONS:
+        raise ValueError(f"implementation must be 'auto', 'fused' or 'torch', "
+                         f"got {implementation!r}")
+    return implementation
+
+
+def _fused_for(implementation: str, *tensors: Tensor, positions_grad: bool = False):
+    """The fused backend to use for ``tensors``, or None for the torch implementation.
+
+    ``implementation="fused"`` raises where the kernels cannot run, saying why.
+    """
+    implementation = _check_implementation(implementation)
+    if implementation == "torch":
+        return None
+    reason = None
+    reference = tensors[0]
+    if any(is_traced(t) for t in tensors):
+        reason = "the call is traced (torch.compile or torch.func): use the torch implementation"
+    elif reference.dtype not in (torch.float32, torch.float64):
+        reason = f"dtype {reference.dtype} (the kernels take float32 and float64)"
+    elif positions_grad:
+        reason = "gradients to point positions are computed by the torch implementation"
+    elif _backend(reference.device) is None:
+        reason = (f"no fused kernels on device {reference.device} (Triton on CUDA; numba on "
+                  f"the CPU, installed with torchmorph)")
+    if reason is None:
+        return _backend(reference.device)
+    if implementation == "fused":
+        raise ValueError(f"implementation='fused' cannot run here: {reason}")
+    return None
+
+
+class _FusedApply(torch.autograd.Function):
+    """``W @ values`` by a fused backend; the backward pass is a second fused pass, Wᵀ
+    applied to the incoming gradient (gradients to the values only)."""
+
+    @staticmethod
+    def forward(ctx, targets, controls, values, backend, power, radius2, nearest2):
+        if nearest2 is None:
+            nearest2 = backend.nearest(targets, controls)
+        out, sums = backend.apply(targets, controls, values.contiguous(), power, radius2,
+                                  nearest2)
+        ctx.save_for_backward(targets, controls, nearest2, sums)
+        ctx.settings = (backend, power, radius2)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        targets, controls, nearest2, sums = ctx.saved_tensors
+        backend, power, radius2 = ctx.settings
+        grad_values = None
+        if ctx.needs_input_grad[2]:
+            grad_values = backend.apply_transposed(targets, controls, grad.contiguous(), power,
+                                                   radius2, nearest2, sums)
+        return None, None, grad_values, None, None, None, None
+
+
+class _FusedDenseApply(torch.autograd.Function):
+    """``W @ values`` for a stored W by a fused kernel that reads W once; backward Wᵀ g."""
+
+    @staticmethod
+    def forward(ctx, weights, values, backend):
+        ctx.save_for_backward(weights)
+        return backend.dense_apply(weights, values.contiguous())
+
+    @staticmethod
+    def backward(ctx, grad):
+        (weights,) = ctx.saved_tensors
+        return None, weights.mT @ grad, None
 
 
 def _squared_distances(
@@ -139,54 +352,67 @@ def _rows_per_block(columns: int, itemsize: int, block_bytes: int, copies: int =
     return max(1, int(block_bytes) // max(1, columns * itemsize * copies))
 
 
+def _block_bytes(block_bytes: int | None, device: torch.device) -> int:
+    """The caller's block budget, or the device's default."""
+    if block_bytes is not None:
+        return int(check_positive(block_bytes, "block_bytes"))
+    return DEFAULT_CUDA_BLOCK_BYTES if device.type == "cuda" else DEFAULT_BLOCK_BYTES
+
+
+def _coincident_weights(dist2: Tensor, radius2: float) -> Tensor:
+    """Rows of W for coincident targets: the mean over the controls within the radius."""
+    indicator = (dist2 <= radius2).to(dist2.dtype)
+    return indicator / indicator.sum(1, keepdim=True)
+
+
 def _weights_block(
-    targets: Tensor, controls: Tensor, power: float, radius2: float | Tensor,
+    targets: Tensor, controls: Tensor, power: float, radius2: float,
     out: Tensor | None = None, controls_t: Tensor | None = None,
 ) -> Tensor:
-    """Rows of W for a block of targets (all controls); in place into ``out`` if given.
+    """Rows of W for a block of (normalised) targets against all controls; in place
+    into ``out`` when autograd is off.
 
-    Traced calls (``torch.compile``, functorch transforms of the positions) replace
-    the coincident rows with ``torch.where`` instead of a data-dependent branch.
+    With autograd, or traced (``torch.compile``, ``torch.func``), coincident rows are
+    selected with ``torch.where``; their ordinary-weight branch is computed from
+    harmless values so that no NaN reaches the gradient.
     """
-    functional = _functional(targets, controls)
-    dist2 = _squared_distances(targets, controls, out, floor=torch.finfo(controls.dtype).tiny,
-                               controls_t=controls_t)
-    nearest2 = dist2.detach().amin(1, keepdim=True)
-    coincident = nearest2 <= radius2  # (n, 1)
-    if functional and (is_traced(coincident) or isinstance(radius2, Tensor)):
-        nearest = dist2.detach().argmin(1, keepdim=True)
-        weights = _ratio_powers(nearest2, dist2, power)
-        weights = weights / weights.sum(1, keepdim=True)
-        one_hot = torch.zeros_like(weights).scatter(1, nearest, 1.0)
-        return torch.where(coincident, one_hot, weights)
-    coincident = coincident.flatten()
+    tiny = torch.finfo(controls.dtype).tiny
+    if _functional(targets, controls):
+        dist2 = _squared_distances(targets, controls).clamp_min(tiny)
+        nearest2 = dist2.detach().amin(1, keepdim=True)
+        coincident = nearest2 <= radius2  # (n, 1)
+        exact = _coincident_weights(dist2.detach(), radius2)
+        safe = torch.where(coincident, torch.ones_like(dist2), dist2)
+        ratio = _ratio_powers(torch.where(coincident, torch.ones_like(nearest2), nearest2),
+                              safe, power)
+        return torch.where(coincident, exact, ratio / ratio.sum(1, keepdim=True))
+    dist2 = _squared_distances(targets, controls, out, floor=tiny, controls_t=controls_t)
+    nearest2 = dist2.amin(1, keepdim=True)
+    coincident = (nearest2 <= radius2).flatten()
     rows = torch.nonzero(coincident).flatten() if bool(coincident.any()) else None
-    # the nearest control of a coincident row, found before dist2 is overwritten
-    nearest = dist2.detach()[rows].argmin(1, keepdim=True) if rows is not None else None
+    exact = _coincident_weights(dist2[rows], radius2) if rows is not None else None
     weights = _ratio_powers(nearest2, dist2, power)
-    if functional:
-        weights = weights / weights.sum(1, keepdim=True)
-    else:
-        weights.div_(weights.sum(1, keepdim=True))
+    weights.div_(weights.sum(1, keepdim=True))
     if rows is not None:
-        one_hot = torch.zeros(rows.numel(), controls.shape[0], dtype=weights.dtype,
-                              device=weights.device)
-        one_hot.scatter_(1, nearest, 1.0)
-        if functional:
-            weights = weights.index_put((rows,), one_hot)
-        else:
-            weights[rows] = one_hot
+        weights[rows] = exact
     return weights
 
 
 def _assemble_weights(
-    targets: Tensor, controls: Tensor, power: float, radius2: float, block_bytes: int
+    targets: Tensor, controls: Tensor, power: float, radius2: float, block_bytes: int | None,
+    implementation: str = "auto",
 ) -> Tensor:
-    """Dense W (N_t, N_c), row-major, filled block by block in place (no autograd)."""
+    """Dense W (N_t, N_c) of normalised points, row-major, without autograd: by a fused
+    kernel that writes W once, or block by block in place."""
     weights = torch.empty(targets.shape[0], controls.shape[0], dtype=controls.dtype,
                           device=controls.device)
-    rows = _rows_per_block(controls.shape[0], controls.element_size(), block_bytes)
+    backend = _fused_for(implementation, targets, controls)
     with torch.no_grad():
+        if backend is not None:
+            return backend.weights(backend.layout(targets), backend.layout(controls), power,
+                                   radius2, out=weights)
+        rows = _rows_per_block(controls.shape[0], controls.element_size(),
+                               _block_bytes(block_bytes, controls.device))
         controls_t = controls.T.contiguous()
         for start in range(0, targets.shape[0], rows):
             _weights_block(targets[start : start + rows], controls, power, radius2,
@@ -203,9 +429,10 @@ def idw_weights(
     *,
     power: float = 4.0,
     coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
-    block_bytes: int = DEFAULT_BLOCK_BYTES,
+    block_bytes: int | None = None,
+    implementation: Implementation = "auto",
 ) -> Tensor:
-    """Dense IDW weight matrix, SPEC.md eq. (2).
+    """Dense IDW weight matrix, the paper's eq. (2).
 
     Parameters
     ----------
@@ -216,10 +443,15 @@ def idw_weights(
     power : float
         The exponent p > 0 (the paper's p = 4).
     coincidence_tolerance : float
-        A target within this fraction of the cloud's bounding-box diagonal of
-        a control takes that control's row exactly (1 there, 0 elsewhere).
-    block_bytes : int
-        Size of the pairwise temporaries of one block of rows.
+        A target within this fraction of the clouds' bounding-box diagonal of a
+        control takes that control's row exactly (1 there, 0 elsewhere; the mean
+        over several controls that close).
+    block_bytes : int, optional
+        Size of the pairwise temporaries of one block of rows in the torch
+        implementation (default: 4 MiB on the CPU, 256 MiB on a CUDA device).
+    implementation : {"auto", "fused", "torch"}
+        Fused kernels write W once (Triton on CUDA, numba on the CPU); see the
+        module's notes. Gradients to the points always use the torch implementation.
 
     Returns
     -------
@@ -231,22 +463,26 @@ def idw_weights(
     ------
     ValueError
         For wrong shapes, empty controls, NaN/inf, power <= 0, mismatched
-        dtype or device.
+        dtype or device, or an implementation that cannot run.
     """
     targets, controls, power, radius2 = _prepare(targets, controls, power, coincidence_tolerance)
     if not _functional(targets, controls):
-        return _assemble_weights(targets, controls, power, radius2, block_bytes)
-    rows = _rows_per_block(controls.shape[0], controls.element_size(), block_bytes, copies=4)
+        return _assemble_weights(targets, controls, power, radius2, block_bytes, implementation)
+    _fused_for(implementation, targets, controls, positions_grad=True)  # raises if forced
+    rows = _rows_per_block(controls.shape[0], controls.element_size(),
+                           _block_bytes(block_bytes, controls.device), copies=4)
     return torch.cat([_weights_block(targets[s : s + rows], controls, power, radius2)
                       for s in range(0, targets.shape[0], rows)])
 
 
 def _prepare(targets, controls, power, coincidence_tolerance):
+    """Validated, normalised points, the power and the squared coincidence radius."""
     controls = as_points(controls, "controls", dim=_dim_of(controls))
     targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True)
     check_same_device_dtype(controls, "controls", targets, "targets")
     power = _check_power(power)
-    radius2 = _coincidence_radius2(targets, controls, float(coincidence_tolerance))
+    targets, controls, radius2 = _normalise(targets, controls,
+                                            _check_tolerance(coincidence_tolerance))
     return targets, controls, power, radius2
 
 
@@ -306,7 +542,7 @@ def _matrix_free_rows(
     targets: Tensor, controls: Tensor, augmented: Tensor, nearest2: Tensor,
     power: float, radius2: float, columns: int,
 ) -> Tensor:
-    """IDW at a block of targets, tiling over controls.
+    """IDW at a block of targets, tiling over controls (torch implementation).
 
     ``augmented`` is ``[values, 1]`` of shape (N_c, K + 1): the last column
     accumulates the weights' sum, by which the first K are divided at the end.
@@ -318,11 +554,12 @@ def _matrix_free_rows(
         ratio = _ratio_powers(nearest2, dist2, power)
         accumulated = accumulated + ratio @ augmented[k : k + columns]
     result = accumulated[:, :-1] / accumulated[:, -1:]
-    coincident = (nearest2 <= radius2).flatten()
+    coincident = (nearest2.clamp_min(floor) <= radius2).flatten()
     if bool(coincident.any()):
         rows = torch.nonzero(coincident).flatten()
-        nearest = _squared_distances(targets[rows].detach(), controls.detach()).argmin(1)
-        result = result.index_put((rows,), augmented[nearest, :-1])
+        dist2 = _squared_distances(targets[rows].detach(), controls.detach()).clamp_min(floor)
+        exact = _coincident_weights(dist2, radius2) @ augmented[:, :-1]
+        result = result.index_put((rows,), exact)
     return result
 
 
@@ -333,7 +570,8 @@ def idw_apply(
     *,
     power: float = 4.0,
     coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
-    block_bytes: int = DEFAULT_BLOCK_BYTES,
+    block_bytes: int | None = None,
+    implementation: Implementation = "auto",
 ) -> Tensor:
     """Matrix-free IDW: ``W @ displacements`` without ever storing ``W``.
 
@@ -344,9 +582,12 @@ def idw_apply(
     displacements : Tensor, shape (N_c, 3) or (B, N_c, 3)
     power, coincidence_tolerance
         As in :func:`idw_weights`.
-    block_bytes : int
-        Byte budget of one tile of pairwise temporaries; peak memory is about
-        this plus O((N_t + N_c) · (3B + 1)).
+    block_bytes : int, optional
+        Byte budget of one tile of pairwise temporaries of the torch
+        implementation; its peak memory is about this plus
+        O((N_t + N_c) · (3B + 1)). The fused kernels need no temporaries.
+    implementation : {"auto", "fused", "torch"}
+        See the module's notes.
 
     Returns
     -------
@@ -355,14 +596,18 @@ def idw_apply(
 
     Notes
     -----
-    Tiles both rows and columns, accumulates unnormalised weights against
-    ``[d, 1]`` and divides at the end. With autograd on, each block of rows is
-    recomputed in the backward pass (activation checkpointing), so gradients to
-    displacements and positions never store W either. Inside ``torch.func``
-    transforms (``grad``, ``jacrev``: no saved-tensor hooks there) blocks are not
-    checkpointed, so the graph holds the weights of every tile. The KD-tree and the
-    coincident-row branch read values in Python: this function is not traceable by
-    ``torch.compile`` without graph breaks (use dense mode there).
+    The fused kernels (two passes over the controls: the nearest distance, then
+    the ratio weights against ``[d, 1]``, divided at the end) serve the forward
+    pass and the gradient to the displacements (a second fused pass applying Wᵀ
+    to the incoming gradient). Gradients to the point positions are not fused:
+    when ``targets`` or ``controls`` require grad, the torch implementation runs,
+    recomputing each block of rows in the backward pass (activation
+    checkpointing), so W is never stored either. Inside ``torch.func`` transforms
+    (``grad``, ``jacrev``: no saved-tensor hooks there) blocks are not
+    checkpointed, so the graph holds the weights of every tile. The torch
+    implementation's KD-tree and coincident-row branch read values in Python:
+    matrix-free mode is not traceable by ``torch.compile`` without graph breaks
+    (use dense mode there).
     """
     targets, controls, power, radius2 = _prepare(targets, controls, power, coincidence_tolerance)
     batched = check_vectors(displacements, "displacements", controls.shape[0],
@@ -371,10 +616,25 @@ def idw_apply(
     batch = displacements.shape[0] if batched else 1
     values = (displacements.permute(1, 0, 2) if batched else displacements).reshape(
         controls.shape[0], 3 * batch)
-    rows, columns = _tile_shape(targets.shape[0], controls.shape[0], controls.element_size(),
-                                block_bytes)
-    nearest2 = _nearest_squared_distance(targets, controls, (rows, columns))
     inputs = (targets, controls, displacements)
+    positions_grad = torch.is_grad_enabled() and (targets.requires_grad or controls.requires_grad)
+    backend = _fused_for(implementation, *inputs, positions_grad=positions_grad)
+    if backend is not None:
+        result = _FusedApply.apply(backend.layout(targets), backend.layout(controls), values,
+                                   backend, power, radius2, None)
+    else:
+        result = _torch_apply(targets, controls, values, power, radius2, block_bytes)
+    result = result.reshape(targets.shape[0], batch, 3)
+    return result.permute(1, 0, 2) if batched else result[:, 0]
+
+
+def _torch_apply(targets: Tensor, controls: Tensor, values: Tensor, power: float,
+                 radius2: float, block_bytes: int | None) -> Tensor:
+    """The torch implementation of matrix-free ``W @ values`` (normalised points)."""
+    rows, columns = _tile_shape(targets.shape[0], controls.shape[0], controls.element_size(),
+                                _block_bytes(block_bytes, controls.device))
+    nearest2 = _nearest_squared_distance(targets, controls, (rows, columns))
+    inputs = (targets, controls, values)
     needs_graph = torch.is_grad_enabled() and any(x.requires_grad for x in inputs)
     needs_graph = needs_graph and not any(is_traced(x) for x in inputs)
     augmented = torch.cat([values, values.new_ones(values.shape[0], 1)], 1)
@@ -386,20 +646,24 @@ def idw_apply(
             blocks.append(checkpoint(_matrix_free_rows, *args, use_reentrant=False))
         else:
             blocks.append(_matrix_free_rows(*args))
-    result = torch.cat(blocks) if blocks else values.new_zeros(0, 3 * batch)
-    result = result.reshape(targets.shape[0], batch, 3)
-    return result.permute(1, 0, 2) if batched else result[:, 0]
+    return torch.cat(blocks) if blocks else values.new_zeros(0, values.shape[1])
 
 
-def _dense_apply(weights: Tensor, displacements: Tensor) -> Tensor:
+def _dense_apply(weights: Tensor, displacements: Tensor, implementation: str = "auto") -> Tensor:
     """``W @ d`` for d of shape (N_c, 3) or (B, N_c, 3), as one contraction.
 
-    Under ``vmap`` a single (N_c, 3) displacement is a batch in disguise: written as
-    ``(dᵀ Wᵀ)ᵀ`` with a contiguous ``dᵀ`` the batch folds into the rows of one GEMM,
-    where ``W @ d`` becomes a batched product that reads W once per batch entry
-    (7x slower for 2,000 values at case-C size).
+    One displacement on a device with fused kernels goes through a kernel that
+    reads W once (a GEMM with three columns reaches a fraction of the memory
+    bandwidth). Under ``vmap`` a single (N_c, 3) displacement is a batch in
+    disguise: written as ``(dᵀ Wᵀ)ᵀ`` with a contiguous ``dᵀ`` the batch folds into
+    the rows of one GEMM, where ``W @ d`` becomes a batched product that reads W
+    once per batch entry (7x slower for 2,000 values at case-C size).
     """
     if displacements.ndim == 2:
+        traced = torch.compiler.is_compiling() or plain_tensor(displacements)[1]
+        backend = None if traced else _fused_for(implementation, weights, displacements)
+        if backend is not None and displacements.shape[1] <= backend.dense_columns():
+            return _FusedDenseApply.apply(weights, displacements, backend)
         if not torch.compiler.is_compiling() and plain_tensor(displacements)[1]:
             return (displacements.mT.contiguous() @ weights.mT).mT
         return weights @ displacements
@@ -411,8 +675,50 @@ def _dense_apply(weights: Tensor, displacements: Tensor) -> Tensor:
 # --------------------------------------------------------------------------- #
 # module
 # --------------------------------------------------------------------------- #
+def _free_memory(device: torch.device) -> int:
+    """Bytes the device can still allocate: CUDA's free memory plus what torch's caching
+    allocator holds unused; on the CPU the kernel's MemAvailable (physical memory if
+    unknown)."""
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        stats = torch.cuda.memory_stats(device)
+        return int(free + stats.get("reserved_bytes.all.current", 0)
+                   - stats.get("allocated_bytes.all.current", 0))
+    try:
+        with open("/proc/meminfo") as info:
+            for line in info:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return 2**63 - 1
+
+
+def _warn_duplicate_controls(controls: Tensor, tolerance: float) -> None:
+    """Warn when controls lie within the coincidence radius of one another: a target on
+    them takes the mean of their displacements."""
+    if controls.shape[0] < 2 or is_traced(controls):
+        return
+    from scipy.spatial import cKDTree
+
+    with torch.no_grad():
+        _, normalised, radius2 = _normalise(controls.new_zeros(0, controls.shape[1]),
+                                            controls.detach(), tolerance)
+        points = normalised.double().cpu().numpy()
+    distances, _ = cKDTree(points).query(points, k=2)
+    close = int((distances[:, 1] ** 2 <= radius2).sum())
+    if close:
+        warnings.warn(
+            f"controls: {close} control points lie within the coincidence radius of another "
+            f"one (duplicated points); a target there takes the mean of their displacements",
+            stacklevel=3)
+
+
 class IDW(nn.Module):
-    """IDW interpolation from control points to target points (SPEC.md §1).
+    """IDW interpolation from control points to target points (the paper's eq. 1–2).
 
     Parameters
     ----------
@@ -424,33 +730,52 @@ class IDW(nn.Module):
         IDW exponent p > 0; default 4 (the paper's).
     mode : {"auto", "dense", "matrix_free"}
         ``dense`` assembles and stores W (N_t, N_c) once; ``matrix_free``
-        recomputes weights in tiles on every call and never stores W; ``auto``
-        picks dense when W takes at most ``dense_bytes``.
-    block_bytes : int
-        Byte budget of one block of pairwise temporaries (assembly and
-        matrix-free tiles).
-    dense_bytes : int
-        Threshold for ``mode="auto"``.
+        recomputes weights on every call and never stores W; ``auto`` picks
+        dense when W takes at most ``dense_bytes``.
+    block_bytes : int, optional
+        Byte budget of one block of pairwise temporaries of the torch
+        implementation (default: 4 MiB on the CPU, 256 MiB on CUDA).
+    dense_bytes : int, optional
+        Threshold for ``mode="auto"`` (default: half the memory the device has
+        free when the module is built).
     coincidence_tolerance : float
         Relative distance under which a target takes a control's value exactly.
+    implementation : {"auto", "fused", "torch"}
+        Fused kernels (Triton on CUDA, numba on the CPU) or torch operations; see
+        :mod:`torchmorph.idw`. Chosen per call, so ``.to("cuda")`` just works.
 
     Attributes
     ----------
     controls, targets : buffers
-        The reference geometry.
+        The reference geometry (copies of the inputs, unless these require grad:
+        then they are kept, borrowed, so that W can be rebuilt from them).
     weights : buffer, shape (N_t, N_c), dense mode only
         W (rows sum to 1).
     assembly_time : float
         Seconds spent assembling W (0 in matrix-free mode).
+
+    Raises
+    ------
+    ValueError
+        For bad points or options; ``mode="dense"`` when W does not fit in the
+        memory the device has free (before allocating; the message names
+        ``mode="matrix_free"``).
 
     Notes
     -----
     Gradients always flow to the displacements. To differentiate with respect
     to geometry, either pass ``controls``/``targets`` that require grad to the
     constructor (the module then rebuilds W differentiably from them on every
-    call made with grad enabled) or pass new positions to :meth:`forward`.
-    ``.to(device)`` of a module built from tensors that require grad makes
-    copies: the link to the caller's tensors is then lost.
+    call made with grad enabled) or pass new positions to :meth:`forward`; those
+    calls use the torch implementation. ``.to(device)`` of a module built from
+    tensors that require grad makes copies: the link to the caller's tensors is
+    then lost.
+
+    The whole state is in :meth:`state_dict`: the geometry, W in dense mode, and
+    ``power``, ``coincidence_tolerance`` and ``mode`` as extra state. Loading a
+    state saved with another power or tolerance raises; a dense state loads into
+    a matrix-free module (W is dropped) and a matrix-free one into a dense module
+    (W is assembled from the loaded geometry).
 
     The forward composes with ``torch.func``: ``vmap`` over displacements (a
     per-value family mapped over μ equals the batched call), ``grad``, ``jacrev``
@@ -467,9 +792,10 @@ class IDW(nn.Module):
         *,
         power: float = 4.0,
         mode: Mode = "auto",
-        block_bytes: int = DEFAULT_BLOCK_BYTES,
-        dense_bytes: int = DEFAULT_DENSE_BYTES,
+        block_bytes: int | None = None,
+        dense_bytes: int | None = DEFAULT_DENSE_BYTES,
         coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
+        implementation: Implementation = "auto",
     ) -> None:
         super().__init__()
         controls = as_points(controls, "controls")
@@ -478,21 +804,36 @@ class IDW(nn.Module):
         if mode not in ("auto", "dense", "matrix_free"):
             raise ValueError(f"mode must be 'auto', 'dense' or 'matrix_free', got {mode!r}")
         self.power = _check_power(power)
-        self.block_bytes = int(check_positive(block_bytes, "block_bytes"))
-        self.dense_bytes = int(check_positive(dense_bytes, "dense_bytes"))
-        self.coincidence_tolerance = float(coincidence_tolerance)
-        _coincidence_radius2(targets, controls, self.coincidence_tolerance)  # validates
+        self.block_bytes = None if block_bytes is None else int(
+            check_positive(block_bytes, "block_bytes"))
+        self.dense_bytes = None if dense_bytes is None else int(
+            check_positive(dense_bytes, "dense_bytes"))
+        self.coincidence_tolerance = _check_tolerance(coincidence_tolerance)
+        self.implementation = _check_implementation(implementation)
+        size = targets.shape[0] * controls.shape[0] * controls.element_size()
         if mode == "auto":
-            size = targets.shape[0] * controls.shape[0] * controls.element_size()
-            mode = "dense" if size <= self.dense_bytes else "matrix_free"
+            budget = self.dense_bytes
+            if budget is None:
+                budget = _free_memory(controls.device) // 2
+            mode = "dense" if size <= budget else "matrix_free"
+        elif mode == "dense":
+            free = _free_memory(controls.device)
+            if size > free:
+                raise ValueError(
+                    f"mode='dense': W ({targets.shape[0]:,} x {controls.shape[0]:,}, "
+                    f"{size / 2**30:.1f} GiB) does not fit in the {free / 2**30:.1f} GiB free on "
+                    f"{controls.device}; use mode='matrix_free'")
         self.mode: str = mode
-        self.register_buffer("controls", controls)
-        self.register_buffer("targets", targets)
+        _warn_duplicate_controls(controls, self.coincidence_tolerance)
+        # copies, so that later in-place edits of the caller's tensors cannot leave W stale
+        self.register_buffer("controls", controls if controls.requires_grad else controls.clone())
+        self.register_buffer("targets", targets if targets.requires_grad else targets.clone())
         self.assembly_time = 0.0
+        self._fused_cache: tuple | None = None
         if mode == "dense":
             start = time.perf_counter()
             with torch.no_grad():
-                weights = self._assemble(targets.detach(), controls.detach())
+                weights = self._assemble(self.targets.detach(), self.controls.detach())
             self.assembly_time = time.perf_counter() - start
             self.register_buffer("weights", weights)
         else:
@@ -507,8 +848,10 @@ class IDW(nn.Module):
         return self.targets.shape[0]
 
     def _assemble(self, targets: Tensor, controls: Tensor) -> Tensor:
-        radius2 = _coincidence_radius2(targets, controls, self.coincidence_tolerance)
-        return _assemble_weights(targets, controls, self.power, radius2, self.block_bytes)
+        targets, controls, power, radius2 = _prepare(targets, controls, self.power,
+                                                     self.coincidence_tolerance)
+        return _assemble_weights(targets, controls, power, radius2, self.block_bytes,
+                                 self.implementation)
 
     def weights_matrix(self) -> Tensor:
         """W of shape (N_t, N_c): the stored buffer, or assembled now (matrix-free)."""
@@ -517,12 +860,67 @@ class IDW(nn.Module):
         with torch.no_grad():
             return self._assemble(self.targets.detach(), self.controls.detach())
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+    # ----------------------------------------------------------------- state
+    def get_extra_state(self) -> dict:
+        return {"power": self.power, "coincidence_tolerance": self.coincidence_tolerance,
+                "mode": self.mode}
+
+    def set_extra_state(self, state: dict) -> None:
+        if not isinstance(state, dict):
+            raise ValueError(f"IDW state: extra state must be a dict, got {type(state).__name__}")
+        for field in ("power", "coincidence_tolerance"):
+            if field not in state:
+                raise ValueError(f"IDW state: the extra state lacks {field!r}")
+            if float(state[field]) != getattr(self, field):
+                raise ValueError(
+                    f"{field}: the state was saved with {field}={state[field]!r} but this module "
+                    f"has {field}={getattr(self, field)!r}; build the module with the saved value")
+
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys,
+                              unexpected_keys, error_msgs):
+        key = prefix + "weights"
+        has_weights = key in state_dict
+        if self.mode == "matrix_free" and has_weights:  # a dense state: W is not needed
+            state_dict = {k: v for k, v in state_dict.items() if k != key}
         resize_buffers_for_load(self, state_dict, prefix, ("controls", "targets", "weights"))
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys,
+                                      unexpected_keys, error_msgs)
+        self._fused_cache = None
+        if self.mode == "dense" and not has_weights:  # a matrix-free state: assemble W
+            if key in missing_keys:
+                missing_keys.remove(key)
+            with torch.no_grad():
+                self._buffers["weights"] = self._assemble(self.targets.detach(),
+                                                          self.controls.detach())
+        for name in ("controls", "targets"):
+            incoming = state_dict.get(prefix + name)
+            if incoming is not None and incoming.shape[-1:] != self._buffers[name].shape[-1:]:
+                error_msgs.append(f"{name}: the state holds points of shape "
+                                  f"{tuple(incoming.shape)}")
+        weights = self._buffers.get("weights")
+        if weights is not None and weights.shape != (self.num_targets, self.num_controls):
+            error_msgs.append(
+                f"weights: shape {tuple(weights.shape)} does not match "
+                f"{self.num_targets} targets x {self.num_controls} controls")
 
     def _geometry_requires_grad(self) -> bool:
         return self.controls.requires_grad or self.targets.requires_grad
+
+    def _fused_geometry(self, backend):
+        """Normalised geometry in the backend's layout and the nearest distances of the
+        stored points, computed once per geometry (and again after it changes)."""
+        key = (backend, self.controls.data_ptr(), self.targets.data_ptr(),
+               self.controls._version, self.targets._version, self.controls.device,
+               self.controls.dtype)
+        if self._fused_cache is None or self._fused_cache[0] != key:
+            with torch.no_grad():
+                targets, controls, _, radius2 = _prepare(self.targets.detach(),
+                                                         self.controls.detach(), self.power,
+                                                         self.coincidence_tolerance)
+                targets, controls = backend.layout(targets), backend.layout(controls)
+                nearest2 = backend.nearest(targets, controls)
+            self._fused_cache = (key, targets, controls, radius2, nearest2)
+        return self._fused_cache[1:]
 
     def forward(
         self,
@@ -555,16 +953,28 @@ class IDW(nn.Module):
         controls = self.controls if controls is None else controls
         targets = self.targets if targets is None else targets
         rebuild = new_geometry or (torch.is_grad_enabled() and self._geometry_requires_grad())
+        options = {"power": self.power, "coincidence_tolerance": self.coincidence_tolerance,
+                   "block_bytes": self.block_bytes, "implementation": self.implementation}
         if self.mode == "matrix_free":
-            return idw_apply(targets, controls, displacements, power=self.power,
-                             coincidence_tolerance=self.coincidence_tolerance,
-                             block_bytes=self.block_bytes)
+            if not rebuild:
+                backend = _fused_for(self.implementation, self.controls, displacements)
+                if backend is not None and self.num_targets:
+                    return self._fused_matrix_free(backend, displacements)
+            return idw_apply(targets, controls, displacements, **options)
         if rebuild:
-            weights = idw_weights(targets, controls, power=self.power,
-                                  coincidence_tolerance=self.coincidence_tolerance,
-                                  block_bytes=self.block_bytes)
-            return weights @ displacements
-        return _dense_apply(self.weights, displacements)
+            return idw_weights(targets, controls, **options) @ displacements
+        return _dense_apply(self.weights, displacements, self.implementation)
+
+    def _fused_matrix_free(self, backend, displacements: Tensor) -> Tensor:
+        targets, controls, radius2, nearest2 = self._fused_geometry(backend)
+        batched = displacements.ndim == 3
+        batch = displacements.shape[0] if batched else 1
+        values = (displacements.permute(1, 0, 2) if batched else displacements).reshape(
+            self.num_controls, 3 * batch)
+        result = _FusedApply.apply(targets, controls, values, backend, self.power, radius2,
+                                   nearest2)
+        result = result.reshape(self.num_targets, batch, 3)
+        return result.permute(1, 0, 2) if batched else result[:, 0]
 
     @staticmethod
     def _check_moved(moved: Tensor, reference: Tensor, name: str) -> Tensor:
@@ -578,4 +988,5 @@ class IDW(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"num_controls={self.num_controls}, num_targets={self.num_targets}, "
-                f"power={self.power:g}, mode={self.mode!r}")
+                f"power={self.power:g}, mode={self.mode!r}, "
+                f"implementation={self.implementation!r}")

@@ -1,0 +1,119 @@
+"""The fused Triton kernels against a float64 brute force, run on the CPU by Triton's
+interpreter (``TRITON_INTERPRET=1``, set by conftest.py when there is no CUDA device);
+on a CUDA machine tests/test_gpu_fused.py runs them compiled.
+
+Needs the ``triton`` extra (``pip install -e '.[triton]'``); skipped without it.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+pytest.importorskip("triton")
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def kernels():
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA device is present: tests/test_gpu_fused.py runs the compiled kernels")
+    if os.environ.get("TRITON_INTERPRET") != "1":
+        pytest.skip("TRITON_INTERPRET is not 1 (set by conftest.py before triton is imported)")
+    from torchmorph import _triton_kernels
+
+    return _triton_kernels
+
+
+def brute_force(targets, controls, power, radius2):
+    """W of eq. (2) in float64 with the coincidence rule (mean over controls within the
+    radius), written independently of the kernels."""
+    t, c = targets.double(), controls.double()
+    dist2 = ((t[:, None, :] - c[None, :, :]) ** 2).sum(-1)
+    weights = torch.zeros_like(dist2)
+    for row in range(dist2.shape[0]):
+        close = dist2[row] <= radius2
+        if close.any():
+            weights[row, close] = 1.0 / int(close.sum())
+        else:
+            inverse = dist2[row] ** (-power / 2)
+            weights[row] = inverse / inverse.sum()
+    return weights
+
+
+def cloud(n_targets, n_controls, dim, dtype, seed):
+    generator = torch.Generator().manual_seed(seed)
+    controls = torch.rand(n_controls, dim, generator=generator, dtype=F64) * 2 - 1
+    targets = torch.rand(n_targets, dim, generator=generator, dtype=F64) * 2 - 1
+    targets[3] = controls[5]                 # a target on a control
+    controls[9] = controls[8]                # duplicated controls ...
+    targets[4] = controls[8]                 # ... and a target on them: the mean
+    return targets.to(dtype), controls.to(dtype), generator
+
+
+TOLERANCES = {torch.float32: dict(rtol=2e-5, atol=2e-6), F64: dict(rtol=1e-11, atol=1e-13)}
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize(("power", "dim", "columns"),
+                         [(4.0, 3, 3), (2.0, 3, 1), (1.0, 2, 2), (0.5, 3, 3), (7.5, 3, 5),
+                          (4.0, 3, 20)])
+def test_apply_and_transposed_match_brute_force(kernels, dtype, power, dim, columns):
+    # sizes that are not multiples of the tiles: masked rows and columns
+    targets, controls, generator = cloud(70, 45, dim, dtype, seed=int(power * 10) + columns)
+    values = torch.randn(45, columns, generator=generator, dtype=F64).to(dtype)
+    radius2 = 1e-20
+    weights = brute_force(targets, controls, power, radius2)
+    out, nearest2, sums = kernels.apply(targets.T.contiguous(), controls.T.contiguous(), values,
+                                        power, radius2)
+    torch.testing.assert_close(out.double(), weights @ values.double(), **TOLERANCES[dtype])
+    assert torch.equal(out[3], values[5])  # exact interpolation
+    torch.testing.assert_close(out[4].double(), (values[8].double() + values[9].double()) / 2,
+                               **TOLERANCES[dtype])
+    grad = torch.randn(70, columns, generator=generator, dtype=F64).to(dtype)
+    transposed = kernels.apply_transposed(targets.T.contiguous(), controls.T.contiguous(), grad,
+                                          nearest2, sums, power, radius2)
+    torch.testing.assert_close(transposed.double(), weights.T @ grad.double(),
+                               **TOLERANCES[dtype])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_dense_weights_and_dense_apply(kernels, dtype):
+    targets, controls, generator = cloud(50, 37, 3, dtype, seed=1)
+    expected = brute_force(targets, controls, 4.0, 1e-20)
+    weights = kernels.weights(targets.T.contiguous(), controls.T.contiguous(), 4.0, 1e-20)
+    torch.testing.assert_close(weights.double(), expected, **TOLERANCES[dtype])
+    torch.testing.assert_close(weights.sum(1).double(), torch.ones(50, dtype=F64),
+                               **TOLERANCES[dtype])
+    for columns in (1, 2, 3):
+        values = torch.randn(37, columns, generator=generator, dtype=F64).to(dtype)
+        torch.testing.assert_close(kernels.dense_apply(weights, values).double(),
+                                   weights.double() @ values.double(), **TOLERANCES[dtype])
+    with pytest.raises(ValueError, match="values: dense_apply takes 1 to 3 columns, got 4"):
+        kernels.dense_apply(weights, torch.zeros(37, 4, dtype=dtype))
+
+
+def test_coincidence_radius_selects_near_controls(kernels):
+    targets, controls, generator = cloud(20, 30, 3, F64, seed=2)
+    targets[0] = controls[1] + 1e-7  # within a radius of 1e-6, not exactly on it
+    values = torch.randn(30, 3, generator=generator, dtype=F64)
+    out, _, sums = kernels.apply(targets.T.contiguous(), controls.T.contiguous(), values, 0.5,
+                                 1e-12)
+    assert torch.equal(out[0], values[1])
+    assert sums[0] == 1.0
+    expected = brute_force(targets, controls, 0.5, 1e-12) @ values
+    torch.testing.assert_close(out, expected, rtol=1e-11, atol=1e-13)
+
+
+def test_nearest_squared(kernels):
+    targets, controls, _ = cloud(33, 21, 3, F64, seed=4)
+    expected = ((targets[:, None] - controls[None]) ** 2).sum(-1).amin(1)
+    got = kernels.nearest_squared(targets.T.contiguous(), controls.T.contiguous())
+    torch.testing.assert_close(got, expected.clamp_min(torch.finfo(F64).tiny), rtol=0, atol=0)
+
+
+def test_power_kind_codes(kernels):
+    assert [kernels.power_kind(p) for p in (4, 2.0, 1, 3.0, 0.5)] == [4, 2, 1, 0, 0]
