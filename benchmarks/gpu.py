@@ -133,7 +133,7 @@ def idw_table(device: torch.device, repeats: int, large: bool,
                      lambda: naive_cdist(targets, controls, one))):
                 seconds_ = timed(run, repeats if "torch" not in label else 3)
                 result = run()
-                count = pairs * (16 if "16" in label else 1)
+                count = pairs  # geometry pairs, whatever the batch
                 rows.append((label, name, seconds_, f"{count / seconds_ / 1e9:,.0f} Gpair/s",
                              f"{count / seconds_ / 1e12:.2f}",
                              error(result[0] if result.ndim == 3 else result)))

@@ -98,6 +98,8 @@ def sweep(kernel: str, run, candidates, label: str) -> tuple[tuple[int, int, int
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="the current tiles only")
+    parser.add_argument("--dot", action="store_true",
+                        help="only the tl.dot kernels (a batch of 16), both float32 precisions")
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
         print("no CUDA device: nothing to sweep")
@@ -114,6 +116,29 @@ def main(argv: list[str] | None = None) -> int:
     print("| kernel | (rows, cols, warps) | median | rel. error vs float64 |")
     print("|---|---|---|---|")
     best = {}
+    if args.dot:
+        controls, targets = graded_cloud(N_CONTROLS, N_TARGETS, torch.float32, "cuda")
+        targets_t, controls_t = normalise(targets, controls)
+        nearest = kernels.nearest_squared(targets_t, controls_t)
+        values = torch.randn(N_CONTROLS, 48, device="cuda")
+        expected = reference_apply(targets, controls, values)
+        candidates = dots + [(128, 64, 8), (64, 128, 8), (128, 16, 4), (64, 16, 4), (32, 16, 4),
+                             (128, 32, 4), (32, 64, 4)]
+        for precision in (1, 2):
+            kernels.DOT_PRECISION_FLOAT32 = precision
+
+            def run_dot():
+                out = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)[0]
+                return (event_time(lambda: kernels.apply(targets_t, controls_t, values, 4.0,
+                                                         1e-20, nearest)),
+                        relative_error(out, expected))
+
+            sweep("apply_dot", run_dot, candidates, f"apply_dot K=48 precision {precision}")
+        small = torch.randn(N_CONTROLS, 3, device="cuda")
+        print(f"one displacement (pass 2): "
+              f"{event_time(lambda: kernels.apply(targets_t, controls_t, small, 4.0, 1e-20, nearest)) * 1e3:.3f} ms; "
+              f"nearest pass {event_time(lambda: kernels.nearest_squared(targets_t, controls_t)) * 1e3:.3f} ms")
+        return 0
     for dtype in (torch.float32, torch.float64):
         name = str(dtype)[6:]
         controls, targets = graded_cloud(N_CONTROLS, N_TARGETS, dtype, "cuda")

@@ -10,6 +10,7 @@ import torch
 from torch.autograd import gradcheck
 
 from torchmorph import IDW, idw_apply, idw_weights
+from torchmorph.idw import fused_available
 
 F64 = torch.float64
 
@@ -341,3 +342,89 @@ def test_forward_errors_name_the_argument():
             morph(torch.zeros(25, 3, dtype=F64, device="cuda"))
     with pytest.raises(ValueError, match="displacements must have shape"):
         idw_apply(targets, controls, torch.zeros(2, 2, 25, 3, dtype=F64))
+
+
+# --------------------------------------------------------------------------- #
+# numerics: scale, duplicates, coincident gradients; memory; implementations
+# --------------------------------------------------------------------------- #
+@pytest.mark.parametrize(("dtype", "scale"), [(torch.float32, 1e-19), (torch.float32, 1e30),
+                                              (F64, 1e-170), (F64, 1e155), (F64, 1e300)])
+def test_weights_do_not_depend_on_the_units(dtype, scale):
+    targets, controls, _ = cloud()
+    expected = idw_weights(targets, controls)
+    got = idw_weights((targets * scale).to(dtype), (controls * scale).to(dtype))
+    assert torch.isfinite(got).all()
+    tolerance = dict(rtol=1e-5, atol=1e-6) if dtype == torch.float32 else {}
+    torch.testing.assert_close(got.double(), expected, **tolerance)
+
+
+def test_duplicate_controls_give_the_mean_whatever_their_order():
+    targets, controls, generator = cloud()
+    controls[11] = controls[4]
+    targets[0] = controls[4]
+    displacements = torch.randn(25, 3, generator=generator, dtype=F64)
+    with pytest.warns(UserWarning, match="controls: 2 control points lie within the coincidence "
+                                         "radius of another one"):
+        morph = IDW(controls, targets, mode="dense")
+    moved = morph(displacements)
+    torch.testing.assert_close(moved[0], (displacements[4] + displacements[11]) / 2)
+    order = torch.randperm(25, generator=generator)
+    with pytest.warns(UserWarning):
+        permuted = IDW(controls[order], targets, mode="matrix_free")
+    torch.testing.assert_close(permuted(displacements[order]), moved)
+
+
+@pytest.mark.parametrize("power", [0.5, 1.0, 1.5])
+def test_position_gradients_are_finite_on_coincident_rows(power):
+    targets, controls, _ = cloud()
+    controls[0] = torch.tensor([50.0, 50.0, 50.0], dtype=F64)  # a far control
+    targets[2] = controls[5]  # a target exactly on a control
+    targets.requires_grad_(True)
+    controls.requires_grad_(True)
+    displacements = torch.randn(25, 3, dtype=F64)
+    for function in (lambda: idw_weights(targets, controls, power=power) @ displacements,
+                     lambda: idw_apply(targets, controls, displacements, power=power)):
+        gradients = torch.autograd.grad(function().square().sum(), (targets, controls))
+        assert all(torch.isfinite(g).all() for g in gradients)
+
+
+def test_dense_that_cannot_fit_fails_before_allocating(monkeypatch):
+    from torchmorph import idw as idw_module
+
+    targets, controls, _ = cloud()
+    monkeypatch.setattr(idw_module, "_free_memory", lambda device: 1000)
+    with pytest.raises(ValueError, match=r"mode='dense': W \(40 x 25, 0.0 GiB\) does not fit in "
+                                         r"the 0.0 GiB free on cpu; use mode='matrix_free'"):
+        IDW(controls, targets, mode="dense")
+    assert IDW(controls, targets).mode == "matrix_free"  # auto: half of what is free
+    monkeypatch.setattr(idw_module, "_free_memory", lambda device: 2 * 40 * 25 * 8)
+    assert IDW(controls, targets).mode == "dense"
+
+
+def test_implementation_is_checked_and_forced_fused_explains_why_not():
+    targets, controls, _ = cloud()
+    displacements = torch.zeros(25, 3, dtype=F64)
+    with pytest.raises(ValueError, match="implementation must be 'auto', 'fused' or 'torch', "
+                                         "got 'cuda'"):
+        IDW(controls, targets, implementation="cuda")
+    if not fused_available("cpu"):
+        with pytest.raises(ValueError, match="implementation='fused' cannot run here: no fused "
+                                             "kernels on device cpu"):
+            idw_apply(targets, controls, displacements, implementation="fused")
+    torch.testing.assert_close(
+        idw_apply(targets, controls, displacements + 1.0, implementation="torch"),
+        torch.ones(40, 3, dtype=F64))
+
+
+@pytest.mark.skipif(not fused_available("cpu"), reason="needs numba (the CPU fused kernels)")
+@pytest.mark.parametrize("mode", ["dense", "matrix_free"])
+def test_cpu_fused_matches_torch(mode):
+    targets, controls, generator = cloud(n_targets=300, n_controls=200)
+    controls[7] = controls[6]
+    targets[0] = controls[6]
+    displacements = torch.randn(4, 200, 3, generator=generator, dtype=F64)
+    with pytest.warns(UserWarning):
+        fused = IDW(controls, targets, mode=mode, implementation="fused")
+        plain = IDW(controls, targets, mode=mode, implementation="torch")
+    torch.testing.assert_close(fused(displacements), plain(displacements))
+    assert gradcheck(fused, (displacements[:1].detach().requires_grad_(True),))

@@ -663,7 +663,9 @@ def _dense_apply(weights: Tensor, displacements: Tensor, implementation: str = "
         traced = torch.compiler.is_compiling() or plain_tensor(displacements)[1]
         backend = None if traced else _fused_for(implementation, weights, displacements)
         if backend is not None and displacements.shape[1] <= backend.dense_columns():
-            return _FusedDenseApply.apply(weights, displacements, backend)
+            if torch.is_grad_enabled() and displacements.requires_grad:
+                return _FusedDenseApply.apply(weights, displacements, backend)
+            return backend.dense_apply(weights, displacements.contiguous())
         if not torch.compiler.is_compiling() and plain_tensor(displacements)[1]:
             return (displacements.mT.contiguous() @ weights.mT).mT
         return weights @ displacements
@@ -971,8 +973,12 @@ class IDW(nn.Module):
         batch = displacements.shape[0] if batched else 1
         values = (displacements.permute(1, 0, 2) if batched else displacements).reshape(
             self.num_controls, 3 * batch)
-        result = _FusedApply.apply(targets, controls, values, backend, self.power, radius2,
-                                   nearest2)
+        if torch.is_grad_enabled() and values.requires_grad:
+            result = _FusedApply.apply(targets, controls, values, backend, self.power, radius2,
+                                       nearest2)
+        else:
+            result = backend.apply(targets, controls, values.contiguous(), self.power, radius2,
+                                   nearest2)[0]
         result = result.reshape(self.num_targets, batch, 3)
         return result.permute(1, 0, 2) if batched else result[:, 0]
 
