@@ -146,6 +146,19 @@ def idw_table(device: torch.device, repeats: int, large: bool,
         rows.append(("matrix-free, forward + backward to d (module)", name, seconds_,
                      f"{2 * pairs / seconds_ / 1e9:,.0f} Gpair/s",
                      f"{2 * pairs / seconds_ / 1e12:.2f}", float("nan")))
+        moving_targets = targets.clone().requires_grad_(True)
+        moving_controls = controls.clone().requires_grad_(True)
+        for label, implementation in (
+                ("matrix-free, forward + backward to d and positions (idw_apply)", fused_kind),
+                ("matrix-free, forward + backward to d and positions, torch implementation",
+                 "torch")):
+            def position_backward():
+                idw_apply(moving_targets, moving_controls, probe,
+                          implementation=implementation).sum().backward()
+
+            seconds_ = timed(position_backward, repeats if implementation != "torch" else 3)
+            rows.append((label, name, seconds_, f"{4 * pairs / seconds_ / 1e9:,.0f} Gpair/s",
+                         f"{4 * pairs / seconds_ / 1e12:.2f}", float("nan")))
         with torch.no_grad():
             w_bytes = pairs * controls.element_size()
             for label, implementation in (("dense: assemble W", fused_kind),

@@ -70,13 +70,31 @@ def test_fused_gradient_to_displacements_gradcheck():
     assert gradcheck(module, (displacements,))
 
 
-def test_gradient_to_positions_falls_back_to_torch():
+def test_fused_gradient_to_positions_gradcheck():
     controls, targets, generator = sphere_cloud(30, 50, F64)
-    displacements = torch.randn(30, 3, generator=generator, dtype=F64).cuda()
+    targets[0] = controls[2]  # a coincident row: no gradient through it
+    displacements = torch.randn(2, 30, 3, generator=generator, dtype=F64).cuda()
+    targets.requires_grad_(True)
+    controls.requires_grad_(True)
+    displacements.requires_grad_(True)
+    assert gradcheck(lambda t, c, d: idw_apply(t, c, d, power=3.0, implementation="fused"),
+                     (targets, controls, displacements))
+    fused = torch.autograd.grad(idw_apply(targets, controls, displacements[0]).square().sum(),
+                                (targets, controls))
+    plain = torch.autograd.grad(idw_apply(targets, controls, displacements[0],
+                                          implementation="torch").square().sum(),
+                                (targets, controls))
+    for got, expected in zip(fused, plain):
+        torch.testing.assert_close(got, expected)
+
+
+def test_gradient_to_positions_with_many_columns_falls_back_to_torch():
+    controls, targets, generator = sphere_cloud(30, 50, F64)
+    displacements = torch.randn(9, 30, 3, generator=generator, dtype=F64).cuda()
     targets.requires_grad_(True)
     assert gradcheck(lambda t: idw_apply(t, controls, displacements), (targets,))
     with pytest.raises(ValueError, match="implementation='fused' cannot run here: gradients to "
-                                         "point positions"):
+                                         "point positions are fused on CUDA for D <= 3"):
         idw_apply(targets, controls, displacements, implementation="fused")
 
 

@@ -14,6 +14,9 @@ import torch
 
 pytest.importorskip("triton")
 
+# masked tile columns take log2(0) = -inf on the way to a weight of exactly 0
+pytestmark = pytest.mark.filterwarnings("ignore:divide by zero encountered in log2")
+
 F64 = torch.float64
 
 
@@ -117,3 +120,29 @@ def test_nearest_squared(kernels):
 
 def test_power_kind_codes(kernels):
     assert [kernels.power_kind(p) for p in (4, 2.0, 1, 3.0, 0.5)] == [4, 2, 1, 0, 0]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize(("power", "columns"), [(4.0, 3), (1.5, 1), (3.0, 7)])
+def test_position_gradients_match_autograd(kernels, dtype, power, columns):
+    targets, controls, generator = cloud(40, 30, 3, F64, seed=5)
+    values = torch.randn(30, columns, generator=generator, dtype=F64)
+    grad = torch.randn(40, columns, generator=generator, dtype=F64)
+    radius2 = 1e-20
+    # reference: autograd through a float64 brute force of the same function
+    t, c = targets.clone().requires_grad_(True), controls.clone().requires_grad_(True)
+    dist2 = ((t[:, None, :] - c[None, :, :]) ** 2).sum(-1)
+    coincident = dist2.detach().amin(1, keepdim=True) <= radius2
+    safe = torch.where(coincident, torch.ones_like(dist2), dist2)
+    inverse = safe ** (-power / 2)
+    weights = torch.where(coincident, brute_force(targets, controls, power, radius2),
+                          inverse / inverse.sum(1, keepdim=True))
+    expected = torch.autograd.grad(((weights @ values) * grad).sum(), (t, c))
+    targets_t, controls_t = targets.T.contiguous().to(dtype), controls.T.contiguous().to(dtype)
+    out, nearest2, sums = kernels.apply(targets_t, controls_t, values.to(dtype), power, radius2)
+    got = kernels.position_gradients(targets_t, controls_t, values.to(dtype), grad.to(dtype), out,
+                                     nearest2, sums, power, radius2)
+    tolerance = dict(rtol=1e-4, atol=1e-4) if dtype == torch.float32 else dict(rtol=1e-9,
+                                                                               atol=1e-9)
+    for value, reference in zip(got, expected):
+        torch.testing.assert_close(value.T.double(), reference, **tolerance)

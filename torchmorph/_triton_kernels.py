@@ -47,6 +47,7 @@ __all__ = [
     "apply_transposed",
     "dense_apply",
     "nearest_squared",
+    "position_gradients",
     "power_kind",
     "tile_shapes",
     "weights",
@@ -296,6 +297,68 @@ def _transposed_dot_kernel(controls_t, targets_t, nearest2_in, grad, out,
 
 
 @triton.jit
+def _position_grad_kernel(rows_t, cols_t, rows_values, cols_values, rows_extra, cols_extra,
+                          nearest2_in, out_grad_t, n_rows, n_cols, stride_rv, stride_cv,
+                          radius2, tiny, half_power, D: tl.constexpr, K: tl.constexpr,
+                          KIND: tl.constexpr, FAST: tl.constexpr, TARGET_ROWS: tl.constexpr,
+                          BLOCK_R: tl.constexpr, BLOCK_C: tl.constexpr):
+    # Gradient to point positions, one side per launch. With G the incoming gradient,
+    # G~ = G / s and a = G~ . out per target, dL/dd²_ik = -(p/2) r_ik / d²_ik (G~_i . v_k - a_i)
+    # on ordinary rows (0 on coincident ones), and dd²_ik/dt_i = 2 (t_i - c_k) = -dd²_ik/dc_k.
+    # TARGET_ROWS: rows are targets (values = G~, extra = a) and columns controls (values v);
+    # otherwise rows are controls (values v) and columns targets (values = G~, extra = a).
+    rows = tl.program_id(0) * BLOCK_R + tl.arange(0, BLOCK_R)
+    row_ok = rows < n_rows
+    cols0 = tl.arange(0, BLOCK_C)
+    dtype = cols_t.dtype.element_ty
+    acc0 = tl.zeros((BLOCK_R, BLOCK_C), dtype=dtype)
+    acc1 = tl.zeros((BLOCK_R, BLOCK_C), dtype=dtype)
+    acc2 = tl.zeros((BLOCK_R, BLOCK_C), dtype=dtype)
+    if TARGET_ROWS:
+        nearest2_rows = tl.load(nearest2_in + rows, mask=row_ok, other=1.0)
+        extra_rows = tl.load(rows_extra + rows, mask=row_ok, other=0.0)
+    for start in range(0, n_cols, BLOCK_C):
+        cols = start + cols0
+        col_ok = cols < n_cols
+        dist2 = _squared_distances(rows_t, n_rows, rows, row_ok, cols_t, n_cols, cols, col_ok,
+                                   tiny, D, BLOCK_R, BLOCK_C)
+        products = tl.zeros((BLOCK_R, BLOCK_C), dtype=dtype)
+        for j in tl.static_range(K):
+            left = tl.load(rows_values + rows * stride_rv + j, mask=row_ok, other=0.0)
+            right = tl.load(cols_values + cols * stride_cv + j, mask=col_ok, other=0.0)
+            products += left[:, None] * right[None, :]
+        if TARGET_ROWS:
+            ratio = _ratio_power(nearest2_rows[:, None], dist2, half_power, KIND, FAST)
+            coefficient = _divide(ratio, dist2, FAST) * (products - extra_rows[:, None])
+            ordinary = (nearest2_rows > radius2)[:, None] & col_ok[None, :]
+        else:
+            nearest2_cols = tl.load(nearest2_in + cols, mask=col_ok, other=1.0)
+            extra_cols = tl.load(cols_extra + cols, mask=col_ok, other=0.0)
+            ratio = _ratio_power(nearest2_cols[None, :], dist2, half_power, KIND, FAST)
+            coefficient = _divide(ratio, dist2, FAST) * (products - extra_cols[None, :])
+            ordinary = (nearest2_cols > radius2)[None, :] & col_ok[None, :]
+        coefficient = tl.where(ordinary, coefficient, 0.0)
+        r = tl.load(rows_t + rows, mask=row_ok, other=0.0)
+        c = tl.load(cols_t + cols, mask=col_ok, other=0.0)
+        acc0 += coefficient * (r[:, None] - c[None, :])
+        if D > 1:
+            r = tl.load(rows_t + n_rows + rows, mask=row_ok, other=0.0)
+            c = tl.load(cols_t + n_cols + cols, mask=col_ok, other=0.0)
+            acc1 += coefficient * (r[:, None] - c[None, :])
+        if D > 2:
+            r = tl.load(rows_t + 2 * n_rows + rows, mask=row_ok, other=0.0)
+            c = tl.load(cols_t + 2 * n_cols + cols, mask=col_ok, other=0.0)
+            acc2 += coefficient * (r[:, None] - c[None, :])
+    # d/dt: -p Σ_k coef (t - c); d/dc: +p Σ_i coef (t - c) = -p Σ_i coef (c - t)
+    factor = -2.0 * half_power
+    tl.store(out_grad_t + rows, factor * tl.sum(acc0, axis=1), mask=row_ok)
+    if D > 1:
+        tl.store(out_grad_t + n_rows + rows, factor * tl.sum(acc1, axis=1), mask=row_ok)
+    if D > 2:
+        tl.store(out_grad_t + 2 * n_rows + rows, factor * tl.sum(acc2, axis=1), mask=row_ok)
+
+
+@triton.jit
 def _weights_kernel(targets_t, controls_t, nearest2_in, sums_in, out, n_t, n_c, stride_o,
                     radius2, tiny, half_power, D: tl.constexpr, KIND: tl.constexpr,
                     FAST: tl.constexpr, BLOCK_T: tl.constexpr, BLOCK_C: tl.constexpr):
@@ -361,7 +424,11 @@ _TILES: dict[tuple[str, torch.dtype | None], tuple[int, int, int]] = {
     ("weights", None): (32, 256, 4),
     ("dense_apply", torch.float32): (8, 512, 8),
     ("dense_apply", torch.float64): (4, 512, 4),
+    ("position_grad", None): (32, 64, 4),
 }
+
+#: Fused gradients to point positions: up to this many columns and three dimensions.
+POSITION_GRAD_COLUMNS = 24
 
 #: float32 ``tl.dot`` precision: 1 = tf32x3 (float32 accuracy from three tf32 products
 #: on the matrix units), 2 = IEEE float32 on the ordinary cores.
@@ -517,3 +584,43 @@ def dense_apply(weights_matrix: Tensor, values: Tensor) -> Tensor:
         weights_matrix, values, out, n_t, n_c, weights_matrix.stride(0), values.stride(0),
         out.stride(0), K=columns, BLOCK_T=block_t, BLOCK_C=block_c, num_warps=warps)
     return out
+
+
+def position_gradients(targets_t: Tensor, controls_t: Tensor, values: Tensor, grad: Tensor,
+                       out: Tensor, nearest2: Tensor, sums: Tensor, power: float, radius2: float,
+                       need_targets: bool = True, need_controls: bool = True
+                       ) -> tuple[Tensor | None, Tensor | None]:
+    """Gradients of ``L`` to the target and control coordinates, in the (D, N) layout,
+    given ``grad = dL/d out`` for ``out = W @ values`` (from :func:`apply`).
+
+    Coincident rows contribute nothing (their weights are locally constant). At most
+    :data:`POSITION_GRAD_COLUMNS` columns and D <= 3.
+    """
+    dim, n_t = targets_t.shape
+    n_c, columns = values.shape
+    if dim > 3 or columns > POSITION_GRAD_COLUMNS:
+        raise ValueError(f"position_gradients takes D <= 3 and at most {POSITION_GRAD_COLUMNS} "
+                         f"columns, got D = {dim}, {columns} columns")
+    scaled = (grad / sums[:, None]).contiguous()
+    extra = (scaled * out).sum(1).contiguous()
+    values = values.contiguous()
+    radius2, tiny, half_power, kind, fast = _constants(values.dtype, power, radius2)
+    block_r, block_c, warps = tile_shapes("position_grad", values.dtype)
+    grad_targets = grad_controls = None
+    if need_targets:
+        grad_targets = torch.zeros_like(targets_t)
+        if n_t:
+            _position_grad_kernel[(triton.cdiv(n_t, block_r),)](
+                targets_t, controls_t, scaled, values, extra, extra, nearest2, grad_targets,
+                n_t, n_c, scaled.stride(0), values.stride(0), radius2, tiny, half_power,
+                D=dim, K=columns, KIND=kind, FAST=fast, TARGET_ROWS=True,
+                BLOCK_R=block_r, BLOCK_C=block_c, num_warps=warps)
+    if need_controls:
+        grad_controls = torch.zeros_like(controls_t)
+        if n_t:
+            _position_grad_kernel[(triton.cdiv(n_c, block_r),)](
+                controls_t, targets_t, values, scaled, extra, extra, nearest2, grad_controls,
+                n_c, n_t, values.stride(0), scaled.stride(0), radius2, tiny, half_power,
+                D=dim, K=columns, KIND=kind, FAST=fast, TARGET_ROWS=False,
+                BLOCK_R=block_r, BLOCK_C=block_c, num_warps=warps)
+    return grad_targets, grad_controls

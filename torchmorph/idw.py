@@ -170,6 +170,15 @@ class _TritonBackend:
         """Up to how many columns :meth:`dense_apply` beats the BLAS product."""
         return self.kernels.SMALL_COLUMNS
 
+    def position_gradients_for(self, dim: int, columns: int) -> bool:
+        """Whether :meth:`position_gradients` handles this many dimensions and columns."""
+        return dim <= 3 and columns <= self.kernels.POSITION_GRAD_COLUMNS
+
+    def position_gradients(self, targets, controls, values, grad, out, nearest2, sums, power,
+                           radius2, need_targets, need_controls):
+        return self.kernels.position_gradients(targets, controls, values, grad, out, nearest2,
+                                               sums, power, radius2, need_targets, need_controls)
+
     def dense_apply(self, weights, values):
         return self.kernels.dense_apply(weights, values)
 
@@ -205,6 +214,9 @@ class _NumbaBackend:
     def dense_columns(self) -> int:
         return 3 if hasattr(self.kernels, "dense_apply") else 0
 
+    def position_gradients_for(self, dim: int, columns: int) -> bool:
+        return False
+
     def dense_apply(self, weights, values):
         return self.kernels.dense_apply(weights, values)
 
@@ -237,10 +249,13 @@ def _check_implementation(implementation: str) -> str:
     return implementation
 
 
-def _fused_for(implementation: str, *tensors: Tensor, positions_grad: bool = False):
+def _fused_for(implementation: str, *tensors: Tensor, positions_grad: bool = False,
+               shape: tuple[int, int] = (3, 3)):
     """The fused backend to use for ``tensors``, or None for the torch implementation.
 
-    ``implementation="fused"`` raises where the kernels cannot run, saying why.
+    ``positions_grad``: gradients to the points are wanted, for points of dimension
+    ``shape[0]`` and ``shape[1]`` value columns. ``implementation="fused"`` raises where
+    the kernels cannot run, saying why.
     """
     implementation = _check_implementation(implementation)
     if implementation == "torch":
@@ -251,11 +266,13 @@ def _fused_for(implementation: str, *tensors: Tensor, positions_grad: bool = Fal
         reason = "the call is traced (torch.compile or torch.func): use the torch implementation"
     elif reference.dtype not in (torch.float32, torch.float64):
         reason = f"dtype {reference.dtype} (the kernels take float32 and float64)"
-    elif positions_grad:
-        reason = "gradients to point positions are computed by the torch implementation"
     elif _backend(reference.device) is None:
         reason = (f"no fused kernels on device {reference.device} (Triton on CUDA; numba on "
                   f"the CPU, installed with torchmorph)")
+    elif positions_grad and not _backend(reference.device).position_gradients_for(*shape):
+        reason = (f"gradients to point positions are fused on CUDA for D <= 3 and at most "
+                  f"{_POSITION_GRAD_COLUMNS} value columns, here {reference.device}, D = "
+                  f"{shape[0]}, {shape[1]} columns: the torch implementation computes them")
     if reason is None:
         return _backend(reference.device)
     if implementation == "fused":
@@ -263,30 +280,41 @@ def _fused_for(implementation: str, *tensors: Tensor, positions_grad: bool = Fal
     return None
 
 
+_POSITION_GRAD_COLUMNS = 24
+
+
 class _FusedApply(torch.autograd.Function):
-    """``W @ values`` by a fused backend; the backward pass is a second fused pass, Wᵀ
-    applied to the incoming gradient (gradients to the values only)."""
+    """``W @ values`` by a fused backend (points in the backend's layout). The backward
+    pass is fused too: Wᵀ applied to the incoming gradient for the values, and two
+    passes (one over targets, one over controls) for the point positions."""
 
     @staticmethod
     def forward(ctx, targets, controls, values, backend, power, radius2, nearest2):
         if nearest2 is None:
-            nearest2 = backend.nearest(targets, controls)
-        out, sums = backend.apply(targets, controls, values.contiguous(), power, radius2,
-                                  nearest2)
-        ctx.save_for_backward(targets, controls, nearest2, sums)
+            nearest2 = backend.nearest(targets.detach(), controls.detach())
+        values = values.contiguous()
+        out, sums = backend.apply(targets.detach(), controls.detach(), values.detach(), power,
+                                  radius2, nearest2)
+        ctx.save_for_backward(targets.detach(), controls.detach(), values.detach(), out,
+                              nearest2, sums)
         ctx.settings = (backend, power, radius2)
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
-        targets, controls, nearest2, sums = ctx.saved_tensors
+        targets, controls, values, out, nearest2, sums = ctx.saved_tensors
         backend, power, radius2 = ctx.settings
-        grad_values = None
+        grad = grad.contiguous()
+        grad_targets = grad_controls = grad_values = None
         if ctx.needs_input_grad[2]:
-            grad_values = backend.apply_transposed(targets, controls, grad.contiguous(), power,
-                                                   radius2, nearest2, sums)
-        return None, None, grad_values, None, None, None, None
+            grad_values = backend.apply_transposed(targets, controls, grad, power, radius2,
+                                                   nearest2, sums)
+        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+            grad_targets, grad_controls = backend.position_gradients(
+                targets, controls, values, grad, out, nearest2, sums, power, radius2,
+                ctx.needs_input_grad[0], ctx.needs_input_grad[1])
+        return grad_targets, grad_controls, grad_values, None, None, None, None
 
 
 class _FusedDenseApply(torch.autograd.Function):
@@ -468,7 +496,9 @@ def idw_weights(
     targets, controls, power, radius2 = _prepare(targets, controls, power, coincidence_tolerance)
     if not _functional(targets, controls):
         return _assemble_weights(targets, controls, power, radius2, block_bytes, implementation)
-    _fused_for(implementation, targets, controls, positions_grad=True)  # raises if forced
+    if _check_implementation(implementation) == "fused":
+        raise ValueError("implementation='fused' cannot run here: a W that carries gradients to "
+                         "the points (or is traced) is built by the torch implementation")
     rows = _rows_per_block(controls.shape[0], controls.element_size(),
                            _block_bytes(block_bytes, controls.device), copies=4)
     return torch.cat([_weights_block(targets[s : s + rows], controls, power, radius2)
@@ -598,9 +628,12 @@ def idw_apply(
     -----
     The fused kernels (two passes over the controls: the nearest distance, then
     the ratio weights against ``[d, 1]``, divided at the end) serve the forward
-    pass and the gradient to the displacements (a second fused pass applying Wᵀ
-    to the incoming gradient). Gradients to the point positions are not fused:
-    when ``targets`` or ``controls`` require grad, the torch implementation runs,
+    pass and the backward pass: the gradient to the displacements is a second
+    fused pass applying Wᵀ to the incoming gradient, and on CUDA the gradients to
+    the point positions are two more fused passes (for D <= 3 and at most 24 value
+    columns, i.e. 8 displacements; coincident rows, whose weights are locally
+    constant, contribute none). Elsewhere (the CPU kernels, more columns), when
+    ``targets`` or ``controls`` require grad the torch implementation runs,
     recomputing each block of rows in the backward pass (activation
     checkpointing), so W is never stored either. Inside ``torch.func`` transforms
     (``grad``, ``jacrev``: no saved-tensor hooks there) blocks are not
@@ -618,7 +651,8 @@ def idw_apply(
         controls.shape[0], 3 * batch)
     inputs = (targets, controls, displacements)
     positions_grad = torch.is_grad_enabled() and (targets.requires_grad or controls.requires_grad)
-    backend = _fused_for(implementation, *inputs, positions_grad=positions_grad)
+    backend = _fused_for(implementation, *inputs, positions_grad=positions_grad,
+                         shape=(controls.shape[1], values.shape[1]))
     if backend is not None:
         result = _FusedApply.apply(backend.layout(targets), backend.layout(controls), values,
                                    backend, power, radius2, None)
