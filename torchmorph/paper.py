@@ -1159,6 +1159,7 @@ def reproduce(
     online: str = "projection",
     mode: str = "auto",
     variant: str | None = None,
+    mesh: TetMesh | None = None,
 ) -> CaseResult:
     """Reproduce one of the paper's test cases: Tables 1–3 and 4–6 beside the paper's.
 
@@ -1195,6 +1196,9 @@ def reproduce(
         The selection set-up: ``"paper"`` (default), the one that reproduces the
         paper's figures, or a documented alternative of :data:`VARIANTS` (case C:
         ``"uniform"``, R = 1.5 m on every wall and on the hull as printed).
+    mesh : TetMesh, optional
+        Use this mesh (with the case's node sets) instead of building or loading
+        one; ``size`` and ``mesher`` are then only labels.
 
     Returns
     -------
@@ -1217,7 +1221,8 @@ def reproduce(
         bar.set_postfix_str(text)
 
     step("mesh (meshing a new mesh takes seconds to minutes)")
-    mesh = _load_mesh_ticking(spec, size=size, mesher=mesher, bar=bar)
+    if mesh is None:
+        mesh = _load_mesh_ticking(spec, size=size, mesher=mesher, bar=bar)
     bar.update()
     step("IDW")
     context = prepare_case(spec, size=size, mesher=mesher, mesh=mesh, mode=mode)
