@@ -15,7 +15,7 @@ import torch
 data_gen = pytest.importorskip("data_gen")
 pytest.importorskip("gmsh")
 
-from torchmorph.paper import reproduce  # noqa: E402
+from torchmorph.paper import reproduce
 
 # method: (controls, nodal error, mass error)
 SMALL = {

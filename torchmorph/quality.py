@@ -32,12 +32,12 @@ if TYPE_CHECKING:
     from torchmorph.mesh import TetMesh
 
 __all__ = [
+    "ERROR_NORMS",
     "count_inverted",
     "edge_ratio",
     "inverted",
     "mass_matrix",
     "quality_summary",
-    "ERROR_NORMS",
     "relative_l2_error",
     "relative_nodal_error",
     "signed_volumes",

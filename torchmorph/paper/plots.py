@@ -1,0 +1,209 @@
+"""Figures of the paper's cases: sections of the reference and morphed meshes."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from torch import Tensor
+
+from ..morph import MeshMorph
+from .cases import HULL_CENTRE
+
+if TYPE_CHECKING:
+    from .experiments import CaseContext
+
+__all__ = ["plane_section", "plot_case"]
+
+_TET_EDGES = np.array(((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)))
+
+
+def plane_section(
+    points: np.ndarray | Tensor,
+    tets: np.ndarray | Tensor,
+    axis: int,
+    value: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Cut a tetrahedral mesh by the plane ``x[axis] = value``.
+
+    Parameters
+    ----------
+    points : array, shape (N, 3)
+    tets : array, shape (M, 4)
+    axis : int
+        0, 1 or 2.
+    value : float
+        Position of the plane. Nodes exactly on the plane count as lying on its
+        positive side.
+
+    Returns
+    -------
+    cut : array of int, shape (K,)
+        Indices of the tetrahedra the plane crosses.
+    first, second : arrays of int, shape (K, 4)
+        End nodes of the (up to four) crossed edges of each cut tetrahedron, in
+        polygon order; a triangle repeats its last vertex.
+    weight : array of float, shape (K, 4)
+        Position along each edge: the polygon's vertices are
+        ``(1 - weight) * x[first] + weight * x[second]`` for the reference points
+        ``x`` — and, applied to moved points, follow the mesh as it deforms.
+    """
+    points = points.detach().cpu().numpy() if isinstance(points, Tensor) else np.asarray(points)
+    tets = tets.detach().cpu().numpy() if isinstance(tets, Tensor) else np.asarray(tets)
+    side = points[:, axis] - value
+    side = np.where(side == 0.0, np.finfo(np.float64).tiny, side)
+    per_tet = side[tets]
+    cut = np.flatnonzero((per_tet.min(1) < 0) & (per_tet.max(1) > 0))
+    corners = tets[cut]
+    sides = per_tet[cut]
+    first = corners[:, _TET_EDGES[:, 0]]
+    second = corners[:, _TET_EDGES[:, 1]]
+    s_first = sides[:, _TET_EDGES[:, 0]]
+    s_second = sides[:, _TET_EDGES[:, 1]]
+    crossed = s_first * s_second < 0
+    weight = np.where(crossed, s_first / np.where(crossed, s_first - s_second, 1.0), 0.0)
+    vertices = (1 - weight)[..., None] * points[first] + weight[..., None] * points[second]
+    plane_axes = [i for i in range(3) if i != axis]
+    flat = vertices[..., plane_axes]
+    centre = (flat * crossed[..., None]).sum(1) / crossed.sum(1, keepdims=True)
+    angle = np.arctan2(flat[..., 1] - centre[:, 1:2], flat[..., 0] - centre[:, 0:1])
+    angle = np.where(crossed, angle, np.inf)
+    order = np.argsort(angle, axis=1)[:, :4]
+    take = np.take_along_axis
+    first, second, weight = (take(a, order, 1) for a in (first, second, weight))
+    count = crossed.sum(1)
+    triangle = count == 3
+    for array in (first, second, weight):
+        array[triangle, 3] = array[triangle, 2]
+    return cut, first, second, weight
+
+
+def _section_polygons(points: np.ndarray, first, second, weight, plane_axes) -> np.ndarray:
+    vertices = (1 - weight)[..., None] * points[first] + weight[..., None] * points[second]
+    return vertices[..., plane_axes]
+
+
+def plot_case(
+    context: CaseContext,
+    fields: dict[str, Tensor],
+    morphs: dict[str, MeshMorph],
+    path: str | Path,
+) -> Path:
+    """PNG of the reference and ESIDW-deformed geometry at μ*.
+
+    Wing cases: the section of the mesh at mid-span (z = π), reference and
+    deformed, coloured by the displacement magnitude, and a side view (z–y) of
+    the wing's boundary nodes before and after. Hull: the section z = 0 (the
+    hull's centre plane, x–y) around the hull, reference and deformed, and the
+    hull's profile (its edge nodes) before and after the rotation.
+    """
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        from matplotlib.collections import PolyCollection
+    except ImportError as error:  # pragma: no cover - matplotlib is a test dependency
+        raise ImportError("plots need matplotlib: pip install 'torchmorph[plot]'") from error
+
+    spec, mesh = context.spec, context.mesh
+    points = mesh.points.detach().cpu().numpy()
+    tets = mesh.tets.cpu().numpy()
+    displacement = fields["ESIDW"].detach().cpu().numpy()
+    moved = points + displacement
+    magnitude = np.linalg.norm(displacement, axis=1)
+    hull = spec.key == "hull"
+    if hull:
+        axis, value, plane_axes = 2, 1e-6, (0, 1)
+        window = ((-2.5, 2.5), (-1.2, 1.2))
+        labels = ("x [m]", "y [m]")
+    else:  # mid-span of the wing (span 2π from the root z = 0)
+        axis, value, plane_axes = 2, math.pi, (0, 1)
+        if spec.key == "fluid-wing":
+            window = ((-0.5, 1.5), (-0.45, 0.6))
+        else:
+            window = ((-0.1, 1.1), (-0.2, 0.35))
+        labels = ("x [m]", "y [m]")
+    _, first, second, weight = plane_section(points, tets, axis, value)
+    shade = ((1 - weight) * magnitude[first] + weight * magnitude[second]).mean(1)
+    reference = _section_polygons(points, first, second, weight, list(plane_axes))
+    deformed = _section_polygons(moved, first, second, weight, list(plane_axes))
+
+    fluid = spec.key == "fluid-wing"
+    if fluid:  # the whole tunnel section, then a zoom on the wing
+        box = mesh.points[mesh.nodes_of([f"wall_{a}{s}" for a in "xy" for s in "01"])]
+        low, high = box.amin(0).tolist(), box.amax(0).tolist()
+        window, zoom = ((low[0], high[0]), (low[1], high[1])), ((-0.3, 1.3), (-0.3, 0.45))
+    figure, axes = plt.subplots(1, 4 if fluid else 3, figsize=(21 if fluid else 16, 4.6),
+                                constrained_layout=True)
+    where = f"z = {value:.3g} m" if not hull else "z = 0 (hull centre plane)"
+    mu_text = f"{spec.parameter}* = {spec.mu_star:g}{spec.unit}"
+
+    def section_panel(ax, polygons, colour, title, limits):
+        if colour is not None:  # the reference section underneath, faint, to show the motion
+            ax.add_collection(PolyCollection(list(reference), linewidths=0.3, facecolors="none",
+                                             edgecolors="0.75", zorder=0))
+        collection = PolyCollection(list(polygons), linewidths=0.3, edgecolors="0.35")
+        if colour is None:
+            collection.set_facecolor("white")
+        else:
+            collection.set_array(colour)
+            collection.set_cmap("viridis")
+            collection.set_clim(0.0, float(colour.max()) if colour.size else 1.0)
+            collection.set_alpha(0.85)
+        ax.add_collection(collection)
+        ax.set_xlim(*limits[0])
+        ax.set_ylim(*limits[1])
+        ax.set_aspect("equal")
+        ax.set_xlabel(labels[0])
+        ax.set_ylabel(labels[1])
+        ax.set_title(title, fontsize=10)
+        return collection
+
+    section_panel(axes[0], reference, None, f"reference mesh, section {where}", window)
+    coloured = section_panel(axes[1], deformed, shade,
+                             f"ESIDW deformed, {mu_text} (grey: reference)", window)
+    figure.colorbar(coloured, ax=axes[1], shrink=0.8, label="|displacement| [m]")
+    if fluid:
+        section_panel(axes[2], deformed, shade, f"ESIDW deformed, {mu_text}, near the wing",
+                      zoom)
+
+    ax = axes[-1]
+    if hull:
+        # the hull's centre-plane profile is the rectangle |x| <= L/2, |y| <= T
+        hull_points = points[mesh.node_set("hull").cpu().numpy()]
+        (x0, y0), (x1, y1) = hull_points[:, :2].min(0), hull_points[:, :2].max(0)
+        outline = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]])
+        angle = math.radians(spec.mu_star)
+        rotation = np.array([[math.cos(angle), -math.sin(angle)],
+                             [math.sin(angle), math.cos(angle)]])
+        centre = np.asarray(HULL_CENTRE[:2])
+        rotated = (outline - centre) @ rotation.T + centre
+        bow = ((x1 - 0.6, x1 + 0.5), (-0.45, 0.4))
+        section_panel(ax, deformed, shade, f"bow, ESIDW deformed, {mu_text}", bow)
+        for target in (axes[1], ax):
+            target.plot(*outline.T, "--", color="0.3", lw=1.0, label="hull profile, reference")
+            target.plot(*rotated.T, "-", color="C3", lw=1.2,
+                        label=f"hull profile rotated by {spec.mu_star:g}°")
+        axes[1].plot([centre[0]], [centre[1]], "k+", ms=8, label="rotation centre")
+        ax.legend(loc="lower left", fontsize=7)
+    else:
+        wing = mesh.node_set("wing").cpu().numpy()
+        wing = wing[:: max(1, len(wing) // 3000)]  # enough dots to see the shape
+        ax.plot(points[wing, 2], points[wing, 1], ".", ms=1.5, color="0.6", label="reference")
+        ax.plot(moved[wing, 2], moved[wing, 1], ".", ms=1.5, color="C0",
+                label=f"deformed, {mu_text}")
+        ax.axvline(value, color="C3", lw=0.8, ls="--", label="section")
+        ax.set_xlabel("z (span) [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_title("side view of the wing (boundary nodes)", fontsize=10)
+        ax.legend(loc="upper left", fontsize=8, markerscale=4)
+    figure.suptitle(f"Case {spec.letter}: {spec.title} ({context.size} mesh, "
+                    f"{mesh.num_nodes:,} nodes)")
+    path = Path(path)
+    figure.savefig(path, dpi=90)
+    plt.close(figure)
+    return path
+
