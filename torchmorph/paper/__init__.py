@@ -77,7 +77,7 @@ from .experiments import (
     selection_point,
     selective_morph,
 )
-from .plots import plane_section, plot_case
+from .plots import plane_section, plot_case, plot_one_mode_bound
 from .reports import CaseResult, MethodResult
 
 __all__ = [
@@ -99,6 +99,7 @@ __all__ = [
     "load_mesh",
     "plane_section",
     "plot_case",
+    "plot_one_mode_bound",
     "pod_parameter_sweep",
     "pod_spectra",
     "prepare_case",

@@ -15,7 +15,7 @@ from .cases import HULL_CENTRE
 if TYPE_CHECKING:
     from .experiments import CaseContext
 
-__all__ = ["plane_section", "plot_case"]
+__all__ = ["plane_section", "plot_case", "plot_one_mode_bound"]
 
 _TET_EDGES = np.array(((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)))
 
@@ -93,11 +93,16 @@ def plot_case(
 ) -> Path:
     """PNG of the reference and ESIDW-deformed geometry at μ*.
 
-    Wing cases: the section of the mesh at mid-span (z = π), reference and
-    deformed, coloured by the displacement magnitude, and a side view (z–y) of
-    the wing's boundary nodes before and after. Hull: the section z = 0 (the
-    hull's centre plane, x–y) around the hull, reference and deformed, and the
-    hull's profile (its edge nodes) before and after the rotation.
+    Every panel with a colour scale has its own colour bar. Wing cases (A, B):
+    the mesh section at mid-span (z = π), reference and ESIDW-deformed; the
+    deformed section is coloured by ESIDW's difference from full IDW, since the
+    displacement itself, δy = μ z², is the same everywhere on a span section;
+    and a side view (z–y) of the wing's boundary nodes coloured by the
+    displacement. Case B adds the whole tunnel section coloured by the
+    displacement (2 × 2 panels). Hull (C): the section z = 0 (the hull's centre
+    plane) coloured by the displacement, and a zoom on the bow coloured by
+    ESIDW's difference from IDW, with the hull's profile before and after the
+    rotation.
     """
     try:
         import matplotlib
@@ -112,36 +117,40 @@ def plot_case(
     points = mesh.points.detach().cpu().numpy()
     tets = mesh.tets.cpu().numpy()
     displacement = fields["ESIDW"].detach().cpu().numpy()
+    difference = displacement - fields["IDW"].detach().cpu().numpy()
     moved = points + displacement
     magnitude = np.linalg.norm(displacement, axis=1)
+    error = np.linalg.norm(difference, axis=1)
     hull = spec.key == "hull"
+    fluid = spec.key == "fluid-wing"
+    labels = ("x [m]", "y [m]")
     if hull:
         axis, value, plane_axes = 2, 1e-6, (0, 1)
         window = ((-2.5, 2.5), (-1.2, 1.2))
-        labels = ("x [m]", "y [m]")
     else:  # mid-span of the wing (span 2π from the root z = 0)
         axis, value, plane_axes = 2, math.pi, (0, 1)
-        if spec.key == "fluid-wing":
-            window = ((-0.5, 1.5), (-0.45, 0.6))
-        else:
-            window = ((-0.1, 1.1), (-0.2, 0.35))
-        labels = ("x [m]", "y [m]")
+        window = ((-0.5, 1.5), (-0.45, 0.6)) if fluid else ((-0.1, 1.1), (-0.2, 0.35))
     _, first, second, weight = plane_section(points, tets, axis, value)
-    shade = ((1 - weight) * magnitude[first] + weight * magnitude[second]).mean(1)
+
+    def on_section(nodal: np.ndarray) -> np.ndarray:
+        return ((1 - weight) * nodal[first] + weight * nodal[second]).mean(1)
+
     reference = _section_polygons(points, first, second, weight, list(plane_axes))
     deformed = _section_polygons(moved, first, second, weight, list(plane_axes))
-
-    fluid = spec.key == "fluid-wing"
-    if fluid:  # the whole tunnel section, then a zoom on the wing
-        box = mesh.points[mesh.nodes_of([f"wall_{a}{s}" for a in "xy" for s in "01"])]
-        low, high = box.amin(0).tolist(), box.amax(0).tolist()
-        window, zoom = ((low[0], high[0]), (low[1], high[1])), ((-0.3, 1.3), (-0.3, 0.45))
-    figure, axes = plt.subplots(1, 4 if fluid else 3, figsize=(21 if fluid else 16, 4.6),
-                                constrained_layout=True)
     where = f"z = {value:.3g} m" if not hull else "z = 0 (hull centre plane)"
     mu_text = f"{spec.parameter}* = {spec.mu_star:g}{spec.unit}"
 
-    def section_panel(ax, polygons, colour, title, limits):
+    if fluid:
+        figure, grid = plt.subplots(2, 2, figsize=(13, 8.5), constrained_layout=True)
+        axes = list(grid.ravel())
+    elif hull:
+        figure, grid = plt.subplots(1, 3, figsize=(17, 4.8), constrained_layout=True)
+        axes = list(grid)
+    else:
+        figure, grid = plt.subplots(1, 3, figsize=(16, 4.4), constrained_layout=True)
+        axes = list(grid)
+
+    def section_panel(ax, polygons, colour, title, limits, label=None, scale=1.0):
         if colour is not None:  # the reference section underneath, faint, to show the motion
             ax.add_collection(PolyCollection(list(reference), linewidths=0.3, facecolors="none",
                                              edgecolors="0.75", zorder=0))
@@ -149,9 +158,11 @@ def plot_case(
         if colour is None:
             collection.set_facecolor("white")
         else:
+            colour = colour * scale
             collection.set_array(colour)
             collection.set_cmap("viridis")
-            collection.set_clim(0.0, float(colour.max()) if colour.size else 1.0)
+            top = float(colour.max()) if colour.size else 1.0
+            collection.set_clim(0.0, top if top > 0 else 1.0)
             collection.set_alpha(0.85)
         ax.add_collection(collection)
         ax.set_xlim(*limits[0])
@@ -160,19 +171,15 @@ def plot_case(
         ax.set_xlabel(labels[0])
         ax.set_ylabel(labels[1])
         ax.set_title(title, fontsize=10)
+        if colour is not None:
+            figure.colorbar(collection, ax=ax, shrink=0.85, label=label)
         return collection
 
     section_panel(axes[0], reference, None, f"reference mesh, section {where}", window)
-    coloured = section_panel(axes[1], deformed, shade,
-                             f"ESIDW deformed, {mu_text} (grey: reference)", window)
-    figure.colorbar(coloured, ax=axes[1], shrink=0.8, label="|displacement| [m]")
-    if fluid:
-        section_panel(axes[2], deformed, shade, f"ESIDW deformed, {mu_text}, near the wing",
-                      zoom)
-
-    ax = axes[-1]
     if hull:
-        # the hull's centre-plane profile is the rectangle |x| <= L/2, |y| <= T
+        section_panel(axes[1], deformed, on_section(magnitude),
+                      f"ESIDW deformed, {mu_text} (grey: reference)", window,
+                      "|displacement| [m]")
         hull_points = points[mesh.node_set("hull").cpu().numpy()]
         (x0, y0), (x1, y1) = hull_points[:, :2].min(0), hull_points[:, :2].max(0)
         outline = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]])
@@ -182,7 +189,9 @@ def plot_case(
         centre = np.asarray(HULL_CENTRE[:2])
         rotated = (outline - centre) @ rotation.T + centre
         bow = ((x1 - 0.6, x1 + 0.5), (-0.45, 0.4))
-        section_panel(ax, deformed, shade, f"bow, ESIDW deformed, {mu_text}", bow)
+        ax = axes[2]
+        section_panel(ax, deformed, on_section(error),
+                      f"bow: ESIDW − IDW at {mu_text}", bow, "|ESIDW − IDW| [mm]", 1e3)
         for target in (axes[1], ax):
             target.plot(*outline.T, "--", color="0.3", lw=1.0, label="hull profile, reference")
             target.plot(*rotated.T, "-", color="C3", lw=1.2,
@@ -190,20 +199,92 @@ def plot_case(
         axes[1].plot([centre[0]], [centre[1]], "k+", ms=8, label="rotation centre")
         ax.legend(loc="lower left", fontsize=7)
     else:
+        if fluid:
+            box = mesh.points[mesh.nodes_of([f"wall_{a}{s}" for a in "xy" for s in "01"])]
+            low, high = box.amin(0).tolist(), box.amax(0).tolist()
+            tunnel = ((low[0], high[0]), (low[1], high[1]))
+            axes[0].set_xlim(*tunnel[0])
+            axes[0].set_ylim(*tunnel[1])
+            section_panel(axes[1], deformed, on_section(magnitude),
+                          f"ESIDW deformed, {mu_text}, whole tunnel", tunnel,
+                          "|displacement| [m]")
+            zoom = ((-0.3, 1.3), (-0.3, 0.45))
+            section_panel(axes[2], deformed, on_section(error),
+                          f"near the wing: ESIDW − IDW at {mu_text}", zoom,
+                          "|ESIDW − IDW| [mm]", 1e3)
+        else:
+            section_panel(axes[1], deformed, on_section(error),
+                          f"ESIDW − IDW at {mu_text} (grey: reference)", window,
+                          "|ESIDW − IDW| [mm]", 1e3)
+        ax = axes[-1]
         wing = mesh.node_set("wing").cpu().numpy()
         wing = wing[:: max(1, len(wing) // 3000)]  # enough dots to see the shape
-        ax.plot(points[wing, 2], points[wing, 1], ".", ms=1.5, color="0.6", label="reference")
-        ax.plot(moved[wing, 2], moved[wing, 1], ".", ms=1.5, color="C0",
-                label=f"deformed, {mu_text}")
+        ax.plot(points[wing, 2], points[wing, 1], ".", ms=1.5, color="0.7", label="reference")
+        dots = ax.scatter(moved[wing, 2], moved[wing, 1], s=2, c=magnitude[wing],
+                          cmap="viridis", label=f"deformed, {mu_text}")
+        figure.colorbar(dots, ax=ax, shrink=0.85, label="|displacement| [m]")
         ax.axvline(value, color="C3", lw=0.8, ls="--", label="section")
         ax.set_xlabel("z (span) [m]")
         ax.set_ylabel("y [m]")
         ax.set_title("side view of the wing (boundary nodes)", fontsize=10)
         ax.legend(loc="upper left", fontsize=8, markerscale=4)
+    variant = "" if spec.variant == "paper" else f", variant {spec.variant}"
     figure.suptitle(f"Case {spec.letter}: {spec.title} ({context.size} mesh, "
-                    f"{mesh.num_nodes:,} nodes)")
+                    f"{mesh.num_nodes:,} nodes{variant})")
     path = Path(path)
-    figure.savefig(path, dpi=90)
+    figure.savefig(path, dpi=100)
     plt.close(figure)
     return path
 
+
+def plot_one_mode_bound(sweep: dict, path: str | Path, *, title: str = "") -> Path:
+    """Error of POD with 1 and 2 modes against the rotation angle (case C, Fig. 16).
+
+    With the hull rotated by μ, the boundary displacement is
+    ``(cos μ - 1) u + sin μ v`` for fixed fields u, v, and their IDW images are
+    (nearly) orthogonal with equal norms: the field at μ points in the direction
+    at angle μ/2 of their plane. One POD mode fixes one direction φ, so its
+    relative error is ``|sin(μ/2 - φ)|`` whatever the mesh or the norm; over
+    D = [-36°, 0] the best φ = -9° leaves sin 9° = 15.6 % at both ends. The
+    dashed curve is that formula, φ taken from the measured minimum.
+
+    Parameters
+    ----------
+    sweep : dict
+        :func:`~torchmorph.paper.pod_parameter_sweep`'s output (``"mu"`` and
+        ``"error_nodal"`` with ``"POD-IDW, 1 mode"`` etc.).
+    path : str or Path
+        The PNG to write.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    mu = np.asarray(sweep["mu"], dtype=float)
+    figure, axes = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
+    for ax, norm, name in ((axes[0], "error_nodal", "nodal ℓ2 norm (the paper's reading)"),
+                           (axes[1], "error", "P1 mass-matrix norm")):
+        for label, values in sweep[norm].items():
+            if "mode" not in label:
+                continue
+            values = np.asarray(values, dtype=float)
+            style = "-" if "1 mode" in label else ":"
+            ax.semilogy(mu, np.maximum(values, 1e-17), style, marker=".", ms=3, label=label)
+        one = np.asarray(sweep[norm]["POD-IDW, 1 mode"], dtype=float)
+        phi = math.radians(float(mu[np.argmin(one)])) / 2.0
+        bound = np.abs(np.sin(np.radians(mu) / 2.0 - phi))
+        ax.semilogy(mu, np.maximum(bound, 1e-17), "k--", lw=1.0,
+                    label="|sin(μ/2 − φ)|, one mode")
+        ax.axhline(math.sin(math.radians(9.0)), color="0.5", lw=0.8,
+                   label="sin 9° = 15.6 %: best worst case")
+        ax.set_ylim(1e-17, 1.0)
+        ax.set_xlabel("rotation angle μ [°]")
+        ax.set_ylabel("relative error against IDW")
+        ax.set_title(name, fontsize=10)
+        ax.legend(fontsize=7, loc="lower left")
+    figure.suptitle(title or "Case C: POD with 1 and 2 modes over D = [−36°, 0°]")
+    path = Path(path)
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+    return path
