@@ -146,3 +146,13 @@ def test_paper_size_reproduction(case, tmp_path):
     paper_controls = {"wing": 390, "hull": 1057}[case]
     tolerance = {"wing": 0.25, "hull": 0.20}[case]
     assert result.row("ESIDW").controls == pytest.approx(paper_controls, rel=tolerance)
+
+
+def test_progress_bar_ends_at_100_percent(small_results, capsys, tmp_path):
+    mesh = data_gen.build("wing", "small", cache_dir=tmp_path)
+    reproduce("wing", size="small", mesh=mesh, verbose=True, repeats=1)
+    captured = capsys.readouterr()
+    # mesh, IDW, SIDW, ESIDW, POD-IDW, POD-ESIDW: six steps, all done
+    assert "6/6" in captured.err and "100%" in captured.err
+    assert "7/6" not in captured.err
+    assert "Table 4" in captured.out and "nodal error" in captured.out
