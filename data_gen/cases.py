@@ -125,9 +125,10 @@ PAPER_MESHES = {
 #: gmsh: ``h_surface``/``h_volume`` (wing surface / inside the wing),
 #: ``h_body``/``h_wall``/``h_far`` (size on the body, on the box walls, far
 #: from both), ``grading_*`` (distance over which the size grows from the body
-#: or wall size to ``h_far``), ``h_min``, ``edge_nodes``/``profile_nodes`` (wing: node counts on the leading
-#: and trailing edge lines and on each side of each end profile, the ESIDW
-#: enrichment sets), ``algorithm`` (gmsh ``Mesh.Algorithm3D``:
+#: or wall size to ``h_far``), ``h_min``, ``edge_nodes``/``profile_nodes``
+#: (wing: node counts on the leading and trailing edge lines and on each side
+#: of each end profile, the ESIDW enrichment sets; not scaled by
+#: ``mesh_scale``), ``algorithm`` (gmsh ``Mesh.Algorithm3D``:
 #: 1 Delaunay, 4 Frontal), ``optimize`` (a gmsh optimiser run after meshing, or
 #: ""). pytetwild: ``h_body``, ``h_far``, ``h_wall``, ``grading_*`` likewise
 #: (through a background sizing field; fTetWild's surfaces come out coarser
