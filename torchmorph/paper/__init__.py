@@ -62,13 +62,13 @@ from .cases import (
     case_key,
     get_case,
     hull_rotation,
+    load_mesh,
     wing_bending,
 )
 from .experiments import (
     CaseContext,
     SelectionPoint,
     factor_sweep,
-    load_mesh,
     pod_parameter_sweep,
     pod_spectra,
     prepare_case,

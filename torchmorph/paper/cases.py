@@ -1,5 +1,5 @@
 """The paper's test cases as data: displacement families, selection set-ups and the
-paper's own figures (Ballarin et al. 2017, Tables 1–6)."""
+paper's own figures (Ballarin et al. 2017, Tables 1–6), and loading the meshes."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..mesh import TetMesh
 from ..morph import MeshMorph
 from ..selection import Region, SelectionPlan
 
@@ -24,6 +25,7 @@ __all__ = [
     "case_key",
     "get_case",
     "hull_rotation",
+    "load_mesh",
     "wing_bending",
 ]
 
@@ -442,10 +444,15 @@ def case_key(case: str) -> str:
     :func:`data_gen.cases.canonical_case` (``"fluid_wing"``, ``"fluid-wing"``,
     ``"B"``, …); the reproduction's keys write ``fluid-wing`` with a hyphen.
     """
-    from data_gen.cases import canonical_case
-
     if not isinstance(case, str):
         raise TypeError(f"case must be a string, got {type(case).__name__}")
+    if case in CASES:
+        return case
+    try:
+        from data_gen.cases import canonical_case
+    except ImportError as error:
+        raise ImportError(f"case aliases live in data_gen ({error}); use one of "
+                          f"{', '.join(CASES)} or install data_gen") from error
     try:
         name = canonical_case(case)
     except ValueError:
@@ -478,3 +485,57 @@ def get_case(case: str | CaseSpec, variant: str | None = None) -> CaseSpec:
     return VARIANTS[key][variant]
 
 
+# --------------------------------------------------------------------------------------
+# meshes
+# --------------------------------------------------------------------------------------
+
+
+def load_mesh(
+    case: str | CaseSpec,
+    *,
+    size: str = "paper",
+    mesher: str = "gmsh",
+    verbose: bool = False,
+) -> TetMesh:
+    """Build (or load from the cache) the case's mesh with :mod:`data_gen`.
+
+    Raises
+    ------
+    ImportError
+        If ``data_gen`` or the mesher (gmsh / pytetwild) is not installed; the
+        message names the ``mesh`` extra.
+    """
+    spec = get_case(case)
+    hint = ("the paper's meshes are generated with gmsh or pytetwild: install the "
+            "'mesh' extra, e.g. pip install 'torchmorph[mesh]'")
+    try:
+        import data_gen
+    except ImportError as error:
+        raise ImportError(f"data_gen is not importable ({error}); {hint}") from error
+    if not hasattr(data_gen, "build"):  # e.g. an unrelated namespace package of that name
+        raise ImportError(f"the data_gen found at {list(getattr(data_gen, '__path__', []))} is "
+                          f"not torchmorph's mesh builder package; {hint}")
+    try:
+        return data_gen.build(spec.mesh_case, size, mesher, verbose=verbose)
+    except ImportError as error:
+        raise ImportError(f"{error}; {hint}") from error
+
+
+def load_mesh_ticking(spec: CaseSpec, *, size: str, mesher: str, bar) -> TetMesh:
+    """:func:`load_mesh` while a thread refreshes ``bar`` every second, so that a
+    long meshing step shows its elapsed time instead of sitting still."""
+    import threading
+
+    done = threading.Event()
+
+    def tick() -> None:
+        while not done.wait(1.0):
+            bar.refresh()
+
+    thread = threading.Thread(target=tick, daemon=True)
+    thread.start()
+    try:
+        return load_mesh(spec, size=size, mesher=mesher)
+    finally:
+        done.set()
+        thread.join()

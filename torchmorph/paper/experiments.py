@@ -17,7 +17,7 @@ from torch import Tensor
 from ..mesh import TetMesh
 from ..morph import MeshMorph
 from ..quality import edge_ratio, inverted, quality_summary, relative_l2_error
-from .cases import ENERGY_TOLERANCE, CaseSpec, get_case
+from .cases import ENERGY_TOLERANCE, CaseSpec, get_case, load_mesh, load_mesh_ticking
 from .reports import CaseResult, MethodResult, write_outputs
 
 if TYPE_CHECKING:
@@ -27,7 +27,6 @@ __all__ = [
     "CaseContext",
     "SelectionPoint",
     "factor_sweep",
-    "load_mesh",
     "pod_parameter_sweep",
     "pod_spectra",
     "prepare_case",
@@ -40,57 +39,6 @@ __all__ = [
 # --------------------------------------------------------------------------------------
 # meshes
 # --------------------------------------------------------------------------------------
-
-
-def load_mesh(
-    case: str | CaseSpec,
-    *,
-    size: str = "paper",
-    mesher: str = "gmsh",
-    verbose: bool = False,
-) -> TetMesh:
-    """Build (or load from the cache) the case's mesh with :mod:`data_gen`.
-
-    Raises
-    ------
-    ImportError
-        If ``data_gen`` or the mesher (gmsh / pytetwild) is not installed; the
-        message names the ``mesh`` extra.
-    """
-    spec = get_case(case)
-    hint = ("the paper's meshes are generated with gmsh or pytetwild: install the "
-            "'mesh' extra, e.g. pip install 'torchmorph[mesh]'")
-    try:
-        import data_gen
-    except ImportError as error:
-        raise ImportError(f"data_gen is not importable ({error}); {hint}") from error
-    if not hasattr(data_gen, "build"):  # e.g. an unrelated namespace package of that name
-        raise ImportError(f"the data_gen found at {list(getattr(data_gen, '__path__', []))} is "
-                          f"not torchmorph's mesh builder package; {hint}")
-    try:
-        return data_gen.build(spec.mesh_case, size, mesher, verbose=verbose)
-    except ImportError as error:
-        raise ImportError(f"{error}; {hint}") from error
-
-
-def _load_mesh_ticking(spec: CaseSpec, *, size: str, mesher: str, bar) -> TetMesh:
-    """:func:`load_mesh` while a thread refreshes ``bar`` every second, so that a
-    long meshing step shows its elapsed time instead of sitting still."""
-    import threading
-
-    done = threading.Event()
-
-    def tick() -> None:
-        while not done.wait(1.0):
-            bar.refresh()
-
-    thread = threading.Thread(target=tick, daemon=True)
-    thread.start()
-    try:
-        return load_mesh(spec, size=size, mesher=mesher)
-    finally:
-        done.set()
-        thread.join()
 
 
 def _mesh_figures(mesh: TetMesh, summary: dict[str, Any]) -> dict[str, Any]:
@@ -513,7 +461,7 @@ def reproduce(
 
     step("mesh (meshing a new mesh takes seconds to minutes)")
     if mesh is None:
-        mesh = _load_mesh_ticking(spec, size=size, mesher=mesher, bar=bar)
+        mesh = load_mesh_ticking(spec, size=size, mesher=mesher, bar=bar)
     bar.update()
     step("IDW")
     context = prepare_case(spec, size=size, mesher=mesher, mesh=mesh, mode=mode)
