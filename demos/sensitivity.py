@@ -34,6 +34,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchmorph._atomic import atomic_output
 from torchmorph.paper import (
     CaseContext,
     SelectionPoint,
@@ -111,7 +112,8 @@ def plot_radius(context: CaseContext, points: list[SelectionPoint], path: Path) 
     figure.suptitle(f"Case {spec.letter}: {spec.title} — sensitivity to R "
                     f"({spec.sweep_note}; a = {spec.a}, b = {spec.b}; "
                     f"{context.mesh.num_nodes:,} nodes)", fontsize=10)
-    figure.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
 
 
@@ -135,7 +137,8 @@ def plot_factor(results: dict[float, list[SelectionPoint]], path: Path) -> None:
             ax.legend(fontsize=8)
     figure.suptitle("Case A: SIDW sensitivity to the annulus factor a with b = 1/a "
                     "(R on the end faces, 10 R on top and bottom)", fontsize=10)
-    figure.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
 
 
@@ -156,7 +159,8 @@ def plot_spectra(spectra: dict[str, dict[str, Tensor]], path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
     figure.suptitle("Singular-value decay of the POD snapshots", fontsize=10)
-    figure.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
 
 
@@ -194,7 +198,8 @@ def plot_angle(sweep: dict[str, Any], path: Path) -> None:
         ax.legend(fontsize=7)
     figure.suptitle("Case C: rotating hull — POD-IDW and POD-ESIDW with one and two modes",
                     fontsize=10)
-    figure.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
 
 
@@ -277,7 +282,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     plot_spectra(spectra, path)
     files.append(path)
     path = out / "sensitivity.json"
-    path.write_text(json.dumps(results, indent=1))
+    with atomic_output(path) as temporary:
+        temporary.write_text(json.dumps(results, indent=1))
     files.append(path)
     results["files"] = [str(f) for f in files]
     if progress:

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from torch import Tensor
 
+from .._atomic import atomic_output
 from ..morph import MeshMorph
 from .cases import HULL_CENTRE
 
@@ -232,7 +233,8 @@ def plot_case(
     figure.suptitle(f"Case {spec.letter}: {spec.title} ({context.size} mesh, "
                     f"{mesh.num_nodes:,} nodes{variant})")
     path = Path(path)
-    figure.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
     return path
 
@@ -285,6 +287,7 @@ def plot_one_mode_bound(sweep: dict, path: str | Path, *, title: str = "") -> Pa
         ax.legend(fontsize=7, loc="lower left")
     figure.suptitle(title or "Case C: POD with 1 and 2 modes over D = [−36°, 0°]")
     path = Path(path)
-    figure.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
     return path

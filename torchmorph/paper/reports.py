@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._atomic import atomic_output
 from ..morph import MeshMorph
 from ..quality import edge_ratio
 from .cases import PaperMesh, PaperRow
@@ -279,7 +280,8 @@ def write_outputs(out: Path, context: CaseContext, morphs: dict[str, MeshMorph],
     plot_case(context, fields, morphs, path)
     files.append(path)
     path = out / "results.json"
-    path.write_text(json.dumps(result.to_dict(), indent=2, default=_json_default))
+    with atomic_output(path) as temporary:
+        temporary.write_text(json.dumps(result.to_dict(), indent=2, default=_json_default))
     files.append(path)
     return files
 
