@@ -162,7 +162,12 @@ def plot_case(
             colour = colour * scale
             collection.set_array(colour)
             collection.set_cmap("viridis")
-            top = float(colour.max()) if colour.size else 1.0
+            # the colour scale spans what the panel shows, not the whole section
+            centre = np.asarray(polygons).mean(1)
+            shown = ((centre[:, 0] >= limits[0][0]) & (centre[:, 0] <= limits[0][1])
+                     & (centre[:, 1] >= limits[1][0]) & (centre[:, 1] <= limits[1][1]))
+            visible = colour[shown] if shown.any() else colour
+            top = float(visible.max()) if visible.size else 1.0
             collection.set_clim(0.0, top if top > 0 else 1.0)
             collection.set_alpha(0.85)
         ax.add_collection(collection)
