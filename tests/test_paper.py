@@ -326,3 +326,17 @@ def test_load_mesh_without_data_gen_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "data_gen", None)
     with pytest.raises(ImportError, match=r"torchmorph\[mesh\]"):
         load_mesh("wing", size="small")
+
+
+@pytest.mark.slow  # a fresh interpreter importing torch: seconds
+def test_core_never_imports_the_reproduction():
+    import subprocess
+
+    code = ("import sys, torchmorph, torchmorph.idw, torchmorph.selection, torchmorph.morph, "
+            "torchmorph.pod, torchmorph.mesh, torchmorph.quality, torchmorph.io\n"
+            "bad = sorted(m for m in sys.modules "
+            "if m.startswith(('data_gen', 'torchmorph.paper')))\n"
+            "print(bad)\nsys.exit(1 if bad else 0)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr
