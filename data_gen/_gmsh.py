@@ -128,6 +128,27 @@ def _threshold(
     return threshold
 
 
+def _edge_nodes(gmsh, params: dict) -> None:
+    """Fixed node counts on the wing's sharp edges (ESIDW's enrichment sets).
+
+    ``edge_nodes``: nodes on the leading and on the trailing edge line (along
+    z); ``profile_nodes``: nodes on each side (upper, lower) of the two end
+    profiles. Absent keys leave gmsh's own sizes.
+    """
+    for _, tag in gmsh.model.getEntities(1):
+        box = gmsh.model.getBoundingBox(1, tag)
+        along_z = box[5] - box[2] > _FLAT and box[3] - box[0] < _FLAT
+        count = params.get("edge_nodes" if along_z else "profile_nodes")
+        if count:
+            gmsh.model.mesh.setTransfiniteCurve(tag, int(count))
+    if params.get("edge_nodes") or params.get("profile_nodes"):
+        # the surfaces keep their own size instead of growing from the finer edges;
+        # the volume is meshed afterwards with the usual sizes
+        gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+        gmsh.model.mesh.generate(2)
+        gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 1)
+
+
 def _mesh_and_collect(gmsh, names: dict[str, list[int]], *, algorithm: int, optimize: str):
     gmsh.option.setNumber("Mesh.Algorithm3D", algorithm)
     gmsh.model.mesh.generate(3)
@@ -166,6 +187,7 @@ def mesh_wing(params: dict, *, seed: int, verbose: bool):
         field.setNumbers(restrict, "VolumesList", [volume])
         field.setNumber(restrict, "IncludeBoundary", 0)
         field.setAsBackgroundMesh(restrict)
+        _edge_nodes(gmsh, params)
         return _mesh_and_collect(
             gmsh, names, algorithm=params["algorithm"], optimize=params["optimize"]
         )

@@ -1,4 +1,5 @@
-"""Builders of the paper's three test meshes (SPEC.md §6).
+"""Builders of the three test meshes of Ballarin et al. (2017, Section 2.3), and
+the one table of their names.
 
 ``build(case, size, mesher)`` makes (or loads from the cache) one of
 
@@ -22,8 +23,10 @@ cache is what makes repeated runs see the same mesh).
 The "paper" presets with gmsh 4.15 give (the paper's figures in brackets;
 Q = longest / shortest edge, max / mean):
 
-- A: 10,248 tets (8,850), 2,575 nodes (2,463) = 926 interior (797) + 1,649
-  boundary (1,666); Q 5.92 / 2.22 (not given);
+- A: 9,626 tets (8,850), 2,631 nodes (2,463) = 805 interior (797) + 1,826
+  boundary (1,666); Q 6.83 / 2.17 (not given); 100 nodes on the leading and on
+  the trailing edge, 54 on each end profile, so that ESIDW keeps about as many
+  control points as the paper's 390;
 - B: 160,199 tets (169,598), 33,984 nodes (36,036) = 20,025 (21,910) + 13,959
   (14,126); Q 3.76 / 1.52 (4.31 / 1.48);
 - C: 29,710 tets (30,265), 7,018 nodes (7,186) = 3,173 (3,322) + 3,845
@@ -56,6 +59,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CASES",
+    "CASE_ALIASES",
     "MESHERS",
     "PAPER_MESHES",
     "PARAMETERS",
@@ -73,7 +77,15 @@ __all__ = [
 CASES = ("wing", "fluid_wing", "hull")
 SIZES = ("small", "paper")
 MESHERS = ("gmsh", "pytetwild")
-_ALIASES = {"a": "wing", "b": "fluid_wing", "c": "hull"}
+#: Every accepted spelling of a case name (after lower-casing and stripping):
+#: the letters of the paper's sections, and hyphens for underscores.
+CASE_ALIASES = {
+    "a": "wing",
+    "b": "fluid_wing",
+    "c": "hull",
+    "fluid-wing": "fluid_wing",
+    "fluidwing": "fluid_wing",
+}
 # fTetWild's output differs from run to run; a mesh that fails its checks after the
 # projection onto the exact surfaces is made again, at most this many times in all
 _TETWILD_ATTEMPTS = 3
@@ -113,7 +125,10 @@ PAPER_MESHES = {
 #: gmsh: ``h_surface``/``h_volume`` (wing surface / inside the wing),
 #: ``h_body``/``h_wall``/``h_far`` (size on the body, on the box walls, far
 #: from both), ``grading_*`` (distance over which the size grows from the body
-#: or wall size to ``h_far``), ``h_min``, ``algorithm`` (gmsh ``Mesh.Algorithm3D``:
+#: or wall size to ``h_far``), ``h_min``, ``edge_nodes``/``profile_nodes``
+#: (wing: node counts on the leading and trailing edge lines and on each side
+#: of each end profile, the ESIDW enrichment sets; not scaled by
+#: ``mesh_scale``), ``algorithm`` (gmsh ``Mesh.Algorithm3D``:
 #: 1 Delaunay, 4 Frontal), ``optimize`` (a gmsh optimiser run after meshing, or
 #: ""). pytetwild: ``h_body``, ``h_far``, ``h_wall``, ``grading_*`` likewise
 #: (through a background sizing field; fTetWild's surfaces come out coarser
@@ -135,9 +150,11 @@ PARAMETERS: dict[str, dict[str, dict[str, dict]]] = {
             },
             "paper": {
                 "profile_points": 121,
-                "h_surface": 0.097,
+                "h_surface": 0.105,
                 "h_volume": 0.046,
                 "h_min": 0.03,
+                "edge_nodes": 100,
+                "profile_nodes": 28,
                 "algorithm": 4,
                 "optimize": "",
             },
@@ -261,10 +278,16 @@ PARAMETERS: dict[str, dict[str, dict[str, dict]]] = {
 
 
 def canonical_case(case: str) -> str:
-    """``"wing"``, ``"fluid_wing"`` or ``"hull"`` for a case name or its letter A/B/C."""
+    """``"wing"``, ``"fluid_wing"`` or ``"hull"`` for any spelling of a case.
+
+    Accepts the names in :data:`CASES`, ``"fluid-wing"``/``"fluidwing"`` and the
+    letters A, B, C, in any case and with surrounding spaces (:data:`CASE_ALIASES`).
+    This is the one table of case names: the data_gen CLI, the reproduction
+    (:mod:`torchmorph.paper`) and ``torchmorph reproduce`` all go through it.
+    """
     if not isinstance(case, str):
         raise TypeError(f"case must be a string, got {type(case).__name__}")
-    name = _ALIASES.get(case.strip().lower(), case.strip().lower())
+    name = CASE_ALIASES.get(case.strip().lower(), case.strip().lower())
     if name not in CASES:
         raise ValueError(f"case must be one of {', '.join(CASES)} (or A, B, C), got {case!r}")
     return name
@@ -436,7 +459,7 @@ def build(
     Parameters
     ----------
     case : {"wing", "fluid_wing", "hull"} or {"A", "B", "C"}
-        The test case (SPEC.md §6).
+        The test case (Ballarin et al. 2017, Section 2.3; Tables 1–3).
     size : {"small", "paper"}
         ``"small"``: a coarse mesh for tests, built in seconds. ``"paper"``:
         node counts near the paper's (:data:`PAPER_MESHES`).

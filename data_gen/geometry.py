@@ -1,6 +1,6 @@
-"""Analytic geometry of the paper's three test cases (SPEC.md §6).
+"""Analytic geometry of the three test cases (Ballarin et al. 2017, Section 2.3, Tables 1–3).
 
-Axes follow SPEC.md: x chord-wise / along the hull, y vertical, z span-wise.
+Axes: x chord-wise / along the hull, y vertical, z span-wise.
 Everything here is plain NumPy and exact: the meshers build their surfaces from
 these formulas, and every boundary node of a generated mesh is finally projected
 onto them (:func:`project_to_profile`, :func:`wigley_half_breadth`).

@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from torchmorph.paper import CaseResult, get_case, reproduce
+from torchmorph.paper import VARIANTS, CaseResult, get_case, reproduce
 
 __all__ = ["case_main", "median_seconds", "set_threads", "synchronise"]
 
@@ -67,6 +67,10 @@ def case_main(case: str, argv: Sequence[str] | None = None) -> CaseResult:
     parser.add_argument("--online", choices=("projection", "paper"), default="projection",
                         help="POD online coefficients: orthogonal projection (default) or the "
                              "paper's eq. 16 (needs W's pseudo-inverse: slow offline)")
+    parser.add_argument("--variant", choices=tuple(VARIANTS[spec.key]), default="paper",
+                        help="selection set-up: 'paper' (default, the one that reproduces the "
+                             "paper's figures) or a documented alternative "
+                             "(docs/results.md)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch intra-op threads (default: torch's choice)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or tables")
@@ -74,4 +78,4 @@ def case_main(case: str, argv: Sequence[str] | None = None) -> CaseResult:
     set_threads(args.threads)
     return reproduce(spec.key, size=args.size, out=args.out or None, mesher=args.mesher,
                      seed=args.seed, verbose=not args.quiet, repeats=args.repeats,
-                     online=args.online)
+                     online=args.online, variant=args.variant)

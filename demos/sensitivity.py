@@ -3,10 +3,10 @@
 For each case asked for (``--cases``, default all three):
 
 - ``<case>_radius.png``: number of control points, assembly / deformation time,
-  relative L2(Ω_h) error against IDW and max / mean Q of the deformed mesh as
+  relative error against IDW (P1 mass-matrix norm) and max / mean Q of the deformed mesh as
   functions of the selection radius R (Figs. 5–6 for case A with SIDW and ESIDW,
   Fig. 10 for case B — box R, left/right walls 0.5 R, wing 0.1 R — and Fig. 13 for
-  case C, ESIDW);
+  case C, ESIDW with one R on every wall and on the hull, the "uniform" variant);
 - case A: ``wing_factor.png``, control points and error of SIDW as functions of a
   with b = 1/a for R = 0.02, 0.05, 0.2, 0.3 (Fig. 7);
 - ``spectra.png``: the normalised singular values σ_i/σ_1 of POD-IDW and POD-ESIDW
@@ -22,6 +22,7 @@ The numbers go to ``sensitivity.json`` beside the figures::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -33,6 +34,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchmorph._atomic import atomic_output
 from torchmorph.paper import (
     CaseContext,
     SelectionPoint,
@@ -97,7 +99,7 @@ def plot_radius(context: CaseContext, points: list[SelectionPoint], path: Path) 
     axes[3].axhline(reference["max_edge_ratio"], color="0.5", ls=":", label="reference max Q")
     axes[3].axhline(reference["mean_edge_ratio"], color="0.5", ls="-.",
                     label="reference mean Q")
-    titles = ("control points", "CPU time [s]", "relative L2(Ω_h) error vs IDW",
+    titles = ("control points", "CPU time [s]", "relative error vs IDW (P1 mass norm)",
               "mesh quality Q (edge ratio); inverted tets")
     for ax, title in zip(axes, titles, strict=True):
         ax.set_xscale("log")
@@ -110,7 +112,8 @@ def plot_radius(context: CaseContext, points: list[SelectionPoint], path: Path) 
     figure.suptitle(f"Case {spec.letter}: {spec.title} — sensitivity to R "
                     f"({spec.sweep_note}; a = {spec.a}, b = {spec.b}; "
                     f"{context.mesh.num_nodes:,} nodes)", fontsize=10)
-    figure.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
 
 
@@ -126,7 +129,7 @@ def plot_factor(results: dict[float, list[SelectionPoint]], path: Path) -> None:
             axes[0, column].plot(a, [p.controls for p in points], style, label=f"R = {radius:g}")
             axes[1, column].plot(a, [p.error for p in points], style, label=f"R = {radius:g}")
         axes[0, column].set_ylabel("control points")
-        axes[1, column].set_ylabel("relative L2(Ω_h) error vs IDW")
+        axes[1, column].set_ylabel("relative error vs IDW (P1 mass norm)")
         axes[1, column].set_xlabel("a (b = 1/a)")
         for ax in axes[:, column]:
             ax.set_yscale("log")
@@ -134,7 +137,8 @@ def plot_factor(results: dict[float, list[SelectionPoint]], path: Path) -> None:
             ax.legend(fontsize=8)
     figure.suptitle("Case A: SIDW sensitivity to the annulus factor a with b = 1/a "
                     "(R on the end faces, 10 R on top and bottom)", fontsize=10)
-    figure.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
 
 
@@ -155,7 +159,8 @@ def plot_spectra(spectra: dict[str, dict[str, Tensor]], path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
     figure.suptitle("Singular-value decay of the POD snapshots", fontsize=10)
-    figure.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
 
 
@@ -177,7 +182,7 @@ def plot_angle(sweep: dict[str, Any], path: Path) -> None:
     for label, error in sweep["error"].items():
         draw(axes[0], label, error, log=True)
     axes[0].set_yscale("log")
-    axes[0].set_ylabel("relative L2(Ω_h) error vs IDW")
+    axes[0].set_ylabel("relative error vs IDW (P1 mass norm)")
     axes[0].set_title("POD error against the angle (n_train = 50 random angles)", fontsize=10)
     for label, values in sweep["max_q"].items():
         draw(axes[1], label, values)
@@ -193,7 +198,8 @@ def plot_angle(sweep: dict[str, Any], path: Path) -> None:
         ax.legend(fontsize=7)
     figure.suptitle("Case C: rotating hull — POD-IDW and POD-ESIDW with one and two modes",
                     fontsize=10)
-    figure.savefig(path, dpi=100)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
 
 
@@ -239,7 +245,11 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         context = prepare_case(spec, size=args.size, mesher=args.mesher)
         record: dict[str, Any] = {"nodes": context.mesh.num_nodes,
                                   "reference_quality": context.reference_quality}
-        points = radius_sweep(context, seed=args.seed, repeats=args.repeats, progress=progress)
+        sweep_context = context
+        if spec.key == "hull":  # Fig. 13 varies one R on every wall and on the hull
+            sweep_context = dataclasses.replace(context, spec=get_case("hull", "uniform"))
+        points = radius_sweep(sweep_context, seed=args.seed, repeats=args.repeats,
+                              progress=progress)
         record["radius"] = points
         path = out / f"{spec.key.replace('-', '_')}_radius.png"
         plot_radius(context, points, path)
@@ -272,7 +282,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     plot_spectra(spectra, path)
     files.append(path)
     path = out / "sensitivity.json"
-    path.write_text(json.dumps(results, indent=1))
+    with atomic_output(path) as temporary:
+        temporary.write_text(json.dumps(results, indent=1))
     files.append(path)
     results["files"] = [str(f) for f in files]
     if progress:

@@ -86,11 +86,39 @@ def test_fluid_wing_regions():
 
 
 def test_hull_regions():
-    regions = CASES["hull"].regions()
-    assert {region.radius for region in regions} == {1.5}
-    assert {region.names[0] for region in regions} == {
-        "wall_x0", "wall_x1", "wall_y0", "wall_y1", "wall_z0", "wall_z1", "hull"}
+    # the paper configuration: walls and hull thinned alike (walls 2 m, hull 0.05 m)
+    radii = {region.names[0]: region.radius for region in CASES["hull"].regions()}
+    assert radii == pytest.approx({"wall_x0": 2.0, "wall_x1": 2.0, "wall_y0": 2.0,
+                                   "wall_y1": 2.0, "wall_z0": 2.0, "wall_z1": 2.0,
+                                   "hull": 0.05})
+    assert CASES["hull"].radius == 1.5 and CASES["hull"].variant == "paper"
     assert CASES["hull"].enrich == ("hull_edges",)
+    # R = 1.5 m everywhere, as printed, is the documented variant "uniform"
+    uniform = get_case("hull", "uniform")
+    assert uniform.variant == "uniform" and uniform.enrich == ("hull_edges",)
+    assert {region.radius for region in uniform.regions()} == {1.5}
+
+
+def test_variants_and_their_errors():
+    assert get_case("C", "paper") is CASES["hull"]
+    assert get_case("wing", "paper") is CASES["wing"]
+    with pytest.raises(ValueError, match="variant must be one of paper for case 'wing', "
+                                         "got 'uniform'"):
+        get_case("wing", "uniform")
+    with pytest.raises(ValueError, match="variant must be None for a CaseSpec"):
+        get_case(CASES["hull"], "uniform")
+
+
+def test_one_table_of_case_names():
+    from data_gen.cases import CASE_ALIASES, canonical_case
+
+    for spelling in ("fluid-wing", "fluid_wing", "FluidWing", " b ", "B"):
+        assert canonical_case(spelling) == "fluid_wing"
+        assert get_case(spelling) is CASES["fluid-wing"]
+    assert CASE_ALIASES["c"] == "hull"
+    for key, spec in CASES.items():
+        assert canonical_case(key) == spec.mesh_case
+        assert get_case(spec.letter) is spec
 
 
 def test_plan_with_and_without_enrichment():
@@ -298,3 +326,17 @@ def test_load_mesh_without_data_gen_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "data_gen", None)
     with pytest.raises(ImportError, match=r"torchmorph\[mesh\]"):
         load_mesh("wing", size="small")
+
+
+@pytest.mark.slow  # a fresh interpreter importing torch: seconds
+def test_core_never_imports_the_reproduction():
+    import subprocess
+
+    code = ("import sys, torchmorph, torchmorph.idw, torchmorph.selection, torchmorph.morph, "
+            "torchmorph.pod, torchmorph.mesh, torchmorph.quality, torchmorph.io\n"
+            "bad = sorted(m for m in sys.modules "
+            "if m.startswith(('data_gen', 'torchmorph.paper')))\n"
+            "print(bad)\nsys.exit(1 if bad else 0)")
+    run = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr

@@ -17,6 +17,7 @@ from .quality import (
     mass_matrix,
     quality_summary,
     relative_l2_error,
+    relative_nodal_error,
     signed_volumes,
     validity_barrier,
 )
@@ -39,6 +40,7 @@ __all__ = [
     "quality_summary",
     "read_mesh",
     "relative_l2_error",
+    "relative_nodal_error",
     "select_control_points",
     "signed_volumes",
     "validity_barrier",

@@ -96,10 +96,8 @@ EXIT_INTERRUPTED = 130
 #: Displacement file extensions understood by ``morph --displacement``.
 DISPLACEMENT_FORMATS = (".npy", ".npz", ".csv", ".txt", ".dat")
 
-#: Case names of ``reproduce`` and the aliases accepted for them.
+#: Case names of ``reproduce`` (aliases: data_gen.cases.CASE_ALIASES, the one table).
 _CASES = ("wing", "fluid-wing", "hull")
-_CASE_ALIASES = {"a": "wing", "b": "fluid-wing", "c": "hull", "fluid_wing": "fluid-wing",
-                 "fluidwing": "fluid-wing"}
 
 _MESH_EXTRA_HINT = "install the optional mesh dependencies: pip install 'torchmorph[mesh]'"
 
@@ -173,12 +171,14 @@ def _positive_float(text: str) -> float:
 
 
 def _case_name(text: str) -> str:
-    name = _CASE_ALIASES.get(text.strip().lower(), text.strip().lower())
-    if name not in _CASES:
+    from data_gen.cases import canonical_case
+
+    try:
+        return canonical_case(text).replace("_", "-")
+    except ValueError:
         raise argparse.ArgumentTypeError(
             f"unknown case {text!r}; choose from {', '.join(_CASES)} (or A, B, C)"
-        )
-    return name
+        ) from None
 
 
 def _split_names(values: Sequence[str] | None) -> list[str] | None:

@@ -938,7 +938,7 @@ class PODReducer(nn.Module):
                                      "(the mass matrix lives on its mesh)")
                 if mesh is None:
                     mesh = TetMesh(morph.points, morph.tets)
-                error = relative_l2_error(mesh, reduced, full, norm="l2").to(full.dtype)
+                error = relative_l2_error(mesh, reduced, full, norm="mass").to(full.dtype)
             else:
                 difference = (reduced - full).flatten(1).norm(dim=1)
                 scale = full.flatten(1).norm(dim=1)

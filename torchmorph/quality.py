@@ -1,4 +1,4 @@
-"""Mesh quality and error measures (SPEC.md §5).
+"""Mesh quality and error measures (the quality measure of Ballarin et al. 2017, Section 2.3).
 
 Pure functions over ``points (N, 3)`` / ``tets (M, 4)`` and a few that take a
 :class:`~torchmorph.mesh.TetMesh`:
@@ -6,8 +6,9 @@ Pure functions over ``points (N, 3)`` / ``tets (M, 4)`` and a few that take a
 - :func:`signed_volumes`, :func:`edge_ratio` — per-tetrahedron geometry;
 - :func:`inverted`, :func:`count_inverted`, :func:`quality_summary` — what a
   displacement does to the mesh;
-- :func:`mass_matrix`, :func:`relative_l2_error` — the relative error in
-  L2(Ω_h) of SPEC.md §5;
+- :func:`mass_matrix`, :func:`relative_l2_error`, :func:`relative_nodal_error`
+  — the relative errors of Ballarin et al. (2017, Section 2.3) in the P1
+  mass-matrix norm and in the nodal ℓ2 norm;
 - :func:`validity_barrier` — a smooth penalty that keeps tetrahedra from
   collapsing, for use in shape optimisation.
 
@@ -18,6 +19,7 @@ points (and hence to a displacement).
 
 from __future__ import annotations
 
+import warnings
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -30,12 +32,14 @@ if TYPE_CHECKING:
     from torchmorph.mesh import TetMesh
 
 __all__ = [
+    "ERROR_NORMS",
     "count_inverted",
     "edge_ratio",
     "inverted",
     "mass_matrix",
     "quality_summary",
     "relative_l2_error",
+    "relative_nodal_error",
     "signed_volumes",
     "validity_barrier",
 ]
@@ -158,7 +162,7 @@ def signed_volumes(points: Tensor, tets: Tensor) -> Tensor:
 
 
 def edge_ratio(points: Tensor, tets: Tensor) -> Tensor:
-    """Quality ``Q`` of every tetrahedron: longest edge / shortest edge (SPEC.md §5).
+    """Quality ``Q`` of every tetrahedron: longest edge / shortest edge (Ballarin et al. 2017, Section 2.3.1).
 
     ``Q >= 1``; 1 for a regular tetrahedron. The measure does not see the
     orientation: an inverted tetrahedron can have a good ``Q`` (use
@@ -220,7 +224,7 @@ def inverted(mesh: TetMesh, displacement: Tensor | None = None) -> Tensor:
 
 
 def count_inverted(mesh: TetMesh, displacement: Tensor | None = None) -> int:
-    """Number of tetrahedra whose signed volume becomes ``<= 0`` (SPEC.md §5).
+    """Number of tetrahedra whose signed volume becomes ``<= 0`` (inverted by the morph).
 
     Parameters
     ----------
@@ -254,7 +258,7 @@ def quality_summary(mesh: TetMesh, displacement: Tensor | None = None) -> dict[s
     -------
     dict
         ``num_tets`` (int), ``max_edge_ratio`` and ``mean_edge_ratio`` (float,
-        the quality ``Q`` of SPEC.md §5), ``min_volume`` (float, smallest
+        the edge-ratio quality ``Q``), ``min_volume`` (float, smallest
         signed volume), ``min_volume_ratio`` (float, smallest deformed /
         reference volume; 1.0 without a displacement) and ``num_inverted``
         (int, tetrahedra with signed volume ``<= 0``).
@@ -340,19 +344,31 @@ def mass_matrix(mesh: TetMesh) -> Tensor:
     return mesh._cached_geometry("mass_matrix", lambda: _assemble_mass_matrix(mesh), always=True)
 
 
+#: Norms of :func:`relative_l2_error`: ``"mass"`` (L2(Ω) of the P1 interpolant,
+#: the default) and ``"nodal"`` (ℓ2 over the nodes, the paper's Ω_h = {x_i}).
+ERROR_NORMS = ("mass", "nodal")
+
+
 def relative_l2_error(
     mesh: TetMesh,
     d: Tensor,
     d_ref: Tensor,
     *,
-    norm: Literal["l2", "nodal"] = "l2",
+    norm: Literal["mass", "nodal"] = "mass",
 ) -> Tensor:
-    """Relative error ``||d - d_ref|| / ||d_ref||`` of a nodal vector field (SPEC.md §5).
+    """Relative error ``||d - d_ref|| / ||d_ref||`` of a nodal vector field.
 
-    With ``norm="l2"`` the norm is the L2(Ω_h) norm of the P1 interpolant,
-    ``||u||_M² = Σ_c u_c^T M u_c`` summed over the three components ``c``,
-    ``M`` the :func:`mass_matrix` of the reference mesh. With ``norm="nodal"``
-    it is the plain 2-norm of all ``3N`` nodal values.
+    Two norms, both "L2" in some sense, and they can differ several-fold:
+
+    - ``norm="mass"`` (default): the L2(Ω) norm of the piecewise-linear (P1)
+      interpolant, ``||u||_M² = Σ_c u_c^T M u_c`` summed over the three
+      components ``c``, ``M`` the :func:`mass_matrix` of the reference mesh.
+      Each node weighs as much as the volume around it, so on a graded fluid
+      mesh the large far-field elements dominate.
+    - ``norm="nodal"``: the plain ℓ2 norm of all ``3N`` nodal values, every node
+      weighing the same (:func:`relative_nodal_error`). This is the most literal
+      reading of the error "in L2(Ω_h)" of Ballarin et al. (2017, Section 2.3),
+      who define Ω_h as the set of mesh nodes {x_i}.
 
     Parameters
     ----------
@@ -362,8 +378,9 @@ def relative_l2_error(
         Approximate displacement field(s).
     d_ref : Tensor, same shape as ``d``
         Reference field(s).
-    norm : {"l2", "nodal"}, keyword-only
-        Which norm.
+    norm : {"mass", "nodal"}, keyword-only
+        Which norm (see above). ``"l2"``, the old spelling of ``"mass"``, still
+        works but warns (DeprecationWarning).
 
     Returns
     -------
@@ -377,8 +394,16 @@ def relative_l2_error(
         of shape (N, 3) / (B, N, 3), or a reference with zero norm.
     """
     _check_mesh(mesh)
-    if norm not in ("l2", "nodal"):
-        raise ValueError(f"norm must be 'l2' or 'nodal', got {norm!r}")
+    if norm == "l2":
+        warnings.warn(
+            "relative_l2_error(norm='l2') is deprecated: the mass-matrix norm is "
+            "norm='mass' (the default); the nodal norm is norm='nodal'",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        norm = "mass"
+    if norm not in ERROR_NORMS:
+        raise ValueError(f"norm must be 'mass' or 'nodal', got {norm!r}")
     for value, name in ((d, "d"), (d_ref, "d_ref")):
         if not isinstance(value, Tensor):
             raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
@@ -417,6 +442,17 @@ def relative_l2_error(
         raise ValueError(f"d_ref has zero {norm} norm{where}: the relative error is undefined")
     result = torch.sqrt(error_sq.clamp_min(0.0) / ref_sq)
     return result if batched else result[0]
+
+
+def relative_nodal_error(mesh: TetMesh, d: Tensor, d_ref: Tensor) -> Tensor:
+    """Relative error in the nodal ℓ2 norm, every node weighing the same.
+
+    ``sqrt(Σ_i |d_i - d_ref,i|² / Σ_i |d_ref,i|²)`` over all nodes: the error
+    "in L2(Ω_h)", Ω_h = {x_i}, of Ballarin et al. (2017, Section 2.3) read
+    literally. Same as ``relative_l2_error(mesh, d, d_ref, norm="nodal")``;
+    shapes, dtype and errors as :func:`relative_l2_error`.
+    """
+    return relative_l2_error(mesh, d, d_ref, norm="nodal")
 
 
 def _first_indices(mask: Tensor, limit: int = 5) -> str:
