@@ -375,6 +375,21 @@ def test_conflicting_regions_name_the_option(tmp_path, cube_file, capsys):
     assert code == EXIT_OK
 
 
+def test_selection_errors_are_typed_and_carry_their_data():
+    """The command builds its messages from the library's exception types, not their text."""
+    from torchmorph.selection import RegionOverlapError, UncoveredNodesError
+
+    cube = structured_cube(4)
+    with pytest.raises(UncoveredNodesError) as caught:
+        SelectionPlan({"x1": 0.5}).select(cube)
+    assert caught.value.total == 98
+    np.testing.assert_array_equal(
+        caught.value.nodes, np.setdiff1d(cube.boundary_nodes.numpy(), cube.node_set("x1").numpy()))
+    with pytest.raises(RegionOverlapError) as caught:
+        SelectionPlan([Region(("x0", "x1"), 0.4), Region(("y0", "y1", "z0", "z1"), 0.6)]).select(cube)
+    assert caught.value.first.names == ("x0", "x1") and caught.value.count > 0
+
+
 def test_usage_errors(tmp_path, cube_file, capsys):
     code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--enrich", "z0")
     assert code == EXIT_USAGE

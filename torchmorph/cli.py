@@ -75,6 +75,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from torchmorph.mesh import TetMesh
+    from torchmorph.selection import UncoveredNodesError
 
 __all__ = [
     "DISPLACEMENT_FORMATS",
@@ -655,22 +656,14 @@ def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMe
                          for region in regions)
     if enrich:
         text += f"; enriched with {', '.join(enrich)}"
-    if args.region and args.uncovered == "error":
-        _check_covered(mesh, [names for names, _ in args.region], enrich)
     plan = SelectionPlan(regions, enrich=enrich, strategy=args.strategy, overlap=args.overlap,
                          uncovered=args.uncovered)
     return plan, selection_mesh, f"{method} ({args.strategy}): {text}"
 
 
-def _check_covered(mesh: TetMesh, regions: Sequence[Sequence[str]], enrich: Sequence[str]) -> None:
-    """Raise a CommandError naming where the boundary nodes in no region or enrichment set lie."""
-    covered = np.zeros(mesh.num_nodes, dtype=bool)
-    for name in [name for names in regions for name in names] + list(enrich):
-        covered[mesh.node_set(name).cpu().numpy()] = True
-    boundary = mesh.boundary_nodes.cpu().numpy()
-    missing = boundary[~covered[boundary]]
-    if missing.size == 0:
-        return
+def _uncovered_message(mesh: TetMesh, error: UncoveredNodesError) -> str:
+    """The library's uncovered-nodes error in command-line terms, with where the nodes lie."""
+    missing = np.asarray(error.nodes)
     is_missing = np.zeros(mesh.num_nodes, dtype=bool)
     is_missing[missing] = True
     where = []
@@ -685,20 +678,11 @@ def _check_covered(mesh: TetMesh, regions: Sequence[Sequence[str]], enrich: Sequ
     if outside:
         where.append(f"{outside} in no node set")
     examples = ", ".join(str(int(node)) for node in missing[:5])
-    raise CommandError(
-        f"{missing.size} of the {boundary.size} boundary nodes are in no --region and no "
+    return (
+        f"{missing.size} of the {error.total} boundary nodes are in no --region and no "
         f"--enrich set ({'; '.join(where)}; e.g. node(s) {examples}); add their sets with "
         "--region SET=R or --enrich SET, or pass --uncovered ignore to never select them"
     )
-
-
-def _cli_hint(message: str) -> str:
-    """Library messages name keyword arguments; add the matching command-line option."""
-    if "overlap='first'" in message:
-        message += " [command line: --overlap first or --overlap share]"
-    if "uncovered='ignore'" in message:
-        message += " [command line: --region for those nodes, --enrich, or --uncovered ignore]"
-    return message
 
 
 # --------------------------------------------------------------------------- commands
@@ -760,6 +744,7 @@ def _run_morph(args: argparse.Namespace) -> int:
     from torchmorph.io import MESH_FORMATS, write_mesh
     from torchmorph.morph import MeshMorph
     from torchmorph.quality import edge_ratio, quality_summary
+    from torchmorph.selection import RegionOverlapError, UncoveredNodesError
 
     output = Path(args.output)
     if output.suffix.lower() not in MESH_FORMATS:
@@ -819,8 +804,11 @@ def _run_morph(args: argparse.Namespace) -> int:
             try:
                 morph = MeshMorph(selection_mesh, plan, power=args.power, mode=args.mode,
                                   generator=generator)
-            except ValueError as error:
-                raise CommandError(_cli_hint(str(error))) from error
+            except UncoveredNodesError as error:
+                raise CommandError(_uncovered_message(mesh, error)) from error
+            except RegionOverlapError as error:
+                raise CommandError(f"{error} [command line: --overlap first or --overlap "
+                                   "share]") from error
         boundary_displacement = torch.as_tensor(rows, dtype=dtype, device=device)
         with stages.step("morphing"):
             if device.type == "cuda":

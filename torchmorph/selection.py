@@ -30,7 +30,9 @@ __all__ = [
     "DEFAULT_SEED",
     "STRATEGIES",
     "Region",
+    "RegionOverlapError",
     "SelectionPlan",
+    "UncoveredNodesError",
     "select_control_points",
 ]
 
@@ -52,6 +54,29 @@ _FARTHEST_NEIGHBOURS = 8
 # ... and the KD-tree over the selected points is rebuilt once more than this many
 # points have been selected since its last build (those are compared by brute force).
 _TAIL_LIMIT = 64
+
+
+class RegionOverlapError(ValueError):
+    """Two regions with different parameters share nodes (``overlap="error"``).
+
+    ``first`` and ``second`` are the two :class:`Region` objects, ``count`` the
+    number of nodes they share.
+    """
+
+    def __init__(self, message: str, *, first: Region, second: Region, count: int) -> None:
+        super().__init__(message)
+        self.first, self.second, self.count = first, second, count
+
+
+class UncoveredNodesError(ValueError):
+    """Candidate nodes in no region and no enrichment set (``uncovered="error"``).
+
+    ``nodes`` holds their global ids (int64 array), ``total`` the number of candidates.
+    """
+
+    def __init__(self, message: str, *, nodes: np.ndarray, total: int) -> None:
+        super().__init__(message)
+        self.nodes, self.total = nodes, total
 
 
 # --------------------------------------------------------------------------------------
@@ -640,13 +665,14 @@ class SelectionPlan:
                         first, second = self.regions[other], self.regions[position]
                         if first.parameters != second.parameters:
                             count = int((taken == other).sum())
-                            raise ValueError(
+                            raise RegionOverlapError(
                                 f"regions {first.label!r} (R={first.radius:g}, a={first.a:g}, "
                                 f"b={first.b:g}) and {second.label!r} (R={second.radius:g}, "
                                 f"a={second.a:g}, b={second.b:g}) share {count} node(s) but "
                                 "have different parameters; pass overlap='first' (a shared "
                                 "node goes to the first region listing it) or overlap='share' "
-                                "(each region keeps all its nodes)"
+                                "(each region keeps all its nodes)",
+                                first=first, second=second, count=count,
                             )
                 owner[ids[~shared]] = position
                 region_ids[position] = ids[~shared]
@@ -658,10 +684,11 @@ class SelectionPlan:
             covered[enriched] = True
             missing = candidate_ids[~covered[candidate_ids]]
             if missing.size:
-                raise ValueError(
+                raise UncoveredNodesError(
                     f"{missing.size} of the {candidate_ids.size} {what} are in no region and "
                     f"no enrichment set (e.g. node {int(missing[0])}); add them to a region, "
-                    "enrich them, or pass uncovered='ignore' to leave them out of the selection"
+                    "enrich them, or pass uncovered='ignore' to leave them out of the selection",
+                    nodes=missing, total=int(candidate_ids.size),
                 )
         return [torch.from_numpy(ids) for ids in region_ids], enriched, points
 
