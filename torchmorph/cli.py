@@ -7,12 +7,16 @@ Subcommands
     sizes, the bounding box, the quality ``Q`` (max/mean edge ratio) and the
     smallest tetrahedron volume of a mesh file.
 ``torchmorph morph MESH --displacement FILE [--moving SET ...] -o OUT``
-    Morph a mesh (SPEC.md §3, Algorithm 2): prescribe the displacement of the
+    Morph a mesh (the paper's Algorithm 2, Section 2.2.1): prescribe the displacement of the
     boundary nodes, interpolate the interior by IDW from all boundary nodes
     (IDW), from a selection (``--select``/``--region``: SIDW) and from
     enrichment sets (``--enrich``: ESIDW), and write the result.
 ``torchmorph reproduce wing|fluid-wing|hull``
     Run one of the paper's test cases (:func:`torchmorph.paper.reproduce`).
+``torchmorph mesh SURFACE [SURFACE ...] -o OUT``
+    Tetrahedralise your own closed surfaces (STL, OBJ, PLY, OFF) with fTetWild,
+    optionally in a box, with named boundary node sets
+    (:func:`torchmorph.meshing.mesh_surfaces`).
 
 Displacement files (``morph --displacement``)
 ---------------------------------------------
@@ -229,12 +233,14 @@ def _progress_option(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the ``torchmorph`` command (subcommands info, morph, reproduce)."""
+    """The argument parser of the ``torchmorph`` command (info, morph, reproduce, mesh)."""
     common = _common_options()
     parser = argparse.ArgumentParser(
         prog="torchmorph",
-        description="IDW / Selective IDW morphing of tetrahedral meshes (SPEC.md §1-3) and the "
-                    "reproduction of the POD-Selective IDW paper's test cases.",
+        description="IDW / Selective IDW morphing of tetrahedral meshes (Ballarin, D'Amario, "
+                    "Perotto, Rozza 2017: A POD-Selective Inverse Distance Weighting method for "
+                    "fast parametrized shape morphing, Sections 2-3), tetrahedral meshes from "
+                    "your own surfaces, and the reproduction of the paper's test cases.",
         epilog="Run 'torchmorph COMMAND --help' for the options of a command. Exit codes: "
                "0 ok, 1 runtime error, 2 usage error, 3 inverted tetrahedra with --strict.",
     )

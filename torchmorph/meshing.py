@@ -17,8 +17,8 @@ The path from a surface file to a :class:`~torchmorph.mesh.TetMesh` that
    input surface, one per face group of a file (OBJ groups, PLY face labels),
    the box walls ``wall_x0`` … ``wall_z1``, and, with ``feature_angle``, the
    sharp edges (``<surface>_edges``) and the smooth patches between them
-   (``<surface>_patch<k>``), the sets the paper's ESIDW enriches (Ballarin et
-   al. 2017, Section 4).
+   (``<surface>_patch<k>``): the kind of sets the paper's ESIDW enriches
+   (Ballarin et al. 2017, Algorithm 2 step (ii); the hull's edge in Section 2.3.3).
 
 This module is not part of the morphing core (which never imports it). It needs
 the ``tetwild`` extra: ``pip install 'torchmorph[tetwild]'`` (pytetwild, which
