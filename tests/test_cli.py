@@ -468,3 +468,19 @@ def test_reproduce_wing_small(tmp_path, capsys):
     assert main(["reproduce", "wing", "--size", "small", "--out", str(tmp_path)]) == EXIT_OK
     assert capsys.readouterr().out
     assert any(tmp_path.iterdir())
+
+
+# --------------------------------------------------------------------------- environment
+
+
+def test_tests_run_with_a_temporary_home_and_cache(temporary_home):
+    import os
+    from pathlib import Path
+
+    home = Path(os.environ["HOME"])
+    assert home == temporary_home / "home" and home.is_dir()
+    assert Path(os.environ["TORCHMORPH_CACHE"]).is_relative_to(temporary_home)
+    assert Path(os.environ["MPLCONFIGDIR"]).is_relative_to(temporary_home)
+    assert Path(os.environ["NUMBA_CACHE_DIR"]).is_relative_to(temporary_home)
+    assert Path("~").expanduser() == home
+
