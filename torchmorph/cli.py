@@ -341,7 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Reproduce a test case of the POD-Selective IDW paper: build its mesh, run "
                     "IDW, SIDW (wing), ESIDW, POD-IDW and POD-ESIDW with the paper's parameters "
                     "and print the results beside the paper's (with progress bars). Needs the "
-                    "optional mesh dependencies: pip install 'torchmorph[mesh]'.",
+                    "optional mesh dependencies: pip install 'torchmorph[mesh]' (gmsh; with "
+                    "--mesher pytetwild: 'torchmorph[tetwild]').",
     )
     reproduce.add_argument("case", type=_case_name, metavar="CASE",
                            help="wing (A), fluid-wing (B) or hull (C)")
@@ -432,7 +433,10 @@ Warp By Vector) and 'control_point', cell data 'quality' (Q after the morph),
 examples:
   torchmorph morph wing.vtu --moving tip -d tip.npy -o out.vtu
   torchmorph morph wing.vtu --moving upper lower -d d.npy --region root+tip=0.05 \\
-      --region upper+lower=0.5 --enrich leading_edge trailing_edge -o out.vtu
+      --region upper+lower=0.5 --overlap first --enrich leading_edge trailing_edge \\
+      -o out.vtu
+(regions that share nodes, here the profiles where root and tip meet the sides,
+need --overlap first or --overlap share)
 """
 
 
@@ -813,8 +817,14 @@ def _run_morph(args: argparse.Namespace) -> int:
             except UncoveredNodesError as error:
                 raise CommandError(_uncovered_message(mesh, error)) from error
             except RegionOverlapError as error:
-                raise CommandError(f"{error} [command line: --overlap first or --overlap "
-                                   "share]") from error
+                first, second = error.first, error.second
+                raise CommandError(
+                    f"--region {first.label}={first.radius:g},{first.a:g},{first.b:g} and "
+                    f"--region {second.label}={second.radius:g},{second.a:g},{second.b:g} share "
+                    f"{error.count} node(s) but have different parameters; pass --overlap first "
+                    "(a shared node goes to the first region listing it) or --overlap share "
+                    "(each region keeps all its nodes)"
+                ) from error
         boundary_displacement = torch.as_tensor(rows, dtype=dtype, device=device)
         with stages.step("morphing"):
             if device.type == "cuda":
@@ -971,7 +981,7 @@ def _run_mesh(args: argparse.Namespace) -> int:
 
 def _import_error_message(error: ImportError) -> str:
     message = str(error) or type(error).__name__
-    if "torchmorph[mesh]" in message:
+    if "torchmorph[" in message:  # names its extra already
         return message
     return f"{message}; {_MESH_EXTRA_HINT}"
 
