@@ -443,9 +443,13 @@ need --overlap first or --overlap share)
 _MESH_EPILOG = """\
 examples:
   torchmorph mesh body.stl --box 2 --feature-angle 30 -o body.vtu
-  torchmorph mesh car=car.obj --box 2,6,2,2,0.01,2 --body-edge-length 0.05 \\
-      --edge-length 0.5 -o car.vtu
-then morph it: torchmorph morph body.vtu --moving body -d d.npy -o out.vtu
+  torchmorph mesh car=car.obj --box 1,2.5,1,1,0.1,1 --body-edge-length 0.08 \\
+      --edge-length 0.6 --feature-angle 30 -o car.vtu
+  torchmorph morph body.vtu --moving body -d d.npy -o out.vtu
+(the first: a body in a box padded by twice its size, node sets body, body_edges,
+body_patch0 ..., wall_x0 ... wall_z1; the second: a tunnel 1 length upstream, 2.5
+downstream, 0.1 below the body, graded from 0.08 on the car to 0.6; the third morphs
+the result by a displacement of the body, see 'torchmorph morph --help')
 """
 
 
