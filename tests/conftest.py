@@ -19,7 +19,6 @@ import torch
 from torchmorph import TetMesh
 from torchmorph.mesh import box_mesh
 
-
 #: Environment variables pointed into the session's temporary directory (name -> subfolder).
 ISOLATED = {"HOME": "home", "TORCHMORPH_CACHE": "cache/meshes", "NUMBA_CACHE_DIR": "cache/numba",
             "MPLCONFIGDIR": "config/matplotlib", "XDG_CACHE_HOME": "cache",

@@ -135,6 +135,7 @@ def test_closest_points_match_brute_force():
     np.testing.assert_allclose(distance, all_distances.min(1), rtol=0, atol=1e-12)
     np.testing.assert_allclose(points, brute[np.arange(len(queries)), all_distances.argmin(1)],
                                atol=1e-12)
+    np.testing.assert_allclose(all_distances[np.arange(len(queries)), face], distance, atol=1e-12)
     # the closest point of a triangle: a vertex, an edge point and an interior point
     a, b, c = np.eye(3)[None, 0], np.eye(3)[None, 1], np.zeros((1, 3))
     np.testing.assert_allclose(meshing._closest_on_triangles(np.array([[2.0, -1, 0]]), a, b, c), a)

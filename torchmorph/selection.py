@@ -1,11 +1,12 @@
 """Selection of control points: Algorithm 1 (SIDW) and per-region selection plans.
 
-:func:`select_control_points` implements Algorithm 1 of SPEC.md §2 on a cloud of
-candidate points of any dimension; :class:`SelectionPlan` runs it on named node sets
+:func:`select_control_points` implements Algorithm 1 of the paper (Ballarin et al. 2017,
+Section 2.2) on a cloud of candidate points of any dimension; :class:`SelectionPlan` runs it on named node sets
 of a :class:`~torchmorph.mesh.TetMesh`, each with its own radius ``R`` and factors
-``a``, ``b``, takes the union and adds enrichment node sets (ESIDW, SPEC.md §3).
+``a``, ``b``, takes the union and adds enrichment node sets (ESIDW: Algorithm 2,
+step (ii), Section 2.2.1).
 
-Definitions used throughout (SPEC.md §2): ``B(c; r)`` is the open ball
+Definitions used throughout (the paper's Section 2.2): ``B(c; r)`` is the open ball
 ``|x - c| < r`` and ``B(c; r_i, r_e)`` the shell ``r_i <= |x - c| < r_e``, so that a
 point at distance exactly ``R`` of a selected point survives the removal and may be
 selected itself. Consequences kept by the implementation: every candidate lies within
@@ -94,7 +95,7 @@ def select_control_points(
     strategy: str = "random",
     generator: torch.Generator | None = None,
 ) -> Tensor:
-    """Select a uniformly spread subset of ``points`` by Algorithm 1 (SIDW), SPEC.md §2.
+    """Select a uniformly spread subset of ``points`` by Algorithm 1 (SIDW), paper Section 2.2.
 
     Around the start point ``c1`` the candidates farther than ``R`` from it are split
     into concentric annuli ``α_1 .. α_n`` of thickness ``a R``; the points of
@@ -474,7 +475,7 @@ def _as_region(key: Any, value: Any) -> Region:
 
 @dataclass
 class SelectionPlan:
-    """Per-region control-point selection with enrichment (SPEC.md §2 regions, §3 ESIDW).
+    """Per-region control-point selection with enrichment (Algorithm 2 (i)-(ii), Section 2.2.1).
 
     Parameters
     ----------
