@@ -244,6 +244,8 @@ def test_argument_errors_name_the_argument():
         mesh_surfaces(ball, box=[1, 2])
     with pytest.raises(ValueError, match=r"surfaces: two surfaces are named 'ball'"):
         mesh_surfaces([ball, ball])
+    with pytest.raises(ValueError, match=r"surfaces: the name 'far_field' is the box's"):
+        mesh_surfaces({"far_field": ball}, box=1.0)
 
 
 def test_written_mesh_reads_back_with_its_node_sets(ball_in_box, tmp_path):

@@ -826,6 +826,9 @@ def mesh_surfaces(
     elif bounds is not None:
         walls = box_surface(bounds)
     if walls is not None:
+        if any(body.name == walls.name for body in bodies):
+            raise ValueError(f"surfaces: the name {walls.name!r} is the box's; name the "
+                             "surface otherwise")
         for body in bodies:
             if not _contains(walls, body):
                 raise ValueError(f"bounds: the box {walls.bounds.tolist()} does not contain "
