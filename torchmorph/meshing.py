@@ -349,10 +349,12 @@ def box_surface(bounds: Any, name: str = "far_field") -> Surface:
                          f"z0 < z1, got {bounds.tolist()}")
     (x0, y0, z0), (x1, y1, z1) = bounds
     vertices = np.array([[x, y, z] for z in (z0, z1) for y in (y0, y1) for x in (x0, x1)])
-    # each wall as a quad (outward, counter-clockwise seen from outside), in WALL_NAMES order
-    quads = [(0, 4, 6, 2), (1, 3, 7, 5), (0, 1, 5, 4), (2, 6, 7, 3), (0, 2, 3, 1), (4, 5, 7, 6)]
+    # each wall as a quad (outward, counter-clockwise seen from outside): z0, z1, y0, y1, x0, x1
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    walls = ("wall_z0", "wall_z1", "wall_y0", "wall_y1", "wall_x0", "wall_x1")
     faces = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
-    groups = {wall: np.array([2 * k, 2 * k + 1]) for k, wall in enumerate(WALL_NAMES)}
+    position = {wall: k for k, wall in enumerate(walls)}
+    groups = {wall: np.array([2 * position[wall], 2 * position[wall] + 1]) for wall in WALL_NAMES}
     return Surface(vertices, faces, name, groups)
 
 
