@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -256,3 +258,18 @@ def test_written_mesh_reads_back_with_its_node_sets(ball_in_box, tmp_path):
     assert set(again.node_sets) == set(ball_in_box.node_sets)
     for name, nodes in ball_in_box.node_sets.items():
         torch.testing.assert_close(again.node_sets[name], nodes)
+
+
+def test_tetrahedralize_reports_start_and_elapsed_time_on_request(capsys):
+    pytest.importorskip("pytetwild")
+    vertices, faces = icosphere(1)
+    points, tets = meshing.tetrahedralize(vertices, faces, edge_length=0.5, progress=True)
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith("fTetWild: meshing 80 surface triangles (edge length 0.5, epsilon")
+    assert re.fullmatch(rf"fTetWild: {len(points)} nodes, {len(tets)} tetrahedra in \d+\.\d s",
+                        err[1])
+    assert (meshing._signed_volumes(points, tets) > 0).all()
+    meshing.tetrahedralize(vertices, faces, edge_length=0.5)
+    assert capsys.readouterr().err == ""
+    with pytest.raises(ValueError, match=r"epsilon must be a finite number > 0, got -1"):
+        meshing.tetrahedralize(vertices, faces, edge_length=0.5, epsilon=-1)
