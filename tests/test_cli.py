@@ -537,6 +537,17 @@ def test_mesh_errors(tmp_path, capsys):
     assert "expected 1 or 6 number(s)" in _error(capsys)
 
 
+def test_mesh_without_pytetwild_names_the_tetwild_extra(tmp_path, monkeypatch, capsys):
+    source = _sphere_obj(tmp_path / "ball.obj")
+    monkeypatch.setitem(sys.modules, "pytetwild", None)  # import pytetwild -> ImportError
+    assert main(["mesh", str(source), "-o", str(tmp_path / "ball.vtu")]) == EXIT_ERROR
+    err = _error(capsys)
+    assert "tetrahedralising needs pytetwild (which imports pyvista): pip install " \
+           "'torchmorph[tetwild]'" in err
+    assert "torchmorph[mesh]" not in err
+    assert not (tmp_path / "ball.vtu").exists()
+
+
 # --------------------------------------------------------------------------- --help examples
 
 
