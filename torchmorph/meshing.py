@@ -801,8 +801,9 @@ def mesh_surfaces(
     -------
     TetMesh
         Node sets: one per surface (by name), one per face group (by its name;
-        ``<surface>_<group>`` where names would clash), the box walls
-        ``wall_x0`` … ``wall_z1`` and the feature sets. A boundary node
+        ``<surface>_<group>`` where names would clash), with a box its whole
+        surface ``far_field`` and its walls ``wall_x0`` … ``wall_z1``, and the
+        feature sets. Empty sets are left out. A boundary node
         belongs to every set whose faces it lies on (within 1e-9 of the
         domain's size of the nearest).
 
