@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchmorph import meshing
+from torchmorph import _surface, meshing
 from torchmorph.io import read_mesh
 from torchmorph.meshing import (
     Surface,
@@ -129,7 +129,7 @@ def test_closest_points_match_brute_force():
     queries = rng.normal(size=(300, 3)) * rng.uniform(0.2, 2.0, size=(300, 1))
     points, face, distance = closest_points(queries, vertices, faces)
     brute = np.stack([
-        meshing._closest_on_triangles(np.repeat(q[None], len(faces), 0),
+        _surface._closest_on_triangles(np.repeat(q[None], len(faces), 0),
                                       *(vertices[faces[:, k]] for k in range(3)))
         for q in queries
     ])  # (Q, F, 3)
@@ -140,10 +140,10 @@ def test_closest_points_match_brute_force():
     np.testing.assert_allclose(all_distances[np.arange(len(queries)), face], distance, atol=1e-12)
     # the closest point of a triangle: a vertex, an edge point and an interior point
     a, b, c = np.eye(3)[None, 0], np.eye(3)[None, 1], np.zeros((1, 3))
-    np.testing.assert_allclose(meshing._closest_on_triangles(np.array([[2.0, -1, 0]]), a, b, c), a)
-    np.testing.assert_allclose(meshing._closest_on_triangles(np.array([[1.0, 1, 0]]), a, b, c),
+    np.testing.assert_allclose(_surface._closest_on_triangles(np.array([[2.0, -1, 0]]), a, b, c), a)
+    np.testing.assert_allclose(_surface._closest_on_triangles(np.array([[1.0, 1, 0]]), a, b, c),
                                [[0.5, 0.5, 0]])
-    np.testing.assert_allclose(meshing._closest_on_triangles(np.array([[0.2, 0.2, 5]]), a, b, c),
+    np.testing.assert_allclose(_surface._closest_on_triangles(np.array([[0.2, 0.2, 5]]), a, b, c),
                                [[0.2, 0.2, 0]])
 
 
