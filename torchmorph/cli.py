@@ -70,12 +70,32 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from torchmorph import _cli_mesh
+from torchmorph._cli_common import (
+    DISPLACEMENT_FORMATS,
+    EXIT_ERROR,
+    EXIT_INTERRUPTED,
+    EXIT_INVERTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    CommandError,
+    _boundary_rows,
+    _check_names,
+    _line,
+    _load_displacement,
+    _positive_float,
+    _progress_option,
+    _read,
+    _seconds,
+    _Stages,
+    _warn,
+)
 
 if TYPE_CHECKING:
     from torchmorph.mesh import TetMesh
@@ -88,18 +108,10 @@ __all__ = [
     "EXIT_INVERTED",
     "EXIT_OK",
     "EXIT_USAGE",
+    "CommandError",
     "build_parser",
     "main",
 ]
-
-EXIT_OK = 0
-EXIT_ERROR = 1
-EXIT_USAGE = 2
-EXIT_INVERTED = 3
-EXIT_INTERRUPTED = 130
-
-#: Displacement file extensions understood by ``morph --displacement``.
-DISPLACEMENT_FORMATS = (".npy", ".npz", ".csv", ".txt", ".dat")
 
 #: Case names of ``reproduce`` and the aliases accepted for them.
 _CASES = ("wing", "fluid-wing", "hull")
@@ -110,14 +122,6 @@ _MESH_EXTRA_HINT = "install the optional mesh dependencies: pip install 'torchmo
 
 # Name of the temporary node set that holds every boundary node for --select.
 _ALL_BOUNDARY = "(boundary)"
-
-
-class CommandError(Exception):
-    """A failure reported to the user as one line on stderr, with an exit code."""
-
-    def __init__(self, message: str, code: int = EXIT_ERROR) -> None:
-        super().__init__(message)
-        self.code = code
 
 
 # --------------------------------------------------------------------------- parser
@@ -167,33 +171,6 @@ def _region_option(text: str) -> tuple[tuple[str, ...], tuple[float, float, floa
     return names_list, _selection_parameters(parameters)
 
 
-def _positive_float(text: str) -> float:
-    try:
-        number = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (np.isfinite(number) and number > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return number
-
-
-def _float_list(*counts: int):
-    """A parser of comma-separated numbers, as many as one of ``counts``."""
-    def parse(text: str) -> tuple[float, ...]:
-        try:
-            numbers = tuple(float(part) for part in text.split(","))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got "
-                                             f"{text!r}") from None
-        if len(numbers) not in counts:
-            expected = " or ".join(str(count) for count in counts)
-            raise argparse.ArgumentTypeError(f"expected {expected} number(s), got {text!r}")
-        if not np.isfinite(numbers).all():
-            raise argparse.ArgumentTypeError(f"expected finite numbers, got {text!r}")
-        return numbers
-    return parse
-
-
 def _case_name(text: str) -> str:
     name = _CASE_ALIASES.get(text.strip().lower(), text.strip().lower())
     if name not in _CASES:
@@ -223,13 +200,6 @@ def _common_options() -> argparse.ArgumentParser:
         help="show the Python traceback of an error instead of a one-line message",
     )
     return common
-
-
-def _progress_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--progress", action=argparse.BooleanOptionalAction, default=None,
-        help="progress bars on stderr (default: when stderr is a terminal)",
-    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -357,62 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
                            help="seed of the random selection and training set (default 0)")
     reproduce.set_defaults(run=_run_reproduce, parser=reproduce)
 
-    # ---------------------------------------------------------------- mesh
-    mesh = commands.add_parser(
-        "mesh", parents=[common], help="tetrahedralise your own closed surface (STL, OBJ, PLY)",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Tetrahedralise the volume inside closed triangle surfaces (or around them, in\n"
-                    "a box) with fTetWild, snap the boundary nodes back onto the surfaces and\n"
-                    "name the boundary node sets: one per surface file (NAME=FILE names it), one\n"
-                    "per face group of a file (OBJ g/o groups, PLY face labels), the box walls\n"
-                    "wall_x0 ... wall_z1, and with --feature-angle the sharp edges\n"
-                    "(<surface>_edges) and the smooth patches between them (<surface>_patch<k>).\n"
-                    "Prints the mesh's quality. Needs: pip install 'torchmorph[tetwild]'.",
-        epilog=_MESH_EPILOG,
-    )
-    mesh.add_argument("surfaces", nargs="+", metavar="SURFACE",
-                      help="closed surface file (.stl, .obj, .ply, .off), or NAME=FILE")
-    mesh.add_argument("--output", "-o", required=True, metavar="OUT",
-                      help="output mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)")
-    mesh.add_argument("--repair", action="store_true",
-                      help="let trimesh remove zero-area faces, fix the winding and fill holes "
-                           "(default: a surface that is not closed is an error)")
-    far = mesh.add_argument_group("far field (default: mesh the inside of the surfaces)")
-    place = far.add_mutually_exclusive_group()
-    place.add_argument("--box", type=_float_list(1, 6), metavar="PAD[,...]",
-                       help="place the surfaces in a box padded by PAD times their largest "
-                            "extent on every side, or per side X0,X1,Y0,Y1,Z0,Z1 (a tunnel)")
-    place.add_argument("--bounds", type=_float_list(6), metavar="X0,Y0,Z0,X1,Y1,Z1",
-                       help="the box's corners")
-    sizing = mesh.add_argument_group("size and quality (fTetWild)")
-    sizing.add_argument("--edge-length", type=_positive_float, metavar="H",
-                        help="target edge length (default: the bounding-box diagonal / 20)")
-    sizing.add_argument("--body-edge-length", type=_positive_float, metavar="H",
-                        help="edge length on the surfaces, growing to --edge-length away from "
-                             "them (needs --box or --bounds)")
-    sizing.add_argument("--grading", type=_positive_float, metavar="D",
-                        help="distance over which the size grows from --body-edge-length to "
-                             "--edge-length (default: the surfaces' largest extent)")
-    sizing.add_argument("--epsilon", type=_positive_float, default=1e-3,
-                        help="envelope: the mesh's surface stays within epsilon x the bounding-box "
-                             "diagonal of the input (default 1e-3; smaller is closer, slower)")
-    sizing.add_argument("--stop-energy", type=_positive_float, default=10.0,
-                        help="stop optimising once the worst element's AMIPS energy is below "
-                             "this (default 10; 3 is a perfect tetrahedron; smaller is better, "
-                             "slower)")
-    sizing.add_argument("--iterations", type=int, default=80,
-                        help="at most this many optimisation passes (default 80)")
-    sizing.add_argument("--threads", type=int, default=1,
-                        help="fTetWild threads (default 1: reproducible; 0: all cores)")
-    sets = mesh.add_argument_group("node sets")
-    sets.add_argument("--feature-angle", type=float, metavar="DEG",
-                      help="add sharp-edge and smooth-patch node sets: an edge is sharp where "
-                           "the surface turns by more than DEG degrees")
-    sets.add_argument("--no-snap", dest="snap", action="store_false",
-                      help="leave the boundary nodes where fTetWild put them (within epsilon "
-                           "of the surface)")
-    _progress_option(mesh)
-    mesh.set_defaults(run=_run_mesh, parser=mesh)
+    _cli_mesh.add_parser(commands, common)
     return parser
 
 
@@ -440,210 +355,10 @@ need --overlap first or --overlap share)
 """
 
 
-_MESH_EPILOG = """\
-examples:
-  torchmorph mesh body.stl --box 2 --feature-angle 30 -o body.vtu
-  torchmorph mesh car=car.obj --box 1,2.5,1,1,0.1,1 --body-edge-length 0.08 \\
-      --edge-length 0.6 --feature-angle 30 -o car.vtu
-  torchmorph morph body.vtu --moving body -d d.npy -o out.vtu
-(the first: a body in a box padded by twice its size, node sets body, body_edges,
-body_patch0 ..., wall_x0 ... wall_z1; the second: a tunnel 1 length upstream, 2.5
-downstream, 0.1 below the body, graded from 0.08 on the car to 0.6; the third morphs
-the result by a displacement of the body, see 'torchmorph morph --help')
-"""
-
-
 # --------------------------------------------------------------------------- output
 
 
-class _Stages:
-    """A progress bar over the named steps of a command (on stderr)."""
-
-    def __init__(self, total: int, enabled: bool | None) -> None:
-        from tqdm.auto import tqdm
-
-        self._bar = tqdm(total=total, file=sys.stderr, disable=None if enabled is None
-                         else not enabled, leave=False, unit="step",
-                         bar_format="{desc:<32} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
-
-    @contextmanager
-    def step(self, name: str) -> Iterator[None]:
-        self._bar.set_description_str(name)
-        self._bar.refresh()
-        yield
-        self._bar.update(1)
-
-    def close(self) -> None:
-        self._bar.close()
-
-
-def _line(label: str, text: str) -> None:
-    print(f"{label:<16}{text}")
-
-
-def _warn(command: str, message: str) -> None:
-    print(f"torchmorph {command}: WARNING: {message}", file=sys.stderr)
-
-
-def _seconds(value: float) -> str:
-    return f"{value:.3g} s" if value >= 1e-3 else f"{value * 1e3:.3g} ms"
-
-
 # --------------------------------------------------------------------------- helpers
-
-
-def _read(path_text: str, what: str = "mesh") -> tuple[TetMesh, dict, dict]:
-    from torchmorph.io import read_mesh
-
-    path = Path(path_text)
-    if not path.exists():
-        raise CommandError(f"{what} file {path_text!r} does not exist")
-    if not path.is_file():
-        raise CommandError(f"{what} file {path_text!r} is not a file")
-    try:
-        return read_mesh(path, return_data=True)
-    except ValueError as error:
-        message = str(error).removeprefix("path: ").rstrip()
-        if message.endswith(":"):  # parsers that raise without a message
-            message += " the file is not a valid mesh in that format"
-        raise CommandError(message) from error
-
-
-def _check_names(mesh: TetMesh, names: Sequence[str], option: str) -> None:
-    known = sorted(mesh.node_sets)
-    for name in names:
-        if name not in mesh.node_sets:
-            listing = ", ".join(known) if known else "none (the mesh has no node sets)"
-            raise CommandError(f"unknown node set {name!r} in {option}; known: {listing}")
-
-
-def _load_displacement(path_text: str) -> np.ndarray:
-    path = Path(path_text)
-    suffix = path.suffix.lower()
-    if suffix not in DISPLACEMENT_FORMATS:
-        raise CommandError(
-            f"displacement file {path_text!r}: unsupported extension {suffix or '(none)'!r}; "
-            f"supported: {', '.join(DISPLACEMENT_FORMATS)}"
-        )
-    if not path.is_file():
-        raise CommandError(f"displacement file {path_text!r} does not exist")
-    try:
-        if suffix == ".npy":
-            array = np.load(path, allow_pickle=False)
-        elif suffix == ".npz":
-            with np.load(path, allow_pickle=False) as archive:
-                if "displacement" in archive.files:
-                    array = archive["displacement"]
-                elif len(archive.files) == 1:
-                    array = archive[archive.files[0]]
-                else:
-                    names = ", ".join(archive.files) or "none"
-                    raise CommandError(
-                        f"displacement file {path_text!r} holds several arrays ({names}) and "
-                        "none named 'displacement'"
-                    )
-        else:
-            delimiter = "," if suffix == ".csv" else None
-            array = np.loadtxt(path, delimiter=delimiter, comments="#")
-    except CommandError:
-        raise
-    except (OSError, ValueError, EOFError) as error:
-        raise CommandError(
-            f"could not read displacement file {path_text!r}: {type(error).__name__}: {error}"
-        ) from error
-    if array.dtype.kind not in "fiu":
-        raise CommandError(
-            f"displacement file {path_text!r} must hold numbers, got dtype {array.dtype}"
-        )
-    array = array.astype(np.float64)
-    if not np.isfinite(array).all():
-        raise CommandError(f"displacement file {path_text!r} holds NaN or infinite values")
-    return array
-
-
-def _boundary_rows(
-    array: np.ndarray,
-    *,
-    source: str,
-    num_nodes: int,
-    boundary_nodes: np.ndarray,
-    moving_nodes: np.ndarray | None,
-    moving_label: str,
-    batch_index: int | None,
-) -> tuple[np.ndarray, str, float]:
-    """The (N_b, 3) boundary displacement a file's array stands for.
-
-    Returns the rows, a description of the layout used and the largest
-    absolute value of the rows that were dropped because they belong to
-    boundary nodes outside the moving sets (0 when none).
-    """
-    num_boundary = boundary_nodes.size
-    accepted = []
-    if moving_nodes is not None:
-        accepted.append(f"({moving_nodes.size}, 3) for the {moving_nodes.size} moving nodes "
-                        f"of {moving_label} in ascending node id")
-    accepted.append(f"({num_boundary}, 3) for the boundary nodes in ascending node id")
-    accepted.append(f"({num_nodes}, 3) for every node")
-    if moving_nodes is not None:
-        accepted.append("(3,) for one translation of the moving nodes")
-    accepted.append("any of these with a leading batch axis and --batch-index")
-
-    def wrong_shape(extra: str = "") -> CommandError:
-        return CommandError(
-            f"displacement file {source!r} has shape {tuple(array.shape)}{extra}; accepted "
-            f"shapes: {'; '.join(accepted)}"
-        )
-
-    if array.ndim == 3:
-        count = array.shape[0]
-        if batch_index is None:
-            if count != 1:
-                raise CommandError(
-                    f"displacement file {source!r} holds a batch of {count} fields (shape "
-                    f"{tuple(array.shape)}); choose one with --batch-index I (0 <= I < {count})"
-                )
-            batch_index = 0
-        if not -count <= batch_index < count:
-            raise CommandError(
-                f"--batch-index {batch_index} is out of range for a batch of {count} fields "
-                f"in {source!r}"
-            )
-        field = array[batch_index]
-    elif batch_index is not None:
-        raise CommandError(
-            f"--batch-index was given but displacement file {source!r} holds one field, shape "
-            f"{tuple(array.shape)}, not a batch (B, ..., 3)"
-        )
-    else:
-        field = array
-
-    if field.ndim == 1 and field.shape == (3,) and moving_nodes is not None:
-        rows = np.zeros((num_boundary, 3))
-        rows[np.searchsorted(boundary_nodes, moving_nodes)] = field
-        return rows, f"one translation {tuple(float(v) for v in field)}", 0.0
-    if field.ndim != 2 or field.shape[1] != 3:
-        raise wrong_shape()
-    count = field.shape[0]
-    if moving_nodes is not None and count == moving_nodes.size:
-        rows = np.zeros((num_boundary, 3))
-        rows[np.searchsorted(boundary_nodes, moving_nodes)] = field
-        return rows, f"moving-node rows ({count}, 3)", 0.0
-    if count == num_boundary:
-        rows, layout = field.copy(), f"boundary-node rows ({count}, 3)"
-    elif count == num_nodes:
-        rows, layout = field[boundary_nodes], f"nodal field ({count}, 3), boundary rows used"
-    else:
-        raise wrong_shape("" if moving_nodes is not None else
-                          " (to give only the rows of the moving nodes, name their node sets "
-                          "with --moving)")
-    dropped = 0.0
-    if moving_nodes is not None:
-        keep = np.zeros(num_boundary, dtype=bool)
-        keep[np.searchsorted(boundary_nodes, moving_nodes)] = True
-        if (~keep).any():
-            dropped = float(np.abs(rows[~keep]).max())
-        rows[~keep] = 0.0
-    return rows, layout, dropped
 
 
 def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMesh, str]:
@@ -907,76 +622,6 @@ def _run_reproduce(args: argparse.Namespace) -> int:
     # verbose: progress bars, the tables beside the paper's values and the files written
     paper.reproduce(args.case, size=args.size, out=args.out, mesher=args.mesher, seed=args.seed,
                     verbose=True)
-    return EXIT_OK
-
-
-def _surface_argument(text: str) -> tuple[str | None, str]:
-    """``NAME=FILE`` or ``FILE``."""
-    name, equals, path = text.partition("=")
-    if equals and name and not Path(text).exists():
-        return name, path
-    return None, text
-
-
-def _run_mesh(args: argparse.Namespace) -> int:
-    from torchmorph import meshing
-    from torchmorph.io import MESH_FORMATS, write_mesh
-    from torchmorph.quality import quality_summary
-
-    output = Path(args.output)
-    if output.suffix.lower() not in MESH_FORMATS:
-        args.parser.error(f"argument --output/-o: unsupported mesh file extension "
-                          f"{output.suffix or '(none)'!r}; supported: "
-                          f"{', '.join(sorted(MESH_FORMATS))}")
-    if args.feature_angle is not None and not 0 < args.feature_angle < 180:
-        args.parser.error(f"argument --feature-angle: must be in (0, 180) degrees, got "
-                          f"{args.feature_angle:g}")
-    if (args.body_edge_length or args.grading) and args.box is None and args.bounds is None:
-        args.parser.error("argument --body-edge-length/--grading: needs --box or --bounds")
-    progress = sys.stderr.isatty() if args.progress is None else args.progress
-    surfaces = {}
-    for text in args.surfaces:
-        name, path = _surface_argument(text)
-        try:
-            surface = meshing.load_surface(path, name=name, repair=args.repair)
-        except (ValueError, FileNotFoundError) as error:
-            raise CommandError(str(error).removeprefix("path: ")) from error
-        if surface.name in surfaces:
-            raise CommandError(f"two surfaces are named {surface.name!r}; name them with "
-                               "NAME=FILE")
-        surfaces[surface.name] = surface
-        groups = f", groups {', '.join(surface.groups)}" if surface.groups else ""
-        _line("surface", f"{surface.name}: {path} ({len(surface.vertices)} vertices, "
-                         f"{len(surface.faces)} triangles{groups})")
-    bounds = None
-    if args.bounds is not None:
-        bounds = np.reshape(args.bounds, (2, 3))
-    start = time.perf_counter()
-    try:
-        mesh = meshing.mesh_surfaces(
-            surfaces, box=args.box, bounds=bounds, edge_length=args.edge_length,
-            body_edge_length=args.body_edge_length, grading=args.grading, epsilon=args.epsilon,
-            stop_energy=args.stop_energy, iterations=args.iterations,
-            feature_angle=args.feature_angle, snap=args.snap, threads=args.threads,
-            progress=progress,
-        )
-    except ValueError as error:
-        raise CommandError(str(error)) from error
-    elapsed = time.perf_counter() - start
-    summary = quality_summary(mesh)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    write_mesh(output, mesh)
-    _line("mesh", f"{mesh.num_nodes} nodes ({mesh.boundary_nodes.numel()} boundary), "
-                  f"{mesh.num_tets} tetrahedra in {_seconds(elapsed)}")
-    _line("quality Q", f"max {summary['max_edge_ratio']:.4g}, mean "
-                       f"{summary['mean_edge_ratio']:.4g} (edge ratio, 1 is best)")
-    _line("min volume", f"{summary['min_volume']:.6g}")
-    _line("inverted tets", f"{summary['num_inverted']}")
-    _line("node sets", f"{len(mesh.node_sets)}")
-    width = max((len(name) for name in mesh.node_sets), default=0)
-    for name in mesh.node_sets:
-        print(f"  {name:<{width}}  {mesh.node_sets[name].numel()} nodes")
-    _line("wrote", f"{output}")
     return EXIT_OK
 
 
