@@ -24,16 +24,14 @@ inside the exact body's thin end. After the projection, inverted elements are
 repaired by moving interior nodes (:func:`data_gen._arrays.untangle`); a mesh
 that still fails its checks is made again (up to three times in all).
 
-fTetWild writes a scratch file into the working directory: it runs in a
-temporary one. Its output is not reproducible bit for bit from run to run.
+fTetWild runs through :func:`torchmorph.meshing.tetrahedralize`, the same call
+as a user's own surfaces (``torchmorph mesh``). Its output is not reproducible
+bit for bit from run to run.
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
-from collections.abc import Iterator
+import sys
 
 import numpy as np
 
@@ -49,22 +47,12 @@ from data_gen.geometry import (
     naca_profile,
     wigley_half_breadth,
 )
+from torchmorph.meshing import box_surface, tetrahedralize
 
 __all__ = ["mesh_fluid_wing", "mesh_hull", "mesh_wing"]
 
 # the wing's surface for case B starts this far below the wall z = 0 [m]
 _ROOT_OVERLAP = 0.25
-
-
-@contextlib.contextmanager
-def _temporary_cwd() -> Iterator[str]:
-    previous = os.getcwd()
-    with tempfile.TemporaryDirectory(prefix="torchmorph-tetwild-") as directory:
-        os.chdir(directory)
-        try:
-            yield directory
-        finally:
-            os.chdir(previous)
 
 
 def _tetrahedralize(
@@ -78,31 +66,20 @@ def _tetrahedralize(
     sizing: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     verbose: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
-    try:
-        import pytetwild  # imports pyvista: only when this mesher is used
-    except ImportError as error:  # pragma: no cover - depends on the environment
-        raise ImportError("the pytetwild mesher needs `pip install pytetwild`") from error
-    options = {
-        "edge_length_abs": float(edge_length),
-        "epsilon": float(epsilon),
-        "stop_energy": float(stop_energy),
-        "num_opt_iter": int(iterations),
-        "num_threads": 1,
-        "quiet": not verbose,
-    }
-    if sizing is not None:
-        options.update(bg_vertices=sizing[0], bg_tets=sizing[1], bg_values=sizing[2])
-    with _temporary_cwd():
-        points, tets = pytetwild.tetrahedralize(
-            np.ascontiguousarray(vertices, dtype=np.float64),
-            np.ascontiguousarray(faces, dtype=np.int32),
-            **options,
-        )
-    points = np.asarray(points, dtype=np.float64)
-    tets = np.asarray(tets, dtype=np.int64)
-    if len(tets) == 0:
-        raise RuntimeError("fTetWild returned an empty mesh")
-    return points, orient(points, tets)
+    """:func:`torchmorph.meshing.tetrahedralize`, one thread; the start and the end (with the
+    elapsed time) are printed when ``verbose`` or when stderr is a terminal."""
+    return tetrahedralize(
+        vertices,
+        faces,
+        edge_length=edge_length,
+        epsilon=epsilon,
+        stop_energy=stop_energy,
+        iterations=iterations,
+        sizing=sizing,
+        threads=1,
+        progress=verbose or sys.stderr.isatty(),
+        verbose=verbose,
+    )
 
 
 # --------------------------------------------------------------------------- input surfaces
@@ -142,13 +119,8 @@ def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def _box_surface(bounds):
-    (x0, y0, z0), (x1, y1, z1) = bounds
-    vertices = np.array(
-        [[x, y, z] for z in (z0, z1) for y in (y0, y1) for x in (x0, x1)], dtype=np.float64
-    )
-    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
-    faces = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
-    return vertices, _outward(vertices, faces)
+    surface = box_surface(bounds)
+    return surface.vertices, surface.faces
 
 
 def _hull_surface(points_per_side: int):

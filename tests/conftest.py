@@ -1,8 +1,17 @@
-"""Shared fixtures: small analytic tetrahedral meshes, and one torch thread."""
+"""Shared fixtures: small analytic tetrahedral meshes, one torch thread, and a temporary home.
+
+The tests never write into the user's home: before anything is collected, ``HOME``, the
+mesh cache (``TORCHMORPH_CACHE``), numba's cache and matplotlib's configuration point
+into one temporary directory (gmsh writes ``~/.fltk`` and ``~/.gmsh-options``
+there); it is removed at the end of the session.
+"""
 
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
+from pathlib import Path
 
 import torch
 
@@ -16,6 +25,43 @@ import pytest  # noqa: E402
 
 from torchmorph import TetMesh  # noqa: E402
 from torchmorph.mesh import box_mesh  # noqa: E402
+
+#: Environment variables pointed into the session's temporary directory (name -> subfolder).
+ISOLATED = {"HOME": "home", "TORCHMORPH_CACHE": "cache/meshes", "NUMBA_CACHE_DIR": "cache/numba",
+            "MPLCONFIGDIR": "config/matplotlib", "XDG_CACHE_HOME": "cache",
+            "XDG_CONFIG_HOME": "config"}
+_saved: dict[str, str | None] = {}
+_root: Path | None = None
+
+
+def pytest_configure(config):
+    """Point home, caches and configuration into a temporary directory (before collection)."""
+    global _root
+    _root = Path(tempfile.mkdtemp(prefix="torchmorph-tests-"))
+    for name, folder in ISOLATED.items():
+        _saved[name] = os.environ.get(name)
+        path = _root / folder
+        path.mkdir(parents=True, exist_ok=True)
+        os.environ[name] = str(path)
+
+
+def pytest_unconfigure(config):
+    for name, value in _saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+    if _root is not None:
+        shutil.rmtree(_root, ignore_errors=True)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def temporary_home() -> Path:
+    """The session's temporary directory holding HOME and the caches (see the module doc)."""
+    assert _root is not None
+    for name, folder in ISOLATED.items():
+        assert os.environ[name] == str(_root / folder), f"{name} was changed during the session"
+    return _root
 
 
 def structured_cube(cells: int = 4, size: float = 1.0) -> TetMesh:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
@@ -13,7 +14,7 @@ import torch
 from conftest import structured_cube
 
 import torchmorph
-from torchmorph.cli import EXIT_ERROR, EXIT_INVERTED, EXIT_OK, EXIT_USAGE, main
+from torchmorph.cli import EXIT_ERROR, EXIT_INVERTED, EXIT_OK, EXIT_USAGE, build_parser, main
 from torchmorph.io import read_mesh, write_mesh
 from torchmorph.mesh import TetMesh
 from torchmorph.morph import MeshMorph
@@ -56,7 +57,7 @@ def _result(out):
 # --------------------------------------------------------------------------- help
 
 
-@pytest.mark.parametrize("command", [[], ["info"], ["morph"], ["reproduce"]])
+@pytest.mark.parametrize("command", [[], ["info"], ["morph"], ["reproduce"], ["mesh"]])
 def test_help_exits_zero(command, capsys):
     assert main([*command, "--help"]) == EXIT_OK
     assert "usage: torchmorph" in capsys.readouterr().out
@@ -375,6 +376,21 @@ def test_conflicting_regions_name_the_option(tmp_path, cube_file, capsys):
     assert code == EXIT_OK
 
 
+def test_selection_errors_are_typed_and_carry_their_data():
+    """The command builds its messages from the library's exception types, not their text."""
+    from torchmorph.selection import RegionOverlapError, UncoveredNodesError
+
+    cube = structured_cube(4)
+    with pytest.raises(UncoveredNodesError) as caught:
+        SelectionPlan({"x1": 0.5}).select(cube)
+    assert caught.value.total == 98
+    np.testing.assert_array_equal(
+        caught.value.nodes, np.setdiff1d(cube.boundary_nodes.numpy(), cube.node_set("x1").numpy()))
+    with pytest.raises(RegionOverlapError) as caught:
+        SelectionPlan([Region(("x0", "x1"), 0.4), Region(("y0", "y1", "z0", "z1"), 0.6)]).select(cube)
+    assert caught.value.first.names == ("x0", "x1") and caught.value.count > 0
+
+
 def test_usage_errors(tmp_path, cube_file, capsys):
     code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--enrich", "z0")
     assert code == EXIT_USAGE
@@ -453,3 +469,128 @@ def test_reproduce_wing_small(tmp_path, capsys):
     assert main(["reproduce", "wing", "--size", "small", "--out", str(tmp_path)]) == EXIT_OK
     assert capsys.readouterr().out
     assert any(tmp_path.iterdir())
+
+
+# --------------------------------------------------------------------------- environment
+
+
+def test_tests_run_with_a_temporary_home_and_cache(temporary_home):
+    import os
+    from pathlib import Path
+
+    home = Path(os.environ["HOME"])
+    assert home == temporary_home / "home" and home.is_dir()
+    assert Path(os.environ["TORCHMORPH_CACHE"]).is_relative_to(temporary_home)
+    assert Path(os.environ["MPLCONFIGDIR"]).is_relative_to(temporary_home)
+    assert Path(os.environ["NUMBA_CACHE_DIR"]).is_relative_to(temporary_home)
+    assert Path("~").expanduser() == home
+
+
+
+# --------------------------------------------------------------------------- mesh
+
+
+def _sphere_obj(path, drop_first_face: bool = False):
+    trimesh = pytest.importorskip("trimesh")
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    faces = sphere.faces[1:] if drop_first_face else sphere.faces
+    lines = [f"v {float(x)!r} {float(y)!r} {float(z)!r}" for x, y, z in sphere.vertices]
+    lines += ["f " + " ".join(str(v + 1) for v in face) for face in faces]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_mesh_writes_a_mesh_with_named_sets_and_reports_quality(tmp_path, capsys):
+    pytest.importorskip("pytetwild")
+    source = _sphere_obj(tmp_path / "ball.obj")
+    out = tmp_path / "ball.vtu"
+    code = main(["mesh", f"body={source}", "--box", "1", "--edge-length", "1", "-o", str(out),
+                 "--no-progress"])
+    assert code == EXIT_OK
+    printed = capsys.readouterr().out
+    assert "surface         body:" in printed and "80 triangles" in printed
+    assert re.search(r"quality Q\s+max \d+(\.\d+)?, mean \d", printed)
+    assert "inverted tets   0" in printed
+    mesh = read_mesh(out)
+    assert {"body", "far_field", "wall_x0", "wall_z1"} <= set(mesh.node_sets)
+    for name, nodes in mesh.node_sets.items():
+        assert f"  {name}" in printed and f"{nodes.numel()} nodes" in printed
+
+
+def test_mesh_errors(tmp_path, capsys):
+    pytest.importorskip("trimesh")
+    holed = _sphere_obj(tmp_path / "holed.obj", drop_first_face=True)
+    out = str(tmp_path / "x.vtu")
+    assert main(["mesh", str(holed), "-o", out]) == EXIT_ERROR
+    err = _error(capsys)
+    assert "is not a closed, consistently oriented surface: 3 edge(s) belong to one face" in err
+    assert "--repair" in err
+    assert main(["mesh", str(tmp_path / "none.stl"), "-o", out]) == EXIT_ERROR
+    assert "surface file" in _error(capsys)
+    assert main(["mesh", str(holed), "-o", str(tmp_path / "x.stl")]) == EXIT_USAGE
+    assert "unsupported mesh file extension '.stl'" in _error(capsys)
+    assert main(["mesh", str(holed), "--feature-angle", "200", "-o", out]) == EXIT_USAGE
+    assert "--feature-angle: must be in (0, 180)" in _error(capsys)
+    assert main(["mesh", str(holed), "--body-edge-length", "0.1", "-o", out]) == EXIT_USAGE
+    assert "needs --box or --bounds" in _error(capsys)
+    assert main(["mesh", str(holed), "--box", "1,2", "-o", out]) == EXIT_USAGE
+    assert "expected 1 or 6 number(s)" in _error(capsys)
+
+
+def test_mesh_without_pytetwild_names_the_tetwild_extra(tmp_path, monkeypatch, capsys):
+    source = _sphere_obj(tmp_path / "ball.obj")
+    monkeypatch.setitem(sys.modules, "pytetwild", None)  # import pytetwild -> ImportError
+    assert main(["mesh", str(source), "-o", str(tmp_path / "ball.vtu")]) == EXIT_ERROR
+    err = _error(capsys)
+    assert "tetrahedralising needs pytetwild (which imports pyvista): pip install " \
+           "'torchmorph[tetwild]'" in err
+    assert "torchmorph[mesh]" not in err
+    assert not (tmp_path / "ball.vtu").exists()
+
+
+# --------------------------------------------------------------------------- --help examples
+
+
+def help_examples(command: str) -> list[str]:
+    """The command lines under 'examples:' in ``torchmorph COMMAND --help``."""
+    text = build_parser()._subparsers._group_actions[0].choices[command].format_help()
+    block = text.split("examples:\n", 1)[1]
+    lines, current = [], ""
+    for line in block.splitlines():
+        if not line.startswith("  "):
+            break
+        current += line.strip().removesuffix("\\").strip() + " "
+        if not line.rstrip().endswith("\\"):
+            lines.append(current.strip())
+            current = ""
+    return lines
+
+
+def test_help_examples_are_found():
+    assert len(help_examples("morph")) == 2 and len(help_examples("mesh")) == 3
+    assert all(line.startswith("torchmorph ") for line in help_examples("mesh"))
+
+
+@pytest.mark.slow
+def test_every_help_example_runs_as_printed(tmp_path, monkeypatch, capsys):
+    """On the project's own small wing (gmsh) and small surfaces (fTetWild)."""
+    import shlex
+
+    data_gen = pytest.importorskip("data_gen")
+    pytest.importorskip("gmsh")
+    pytest.importorskip("pytetwild")
+    trimesh = pytest.importorskip("trimesh")
+    write_mesh(tmp_path / "wing.vtu", data_gen.build("wing", "small", "gmsh", cache_dir=tmp_path))
+    np.save(tmp_path / "tip.npy", np.array([0.0, 0.05, 0.0]))
+    np.save(tmp_path / "d.npy", np.array([0.0, 0.01, 0.0]))
+    trimesh.creation.icosphere(subdivisions=2, radius=0.5).export(tmp_path / "body.stl")
+    car = trimesh.convex.convex_hull(np.array(
+        [[x, y, z] for x in (0, 1) for y in (-0.22, 0.22) for z in (0, 0.2)]
+        + [[x, y, 0.36] for x in (0.32, 0.68) for y in (-0.17, 0.17)]))
+    car.export(tmp_path / "car.obj")
+    monkeypatch.chdir(tmp_path)
+    for command in ("morph", "mesh"):
+        for line in help_examples(command):
+            assert main(shlex.split(line)[1:]) == EXIT_OK, (line, capsys.readouterr().err)
+    out = capsys.readouterr().out
+    assert "car_edges" in out and "wall_z0" in out

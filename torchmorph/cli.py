@@ -7,12 +7,16 @@ Subcommands
     sizes, the bounding box, the quality ``Q`` (max/mean edge ratio) and the
     smallest tetrahedron volume of a mesh file.
 ``torchmorph morph MESH --displacement FILE [--moving SET ...] -o OUT``
-    Morph a mesh (SPEC.md §3, Algorithm 2): prescribe the displacement of the
+    Morph a mesh (the paper's Algorithm 2, Section 2.2.1): prescribe the displacement of the
     boundary nodes, interpolate the interior by IDW from all boundary nodes
     (IDW), from a selection (``--select``/``--region``: SIDW) and from
     enrichment sets (``--enrich``: ESIDW), and write the result.
 ``torchmorph reproduce wing|fluid-wing|hull``
     Run one of the paper's test cases (:func:`torchmorph.paper.reproduce`).
+``torchmorph mesh SURFACE [SURFACE ...] -o OUT``
+    Tetrahedralise your own closed surfaces (STL, OBJ, PLY, OFF) with fTetWild,
+    optionally in a box, with named boundary node sets
+    (:func:`torchmorph.meshing.mesh_surfaces`).
 
 Displacement files (``morph --displacement``)
 ---------------------------------------------
@@ -66,15 +70,36 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from torchmorph import _cli_mesh
+from torchmorph._cli_common import (
+    DISPLACEMENT_FORMATS,
+    EXIT_ERROR,
+    EXIT_INTERRUPTED,
+    EXIT_INVERTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    CommandError,
+    _boundary_rows,
+    _check_names,
+    _line,
+    _load_displacement,
+    _positive_float,
+    _progress_option,
+    _read,
+    _seconds,
+    _Stages,
+    _warn,
+)
+
 if TYPE_CHECKING:
     from torchmorph.mesh import TetMesh
+    from torchmorph.selection import UncoveredNodesError
 
 __all__ = [
     "DISPLACEMENT_FORMATS",
@@ -83,18 +108,10 @@ __all__ = [
     "EXIT_INVERTED",
     "EXIT_OK",
     "EXIT_USAGE",
+    "CommandError",
     "build_parser",
     "main",
 ]
-
-EXIT_OK = 0
-EXIT_ERROR = 1
-EXIT_USAGE = 2
-EXIT_INVERTED = 3
-EXIT_INTERRUPTED = 130
-
-#: Displacement file extensions understood by ``morph --displacement``.
-DISPLACEMENT_FORMATS = (".npy", ".npz", ".csv", ".txt", ".dat")
 
 #: Case names of ``reproduce`` (aliases: data_gen.cases.CASE_ALIASES, the one table).
 _CASES = ("wing", "fluid-wing", "hull")
@@ -103,14 +120,6 @@ _MESH_EXTRA_HINT = "install the optional mesh dependencies: pip install 'torchmo
 
 # Name of the temporary node set that holds every boundary node for --select.
 _ALL_BOUNDARY = "(boundary)"
-
-
-class CommandError(Exception):
-    """A failure reported to the user as one line on stderr, with an exit code."""
-
-    def __init__(self, message: str, code: int = EXIT_ERROR) -> None:
-        super().__init__(message)
-        self.code = code
 
 
 # --------------------------------------------------------------------------- parser
@@ -160,16 +169,6 @@ def _region_option(text: str) -> tuple[tuple[str, ...], tuple[float, float, floa
     return names_list, _selection_parameters(parameters)
 
 
-def _positive_float(text: str) -> float:
-    try:
-        number = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (np.isfinite(number) and number > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return number
-
-
 def _case_name(text: str) -> str:
     from data_gen.cases import canonical_case
 
@@ -203,20 +202,15 @@ def _common_options() -> argparse.ArgumentParser:
     return common
 
 
-def _progress_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--progress", action=argparse.BooleanOptionalAction, default=None,
-        help="progress bars on stderr (default: when stderr is a terminal)",
-    )
-
-
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the ``torchmorph`` command (subcommands info, morph, reproduce)."""
+    """The argument parser of the ``torchmorph`` command (info, morph, reproduce, mesh)."""
     common = _common_options()
     parser = argparse.ArgumentParser(
         prog="torchmorph",
-        description="IDW / Selective IDW morphing of tetrahedral meshes (SPEC.md §1-3) and the "
-                    "reproduction of the POD-Selective IDW paper's test cases.",
+        description="IDW / Selective IDW morphing of tetrahedral meshes (Ballarin, D'Amario, "
+                    "Perotto, Rozza 2017: A POD-Selective Inverse Distance Weighting method for "
+                    "fast parametrized shape morphing, Sections 2-3), tetrahedral meshes from "
+                    "your own surfaces, and the reproduction of the paper's test cases.",
         epilog="Run 'torchmorph COMMAND --help' for the options of a command. Exit codes: "
                "0 ok, 1 runtime error, 2 usage error, 3 inverted tetrahedra with --strict.",
     )
@@ -317,7 +311,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Reproduce a test case of the POD-Selective IDW paper: build its mesh, run "
                     "IDW, SIDW (wing), ESIDW, POD-IDW and POD-ESIDW with the paper's parameters "
                     "and print the results beside the paper's (with progress bars). Needs the "
-                    "optional mesh dependencies: pip install 'torchmorph[mesh]'.",
+                    "optional mesh dependencies: pip install 'torchmorph[mesh]' (gmsh; with "
+                    "--mesher pytetwild: 'torchmorph[tetwild]').",
     )
     reproduce.add_argument("case", type=_case_name, metavar="CASE",
                            help="wing (A), fluid-wing (B) or hull (C)")
@@ -331,6 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument("--seed", type=int, default=0,
                            help="seed of the random selection and training set (default 0)")
     reproduce.set_defaults(run=_run_reproduce, parser=reproduce)
+
+    _cli_mesh.add_parser(commands, common)
     return parser
 
 
@@ -351,201 +348,17 @@ Warp By Vector) and 'control_point', cell data 'quality' (Q after the morph),
 examples:
   torchmorph morph wing.vtu --moving tip -d tip.npy -o out.vtu
   torchmorph morph wing.vtu --moving upper lower -d d.npy --region root+tip=0.05 \\
-      --region upper+lower=0.5 --enrich leading_edge trailing_edge -o out.vtu
+      --region upper+lower=0.5 --overlap first --enrich leading_edge trailing_edge \\
+      -o out.vtu
+(regions that share nodes, here the profiles where root and tip meet the sides,
+need --overlap first or --overlap share)
 """
 
 
 # --------------------------------------------------------------------------- output
 
 
-class _Stages:
-    """A progress bar over the named steps of a command (on stderr)."""
-
-    def __init__(self, total: int, enabled: bool | None) -> None:
-        from tqdm.auto import tqdm
-
-        self._bar = tqdm(total=total, file=sys.stderr, disable=None if enabled is None
-                         else not enabled, leave=False, unit="step",
-                         bar_format="{desc:<32} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
-
-    @contextmanager
-    def step(self, name: str) -> Iterator[None]:
-        self._bar.set_description_str(name)
-        self._bar.refresh()
-        yield
-        self._bar.update(1)
-
-    def close(self) -> None:
-        self._bar.close()
-
-
-def _line(label: str, text: str) -> None:
-    print(f"{label:<16}{text}")
-
-
-def _warn(command: str, message: str) -> None:
-    print(f"torchmorph {command}: WARNING: {message}", file=sys.stderr)
-
-
-def _seconds(value: float) -> str:
-    return f"{value:.3g} s" if value >= 1e-3 else f"{value * 1e3:.3g} ms"
-
-
 # --------------------------------------------------------------------------- helpers
-
-
-def _read(path_text: str, what: str = "mesh") -> tuple[TetMesh, dict, dict]:
-    from torchmorph.io import read_mesh
-
-    path = Path(path_text)
-    if not path.exists():
-        raise CommandError(f"{what} file {path_text!r} does not exist")
-    if not path.is_file():
-        raise CommandError(f"{what} file {path_text!r} is not a file")
-    try:
-        return read_mesh(path, return_data=True)
-    except ValueError as error:
-        message = str(error).removeprefix("path: ").rstrip()
-        if message.endswith(":"):  # parsers that raise without a message
-            message += " the file is not a valid mesh in that format"
-        raise CommandError(message) from error
-
-
-def _check_names(mesh: TetMesh, names: Sequence[str], option: str) -> None:
-    known = sorted(mesh.node_sets)
-    for name in names:
-        if name not in mesh.node_sets:
-            listing = ", ".join(known) if known else "none (the mesh has no node sets)"
-            raise CommandError(f"unknown node set {name!r} in {option}; known: {listing}")
-
-
-def _load_displacement(path_text: str) -> np.ndarray:
-    path = Path(path_text)
-    suffix = path.suffix.lower()
-    if suffix not in DISPLACEMENT_FORMATS:
-        raise CommandError(
-            f"displacement file {path_text!r}: unsupported extension {suffix or '(none)'!r}; "
-            f"supported: {', '.join(DISPLACEMENT_FORMATS)}"
-        )
-    if not path.is_file():
-        raise CommandError(f"displacement file {path_text!r} does not exist")
-    try:
-        if suffix == ".npy":
-            array = np.load(path, allow_pickle=False)
-        elif suffix == ".npz":
-            with np.load(path, allow_pickle=False) as archive:
-                if "displacement" in archive.files:
-                    array = archive["displacement"]
-                elif len(archive.files) == 1:
-                    array = archive[archive.files[0]]
-                else:
-                    names = ", ".join(archive.files) or "none"
-                    raise CommandError(
-                        f"displacement file {path_text!r} holds several arrays ({names}) and "
-                        "none named 'displacement'"
-                    )
-        else:
-            delimiter = "," if suffix == ".csv" else None
-            array = np.loadtxt(path, delimiter=delimiter, comments="#")
-    except CommandError:
-        raise
-    except (OSError, ValueError, EOFError) as error:
-        raise CommandError(
-            f"could not read displacement file {path_text!r}: {type(error).__name__}: {error}"
-        ) from error
-    if array.dtype.kind not in "fiu":
-        raise CommandError(
-            f"displacement file {path_text!r} must hold numbers, got dtype {array.dtype}"
-        )
-    array = array.astype(np.float64)
-    if not np.isfinite(array).all():
-        raise CommandError(f"displacement file {path_text!r} holds NaN or infinite values")
-    return array
-
-
-def _boundary_rows(
-    array: np.ndarray,
-    *,
-    source: str,
-    num_nodes: int,
-    boundary_nodes: np.ndarray,
-    moving_nodes: np.ndarray | None,
-    moving_label: str,
-    batch_index: int | None,
-) -> tuple[np.ndarray, str, float]:
-    """The (N_b, 3) boundary displacement a file's array stands for.
-
-    Returns the rows, a description of the layout used and the largest
-    absolute value of the rows that were dropped because they belong to
-    boundary nodes outside the moving sets (0 when none).
-    """
-    num_boundary = boundary_nodes.size
-    accepted = []
-    if moving_nodes is not None:
-        accepted.append(f"({moving_nodes.size}, 3) for the {moving_nodes.size} moving nodes "
-                        f"of {moving_label} in ascending node id")
-    accepted.append(f"({num_boundary}, 3) for the boundary nodes in ascending node id")
-    accepted.append(f"({num_nodes}, 3) for every node")
-    if moving_nodes is not None:
-        accepted.append("(3,) for one translation of the moving nodes")
-    accepted.append("any of these with a leading batch axis and --batch-index")
-
-    def wrong_shape(extra: str = "") -> CommandError:
-        return CommandError(
-            f"displacement file {source!r} has shape {tuple(array.shape)}{extra}; accepted "
-            f"shapes: {'; '.join(accepted)}"
-        )
-
-    if array.ndim == 3:
-        count = array.shape[0]
-        if batch_index is None:
-            if count != 1:
-                raise CommandError(
-                    f"displacement file {source!r} holds a batch of {count} fields (shape "
-                    f"{tuple(array.shape)}); choose one with --batch-index I (0 <= I < {count})"
-                )
-            batch_index = 0
-        if not -count <= batch_index < count:
-            raise CommandError(
-                f"--batch-index {batch_index} is out of range for a batch of {count} fields "
-                f"in {source!r}"
-            )
-        field = array[batch_index]
-    elif batch_index is not None:
-        raise CommandError(
-            f"--batch-index was given but displacement file {source!r} holds one field, shape "
-            f"{tuple(array.shape)}, not a batch (B, ..., 3)"
-        )
-    else:
-        field = array
-
-    if field.ndim == 1 and field.shape == (3,) and moving_nodes is not None:
-        rows = np.zeros((num_boundary, 3))
-        rows[np.searchsorted(boundary_nodes, moving_nodes)] = field
-        return rows, f"one translation {tuple(float(v) for v in field)}", 0.0
-    if field.ndim != 2 or field.shape[1] != 3:
-        raise wrong_shape()
-    count = field.shape[0]
-    if moving_nodes is not None and count == moving_nodes.size:
-        rows = np.zeros((num_boundary, 3))
-        rows[np.searchsorted(boundary_nodes, moving_nodes)] = field
-        return rows, f"moving-node rows ({count}, 3)", 0.0
-    if count == num_boundary:
-        rows, layout = field.copy(), f"boundary-node rows ({count}, 3)"
-    elif count == num_nodes:
-        rows, layout = field[boundary_nodes], f"nodal field ({count}, 3), boundary rows used"
-    else:
-        raise wrong_shape("" if moving_nodes is not None else
-                          " (to give only the rows of the moving nodes, name their node sets "
-                          "with --moving)")
-    dropped = 0.0
-    if moving_nodes is not None:
-        keep = np.zeros(num_boundary, dtype=bool)
-        keep[np.searchsorted(boundary_nodes, moving_nodes)] = True
-        if (~keep).any():
-            dropped = float(np.abs(rows[~keep]).max())
-        rows[~keep] = 0.0
-    return rows, layout, dropped
 
 
 def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMesh, str]:
@@ -572,22 +385,14 @@ def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMe
                          for region in regions)
     if enrich:
         text += f"; enriched with {', '.join(enrich)}"
-    if args.region and args.uncovered == "error":
-        _check_covered(mesh, [names for names, _ in args.region], enrich)
     plan = SelectionPlan(regions, enrich=enrich, strategy=args.strategy, overlap=args.overlap,
                          uncovered=args.uncovered)
     return plan, selection_mesh, f"{method} ({args.strategy}): {text}"
 
 
-def _check_covered(mesh: TetMesh, regions: Sequence[Sequence[str]], enrich: Sequence[str]) -> None:
-    """Raise a CommandError naming where the boundary nodes in no region or enrichment set lie."""
-    covered = np.zeros(mesh.num_nodes, dtype=bool)
-    for name in [name for names in regions for name in names] + list(enrich):
-        covered[mesh.node_set(name).cpu().numpy()] = True
-    boundary = mesh.boundary_nodes.cpu().numpy()
-    missing = boundary[~covered[boundary]]
-    if missing.size == 0:
-        return
+def _uncovered_message(mesh: TetMesh, error: UncoveredNodesError) -> str:
+    """The library's uncovered-nodes error in command-line terms, with where the nodes lie."""
+    missing = np.asarray(error.nodes)
     is_missing = np.zeros(mesh.num_nodes, dtype=bool)
     is_missing[missing] = True
     where = []
@@ -602,20 +407,11 @@ def _check_covered(mesh: TetMesh, regions: Sequence[Sequence[str]], enrich: Sequ
     if outside:
         where.append(f"{outside} in no node set")
     examples = ", ".join(str(int(node)) for node in missing[:5])
-    raise CommandError(
-        f"{missing.size} of the {boundary.size} boundary nodes are in no --region and no "
+    return (
+        f"{missing.size} of the {error.total} boundary nodes are in no --region and no "
         f"--enrich set ({'; '.join(where)}; e.g. node(s) {examples}); add their sets with "
         "--region SET=R or --enrich SET, or pass --uncovered ignore to never select them"
     )
-
-
-def _cli_hint(message: str) -> str:
-    """Library messages name keyword arguments; add the matching command-line option."""
-    if "overlap='first'" in message:
-        message += " [command line: --overlap first or --overlap share]"
-    if "uncovered='ignore'" in message:
-        message += " [command line: --region for those nodes, --enrich, or --uncovered ignore]"
-    return message
 
 
 # --------------------------------------------------------------------------- commands
@@ -677,6 +473,7 @@ def _run_morph(args: argparse.Namespace) -> int:
     from torchmorph.io import MESH_FORMATS, write_mesh
     from torchmorph.morph import MeshMorph
     from torchmorph.quality import edge_ratio, quality_summary
+    from torchmorph.selection import RegionOverlapError, UncoveredNodesError
 
     output = Path(args.output)
     if output.suffix.lower() not in MESH_FORMATS:
@@ -736,8 +533,17 @@ def _run_morph(args: argparse.Namespace) -> int:
             try:
                 morph = MeshMorph(selection_mesh, plan, power=args.power, mode=args.mode,
                                   generator=generator)
-            except ValueError as error:
-                raise CommandError(_cli_hint(str(error))) from error
+            except UncoveredNodesError as error:
+                raise CommandError(_uncovered_message(mesh, error)) from error
+            except RegionOverlapError as error:
+                first, second = error.first, error.second
+                raise CommandError(
+                    f"--region {first.label}={first.radius:g},{first.a:g},{first.b:g} and "
+                    f"--region {second.label}={second.radius:g},{second.a:g},{second.b:g} share "
+                    f"{error.count} node(s) but have different parameters; pass --overlap first "
+                    "(a shared node goes to the first region listing it) or --overlap share "
+                    "(each region keeps all its nodes)"
+                ) from error
         boundary_displacement = torch.as_tensor(rows, dtype=dtype, device=device)
         with stages.step("morphing"):
             if device.type == "cuda":
@@ -824,7 +630,7 @@ def _run_reproduce(args: argparse.Namespace) -> int:
 
 def _import_error_message(error: ImportError) -> str:
     message = str(error) or type(error).__name__
-    if "torchmorph[mesh]" in message:
+    if "torchmorph[" in message:  # names its extra already
         return message
     return f"{message}; {_MESH_EXTRA_HINT}"
 

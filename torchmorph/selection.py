@@ -1,11 +1,12 @@
 """Selection of control points: Algorithm 1 (SIDW) and per-region selection plans.
 
-:func:`select_control_points` implements Algorithm 1 of SPEC.md §2 on a cloud of
-candidate points of any dimension; :class:`SelectionPlan` runs it on named node sets
+:func:`select_control_points` implements Algorithm 1 of the paper (Ballarin et al. 2017,
+Section 2.2) on a cloud of candidate points of any dimension; :class:`SelectionPlan` runs it on named node sets
 of a :class:`~torchmorph.mesh.TetMesh`, each with its own radius ``R`` and factors
-``a``, ``b``, takes the union and adds enrichment node sets (ESIDW, SPEC.md §3).
+``a``, ``b``, takes the union and adds enrichment node sets (ESIDW: Algorithm 2,
+step (ii), Section 2.2.1).
 
-Definitions used throughout (SPEC.md §2): ``B(c; r)`` is the open ball
+Definitions used throughout (the paper's Section 2.2): ``B(c; r)`` is the open ball
 ``|x - c| < r`` and ``B(c; r_i, r_e)`` the shell ``r_i <= |x - c| < r_e``, so that a
 point at distance exactly ``R`` of a selected point survives the removal and may be
 selected itself. Consequences kept by the implementation: every candidate lies within
@@ -30,7 +31,9 @@ __all__ = [
     "DEFAULT_SEED",
     "STRATEGIES",
     "Region",
+    "RegionOverlapError",
     "SelectionPlan",
+    "UncoveredNodesError",
     "select_control_points",
 ]
 
@@ -54,6 +57,29 @@ _FARTHEST_NEIGHBOURS = 8
 _TAIL_LIMIT = 64
 
 
+class RegionOverlapError(ValueError):
+    """Two regions with different parameters share nodes (``overlap="error"``).
+
+    ``first`` and ``second`` are the two :class:`Region` objects, ``count`` the
+    number of nodes they share.
+    """
+
+    def __init__(self, message: str, *, first: Region, second: Region, count: int) -> None:
+        super().__init__(message)
+        self.first, self.second, self.count = first, second, count
+
+
+class UncoveredNodesError(ValueError):
+    """Candidate nodes in no region and no enrichment set (``uncovered="error"``).
+
+    ``nodes`` holds their global ids (int64 array), ``total`` the number of candidates.
+    """
+
+    def __init__(self, message: str, *, nodes: np.ndarray, total: int) -> None:
+        super().__init__(message)
+        self.nodes, self.total = nodes, total
+
+
 # --------------------------------------------------------------------------------------
 # Algorithm 1
 # --------------------------------------------------------------------------------------
@@ -69,7 +95,7 @@ def select_control_points(
     strategy: str = "random",
     generator: torch.Generator | None = None,
 ) -> Tensor:
-    """Select a uniformly spread subset of ``points`` by Algorithm 1 (SIDW), SPEC.md §2.
+    """Select a uniformly spread subset of ``points`` by Algorithm 1 (SIDW), paper Section 2.2.
 
     Around the start point ``c1`` the candidates farther than ``R`` from it are split
     into concentric annuli ``α_1 .. α_n`` of thickness ``a R``; the points of
@@ -449,7 +475,7 @@ def _as_region(key: Any, value: Any) -> Region:
 
 @dataclass
 class SelectionPlan:
-    """Per-region control-point selection with enrichment (SPEC.md §2 regions, §3 ESIDW).
+    """Per-region control-point selection with enrichment (Algorithm 2 (i)-(ii), Section 2.2.1).
 
     Parameters
     ----------
@@ -640,13 +666,14 @@ class SelectionPlan:
                         first, second = self.regions[other], self.regions[position]
                         if first.parameters != second.parameters:
                             count = int((taken == other).sum())
-                            raise ValueError(
+                            raise RegionOverlapError(
                                 f"regions {first.label!r} (R={first.radius:g}, a={first.a:g}, "
                                 f"b={first.b:g}) and {second.label!r} (R={second.radius:g}, "
                                 f"a={second.a:g}, b={second.b:g}) share {count} node(s) but "
                                 "have different parameters; pass overlap='first' (a shared "
                                 "node goes to the first region listing it) or overlap='share' "
-                                "(each region keeps all its nodes)"
+                                "(each region keeps all its nodes)",
+                                first=first, second=second, count=count,
                             )
                 owner[ids[~shared]] = position
                 region_ids[position] = ids[~shared]
@@ -658,10 +685,11 @@ class SelectionPlan:
             covered[enriched] = True
             missing = candidate_ids[~covered[candidate_ids]]
             if missing.size:
-                raise ValueError(
+                raise UncoveredNodesError(
                     f"{missing.size} of the {candidate_ids.size} {what} are in no region and "
                     f"no enrichment set (e.g. node {int(missing[0])}); add them to a region, "
-                    "enrich them, or pass uncovered='ignore' to leave them out of the selection"
+                    "enrich them, or pass uncovered='ignore' to leave them out of the selection",
+                    nodes=missing, total=int(candidate_ids.size),
                 )
         return [torch.from_numpy(ids) for ids in region_ids], enriched, points
 
