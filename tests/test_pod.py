@@ -266,16 +266,23 @@ def test_family_called_per_value_when_not_batched(cloud, rank_two):
         return rank_two(mu)
 
     training = random_parameters(5, 2, 15)
-    reducer = PODReducer().fit(cloud, family=one_at_a_time, parameters=training)
-    assert calls[0] == (5, 2) and calls[1:] == [(2,)] * 5
+    # a family failing on the batch fails the fit: no silent retry value by value
+    with pytest.raises(RuntimeError, match="one value at a time"):
+        PODReducer().fit(cloud, family=one_at_a_time, parameters=training)
+    assert calls == [(5, 2)]
     calls.clear()
-    reducer.fit(cloud, family=one_at_a_time, parameters=training, batched=False)
+    reducer = PODReducer().fit(cloud, family=one_at_a_time, parameters=training,
+                               batched=False)
     assert calls == [(2,)] * 5
     mu = random_parameters(3, 2, 16)
     torch.testing.assert_close(reducer.morph_parameters(mu), cloud(rank_two(mu)),
                                rtol=1e-10, atol=1e-14)
     with pytest.raises(RuntimeError, match="one value at a time"):
         PODReducer().fit(cloud, family=one_at_a_time, parameters=training, batched=True)
+    with pytest.raises(ValueError, match="batched must be True or False, got None"):
+        PODReducer().fit(cloud, family=rank_two, parameters=training, batched=None)
+    with pytest.raises(ValueError, match="pass batched=False"):
+        PODReducer().fit(cloud, family=lambda mu: rank_two(mu)[0], parameters=training)
 
 
 def test_fit_from_displacements_equals_fit_from_family(cloud, rank_two):
@@ -531,7 +538,8 @@ def test_wrong_shapes_and_arguments(cloud, rank_two):
     with pytest.raises(ValueError, match="family must be callable"):
         PODReducer().fit(cloud, family="bend", parameters=torch.ones(2))
     with pytest.raises(ValueError, match=r"family\(mu\) must return a tensor of shape"):
-        PODReducer().fit(cloud, family=lambda mu: torch.zeros(3), parameters=torch.ones(2))
+        PODReducer().fit(cloud, family=lambda mu: torch.zeros(3), parameters=torch.ones(2),
+                         batched=False)
     with pytest.raises(ValueError, match="when batched=True"):
         PODReducer().fit(cloud, family=lambda mu: torch.zeros(n, 3), parameters=torch.ones(2),
                          batched=True)
@@ -552,3 +560,80 @@ def test_wrong_shapes_and_arguments(cloud, rank_two):
         reducer.relative_error(rank_two(torch.ones(2, dtype=F64)), norm="energy")
     with pytest.raises(ValueError, match="norm='l2' needs a reducer fitted to a MeshMorph"):
         reducer.relative_error(rank_two(torch.ones(2, dtype=F64)), norm="l2")
+
+
+# ------------------------------------------------------------------ POD basis: method and scale
+
+
+def graded_snapshots(count: int, length: int, decay: float, seed: int = 11) -> torch.Tensor:
+    """``count`` snapshots of ``length`` points with singular values decay**i."""
+    generator = torch.Generator().manual_seed(seed)
+    left, _ = torch.linalg.qr(torch.randn(3 * length, count, generator=generator, dtype=F64))
+    right, _ = torch.linalg.qr(torch.randn(count, count, generator=generator, dtype=F64))
+    values = decay ** torch.arange(count, dtype=F64)
+    return ((right * values) @ left.T).reshape(count, length, 3), values
+
+
+def span_distance(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Spectral distance between the projectors onto the spans of two mode sets."""
+    qa, qb = a.flatten(1).T, b.flatten(1).T
+    return float(torch.linalg.matrix_norm(qa @ qa.T - qb @ qb.T, ord=2))
+
+
+@pytest.mark.parametrize("decay", [0.5, 0.2])
+def test_correlation_route_matches_the_thin_svd(decay):
+    snapshots, values = graded_snapshots(12, 400, decay)
+    for tolerance in (1e-2, 1e-5):
+        svd = pod_basis(snapshots, energy_tolerance=tolerance, method="svd")
+        fast = pod_basis(snapshots, energy_tolerance=tolerance, method="correlation")
+        assert fast[0].shape == svd[0].shape
+        assert span_distance(fast[0], svd[0]) < 1e-10
+        gram = fast[0].flatten(1) @ fast[0].flatten(1).T
+        torch.testing.assert_close(gram, torch.eye(gram.shape[0], dtype=F64), atol=1e-14, rtol=0)
+        kept = fast[0].shape[0]
+        torch.testing.assert_close(fast[1][:kept], values[:kept], rtol=1e-12, atol=1e-15)
+        # the tail is accurate relative to the first value dropped
+        torch.testing.assert_close(fast[1], values, rtol=0, atol=1e-7 * float(values[kept]))
+        torch.testing.assert_close(fast[2], svd[2], rtol=1e-12, atol=1e-14)
+
+
+def test_correlation_route_falls_back_to_the_svd_when_it_would_lose_the_modes(monkeypatch):
+    # the kept modes' singular values span 1 ... 1e-6: the correlation matrix cannot
+    # resolve them (eps * 1 / 1e-12 >> 1e-10)
+    snapshots, values = graded_snapshots(8, 200, 0.1)
+    calls = []
+    original = torch.linalg.svd
+
+    def counting_svd(matrix, *args, **kwargs):
+        calls.append(tuple(matrix.shape))
+        return original(matrix, *args, **kwargs)
+
+    monkeypatch.setattr(torch.linalg, "svd", counting_svd)
+    modes, singular_values, _ = pod_basis(snapshots, num_modes=7, method="correlation")
+    assert (8, 600) in calls  # the thin SVD of the whole matrix ran
+    reference = pod_basis(snapshots, num_modes=7, method="svd")[0]
+    assert span_distance(modes, reference) < 1e-12
+    torch.testing.assert_close(singular_values, values, rtol=1e-9, atol=0)
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e-170, 1e155, 1e300])
+@pytest.mark.parametrize("method", ["svd", "correlation"])
+def test_extreme_scales_keep_the_modes_and_energies(scale, method):
+    snapshots, values = graded_snapshots(6, 100, 0.1)
+    modes, singular_values, energy = pod_basis(snapshots * scale, energy_tolerance=1e-5,
+                                               method=method)
+    reference = pod_basis(snapshots, energy_tolerance=1e-5, method="svd")
+    assert modes.shape == reference[0].shape == (3, 100, 3)
+    assert span_distance(modes, reference[0]) < 1e-9
+    torch.testing.assert_close(singular_values[:3], values[:3] * scale, rtol=1e-10, atol=0)
+    assert torch.isfinite(energy).all()
+    torch.testing.assert_close(energy, reference[2], rtol=1e-10, atol=1e-12)
+
+
+def test_pod_basis_rejects_half_precision_and_unknown_method():
+    snapshots, _ = graded_snapshots(4, 10, 0.5)
+    for dtype in (torch.float16, torch.bfloat16):
+        with pytest.raises(ValueError, match=r"snapshots has dtype torch\.(b)?float16: half"):
+            pod_basis(snapshots.to(dtype))
+    with pytest.raises(ValueError, match="method must be 'auto', 'svd' or 'correlation'"):
+        pod_basis(snapshots, method="qr")

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchmorph._checks import as_index, as_points, check_finite
+from torchmorph._checks import as_index, as_points, check_finite, check_float_dtype
 from torchmorph.quality import _tet_edge_lengths_squared, _tet_volumes
 
 __all__ = ["FLAT_TET_TOLERANCE", "TetMesh", "box_mesh"]
@@ -309,10 +309,7 @@ class TetMesh:
                 f"displacement must have shape ({self.num_nodes}, 3), "
                 f"got {tuple(displacement.shape)}"
             )
-        if not displacement.is_floating_point():
-            raise ValueError(
-                f"displacement must be a floating-point tensor, got dtype {displacement.dtype}"
-            )
+        check_float_dtype(displacement, "displacement")
         if displacement.device != self.device:
             raise ValueError(
                 f"displacement is on device {displacement.device} but the mesh is on {self.device}"

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchmorph._checks import check_finite
+from torchmorph._checks import check_finite, check_float_dtype
 
 if TYPE_CHECKING:
     from torchmorph.mesh import TetMesh
@@ -79,8 +79,7 @@ def _check_geometry(points: Tensor, tets: Tensor) -> tuple[Tensor, Tensor]:
         raise TypeError(f"tets must be a torch.Tensor, got {type(tets).__name__}")
     if points.ndim < 2 or points.shape[-1] != 3:
         raise ValueError(f"points must have shape (N, 3) or (B, N, 3), got {tuple(points.shape)}")
-    if not points.is_floating_point():
-        raise ValueError(f"points must be a floating-point tensor, got dtype {points.dtype}")
+    check_float_dtype(points, "points")
     if tets.ndim != 2 or tets.shape[1] != 4:
         raise ValueError(f"tets must have shape (M, 4), got {tuple(tets.shape)}")
     if tets.is_floating_point() or tets.dtype == torch.bool or tets.is_complex():
@@ -116,8 +115,7 @@ def _check_displacement(
         raise ValueError(
             f"{name} must have shape {shapes} for a mesh of {n} nodes, got {tuple(value.shape)}"
         )
-    if not value.is_floating_point():
-        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    check_float_dtype(value, name)
     if value.device != mesh.points.device:
         raise ValueError(
             f"{name} is on device {value.device} but the mesh is on {mesh.points.device}"
