@@ -49,8 +49,6 @@ _ONLINE_VARIANTS = ("projection", "paper")
 
 Family = Callable[[Tensor], Tensor]
 
-_MATVEC_COLUMNS = 12
-"""Up to this many columns, Wᵀ is applied by mat-vecs rather than one GEMM."""
 
 
 # --------------------------------------------------------------------------------------
@@ -120,7 +118,7 @@ def _svd_basis(matrix: Tensor, energy_tolerance: float, num_modes: int | None,
 def _correlation_basis(matrix: Tensor, energy_tolerance: float, num_modes: int | None,
                        dtype: torch.dtype) -> tuple[Tensor, Tensor] | None:
     """Method of snapshots on the (scaled, float64) n × 3M matrix Uᵀ, or None where it
-    would lose accuracy on the kept modes.
+    would lose accuracy on the kept modes. Overwrites ``matrix`` when it returns modes.
 
     The eigen-decomposition of the n × n correlation matrix UᵀU = V Σ² Vᵀ gives the
     modes as U V Σ⁻¹ at the cost of two GEMMs, but squares the condition number: the
@@ -148,7 +146,7 @@ def _correlation_basis(matrix: Tensor, energy_tolerance: float, num_modes: int |
     reduced = matrix @ basis  # (n, N)
     _, kept_values, rotation_h = torch.linalg.svd(reduced, full_matrices=False)
     modes = rotation_h @ basis.mT  # (N, 3M)
-    residual = matrix - reduced @ basis.mT
+    residual = matrix.addmm_(reduced, basis.mT, alpha=-1.0)  # in place: matrix is a copy
     tail = torch.linalg.eigvalsh(residual @ residual.mT).flip(0).clamp_min(0.0).sqrt()
     singular_values = torch.cat([kept_values, tail[: count - kept]])
     _check_rank(num_modes, singular_values, tuple(matrix.shape), dtype)
@@ -219,7 +217,6 @@ def pod_basis(
         raise ValueError(f"snapshots must have shape (n, M, 3) with n >= 1, got "
                          f"{tuple(snapshots.shape)}")
     check_float_dtype(snapshots, "snapshots")
-    check_finite(snapshots, "snapshots")
     energy_tolerance = _check_energy_tolerance(energy_tolerance)
     num_modes = _check_num_modes(num_modes)
     if method not in ("auto", "svd", "correlation"):
@@ -227,11 +224,14 @@ def pod_basis(
     count, num_points = snapshots.shape[0], snapshots.shape[1]
 
     # U^T = V Σ Z^T: the rows of Vh are the modes, already in the (N, M·3) layout
-    matrix = snapshots.detach().reshape(count, 3 * num_points).double()
-    extent = float(matrix.abs().max())
+    matrix = snapshots.detach().reshape(count, 3 * num_points)
+    low, high = torch.aminmax(matrix)  # NaN or inf if any entry is
+    extent = max(-float(low), float(high))
+    if not math.isfinite(extent):
+        check_finite(snapshots, "snapshots")
     if extent == 0.0:
         raise ValueError("snapshots are all zero: there is no displacement to reduce")
-    matrix = matrix / extent
+    matrix = matrix.to(torch.float64, copy=True).div_(extent)
     result = None
     if method == "correlation" or (
         method == "auto" and 3 * num_points >= _CORRELATION_MIN_ASPECT * count
@@ -293,17 +293,12 @@ def projection_matrix(modes: Tensor, weights: Tensor) -> Tensor:
 
     Notes
     -----
-    Wᵀ applied to the 3N columns of the modes' components: one mat-vec per column
-    when there are few (a mat-vec streams W at 2-4x the speed of a GEMM with three
-    columns, SPEC.md §7), else one GEMM.
+    One GEMM, (3N × N_int) · (N_int × N_sel): W is streamed once for all 3N
+    columns (mat-vecs per column would stream it 3N times).
     """
     _check_modes_weights(modes, weights)
     fields = _fields_as_columns(modes.to(weights.dtype))  # (N_int, 3N)
-    if fields.shape[1] <= _MATVEC_COLUMNS:
-        transposed = weights.mT
-        columns = torch.stack([torch.mv(transposed, field) for field in fields.mT], 1)
-    else:
-        columns = (fields.mT @ weights).mT  # (N_sel, 3N)
+    columns = (fields.mT @ weights).mT  # (N_sel, 3N)
     return _columns_as_fields(columns, modes.shape[0])
 
 
