@@ -76,7 +76,8 @@ def test_rank_two_family_is_reproduced_to_round_off(cloud, rank_two, online):
     assert reducer.num_modes_ == 2
     assert reducer.modes_.shape == (2, cloud.num_targets, 3)
     assert reducer.singular_values_.shape == (12,)
-    assert float(reducer.singular_values_[2]) < 1e-12 * float(reducer.singular_values_[0])
+    # the method of snapshots resolves σ_i down to about sqrt(eps) · σ_1 (pod_basis notes)
+    assert float(reducer.singular_values_[2]) < 1e-7 * float(reducer.singular_values_[0])
     fresh = random_parameters(7, 2, seed=3)
     reduced = reducer.morph_parameters(fresh)
     full = cloud(rank_two(fresh))
@@ -591,9 +592,9 @@ def test_correlation_route_matches_the_thin_svd(decay):
         gram = fast[0].flatten(1) @ fast[0].flatten(1).T
         torch.testing.assert_close(gram, torch.eye(gram.shape[0], dtype=F64), atol=1e-14, rtol=0)
         kept = fast[0].shape[0]
-        torch.testing.assert_close(fast[1][:kept], values[:kept], rtol=1e-12, atol=1e-15)
-        # the tail is accurate relative to the first value dropped
-        torch.testing.assert_close(fast[1], values, rtol=0, atol=1e-7 * float(values[kept]))
+        # σ_i from the correlation matrix: accurate to about eps · σ_1² / σ_i
+        torch.testing.assert_close(fast[1][:kept], values[:kept], rtol=1e-11, atol=0)
+        torch.testing.assert_close(fast[1], values, rtol=0, atol=1e-7 * float(values[0]))
         torch.testing.assert_close(fast[2], svd[2], rtol=1e-12, atol=1e-14)
 
 

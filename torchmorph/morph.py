@@ -1,4 +1,4 @@
-"""Shape morphing of a tetrahedral mesh, SPEC.md §3 (the paper's Algorithm 2).
+"""Shape morphing of a tetrahedral mesh (Ballarin et al. 2017, section 2, Algorithm 2).
 
 :class:`MeshMorph` composes the pieces: control points chosen from the
 boundary nodes (all of them, or a :class:`~torchmorph.selection.SelectionPlan`
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor, nn
@@ -116,14 +116,38 @@ class MeshMorph(nn.Module):
         self.register_buffer("interior_nodes", interior.clone())
         self.register_buffer("selected", selected)
         self.register_buffer("control_nodes", control_nodes.clone())
-        self.node_sets = {name: nodes.clone() for name, nodes in mesh.node_sets.items()}
+        names = list(mesh.node_sets)
+        members = [mesh.node_sets[name].reshape(-1).long() for name in names]
+        sizes = torch.tensor([0, *(len(nodes) for nodes in members)], dtype=torch.long)
+        self._node_set_names: list[str] = names
+        self.register_buffer("node_set_members", torch.cat(
+            [boundary.new_empty(0), *(nodes.to(boundary.device) for nodes in members)]))
+        self.register_buffer("node_set_offsets", torch.cumsum(sizes, 0).to(boundary.device))
         self.idw = IDW(self.points[control_nodes], self.points[interior], power=power, mode=mode,
                        block_bytes=block_bytes, dense_bytes=dense_bytes)
         self.assembly_time = self.idw.assembly_time
 
+    # ------------------------------------------------------------------ state
+    _STATE_BUFFERS = ("points", "tets", "boundary_nodes", "interior_nodes", "selected",
+                      "control_nodes", "node_set_members", "node_set_offsets")
+    _STATE_VERSION = 1
+
+    @property
+    def node_sets(self) -> dict[str, Tensor]:
+        """The mesh's named node sets (global node ids), as given to the constructor."""
+        offsets = self.node_set_offsets.tolist()
+        return {name: self.node_set_members[offsets[k] : offsets[k + 1]]
+                for k, name in enumerate(self._node_set_names)}
+
+    def get_extra_state(self) -> dict[str, Any]:
+        return {"version": self._STATE_VERSION, "node_set_names": list(self._node_set_names)}
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        self._node_set_names = list(state["node_set_names"])
+
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        resize_buffers_for_load(self, state_dict, prefix, (
-            "points", "tets", "boundary_nodes", "interior_nodes", "selected", "control_nodes"))
+        _check_morph_state(state_dict, prefix)
+        resize_buffers_for_load(self, state_dict, prefix, self._STATE_BUFFERS)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ------------------------------------------------------------------ sizes
@@ -258,3 +282,78 @@ class MeshMorph(nn.Module):
         return (f"num_nodes={self.num_nodes}, num_boundary={self.num_boundary}, "
                 f"num_interior={self.num_interior}, num_controls={self.num_controls}, "
                 f"mode={self.idw.mode!r}")
+
+
+def _check_morph_state(state_dict, prefix: str) -> None:
+    """Raise ``ValueError`` naming the field if a MeshMorph state is inconsistent.
+
+    Runs before anything is loaded, so a rejected state leaves the module as it was.
+    Missing entries are left to ``load_state_dict``'s own missing-key report.
+    """
+    def entry(name: str) -> Any:
+        return state_dict.get(prefix + name)
+
+    def fail(name: str, message: str) -> None:
+        raise ValueError(f"state_dict[{prefix + name!r}]: {message}")
+
+    def index(name: str, size: int | None = None) -> Tensor | None:
+        value = entry(name)
+        if value is None:
+            return None
+        if not isinstance(value, Tensor) or value.ndim != 1 or value.is_floating_point() \
+                or value.dtype == torch.bool:
+            fail(name, "must be a 1-D integer tensor")
+        if size is not None and value.numel() and (int(value.min()) < 0
+                                                   or int(value.max()) >= size):
+            fail(name, f"holds indices outside [0, {size})")
+        return value
+
+    extra = entry("_extra_state")
+    if extra is not None:
+        if not isinstance(extra, dict) or not isinstance(extra.get("node_set_names"), list) \
+                or not all(isinstance(n, str) and n for n in extra["node_set_names"]):
+            fail("_extra_state", "must hold 'node_set_names', a list of non-empty strings")
+        if extra.get("version") != MeshMorph._STATE_VERSION:
+            fail("_extra_state", f"version {extra.get('version')!r} is not "
+                                 f"{MeshMorph._STATE_VERSION}")
+    points = entry("points")
+    if points is None:
+        return
+    if not isinstance(points, Tensor) or points.ndim != 2 or points.shape[1] != 3 \
+            or not points.is_floating_point():
+        fail("points", f"must be a floating tensor (N, 3), got {getattr(points, 'shape', points)}")
+    num_nodes = points.shape[0]
+    tets = entry("tets")
+    if tets is not None:
+        if not isinstance(tets, Tensor) or tets.ndim != 2 or tets.shape[1] != 4:
+            fail("tets", "must have shape (M, 4)")
+        if tets.numel() and (int(tets.min()) < 0 or int(tets.max()) >= num_nodes):
+            fail("tets", f"holds vertex indices outside [0, {num_nodes})")
+    boundary = index("boundary_nodes", num_nodes)
+    interior = index("interior_nodes", num_nodes)
+    if boundary is not None and interior is not None:
+        together = torch.cat([boundary, interior]).cpu()
+        if together.numel() != num_nodes or not torch.equal(
+                torch.sort(together).values, torch.arange(num_nodes)):
+            fail("interior_nodes", f"boundary_nodes and interior_nodes must split the "
+                                   f"{num_nodes} nodes into two sets")
+    selected = index("selected", None if boundary is None else boundary.numel())
+    controls = index("control_nodes", num_nodes)
+    if selected is not None and controls is not None and boundary is not None:
+        if not torch.equal(boundary.cpu()[selected.cpu()], controls.cpu()):
+            fail("control_nodes", "must equal boundary_nodes[selected]")
+    members = index("node_set_members", num_nodes)
+    offsets = index("node_set_offsets")
+    if members is not None and offsets is not None:
+        steps = offsets.cpu().diff()
+        if offsets.numel() == 0 or int(offsets[0]) != 0 or int(offsets[-1]) != members.numel() \
+                or bool((steps < 0).any()):
+            fail("node_set_offsets", "must rise from 0 to the number of node_set_members")
+        if extra is not None and offsets.numel() != len(extra["node_set_names"]) + 1:
+            fail("node_set_offsets", f"holds {offsets.numel() - 1} node sets but the names are "
+                                     f"{len(extra['node_set_names'])}")
+    for name, expected in (("idw.controls", None if controls is None else controls.numel()),
+                           ("idw.targets", None if interior is None else interior.numel())):
+        value = entry(name)
+        if expected is not None and isinstance(value, Tensor) and value.shape[0] != expected:
+            fail(name, f"has {value.shape[0]} rows but the morph's state needs {expected}")

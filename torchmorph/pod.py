@@ -80,6 +80,9 @@ _CORRELATION_MIN_ASPECT = 4
 """The method of snapshots is tried when the snapshots' length is at least this many
 times their number (a 20 × 66,000 matrix: the correlation matrix is 20 × 20)."""
 
+_SAFE_SQUARES = (1e-250, 1e250)
+"""Largest squared snapshot norm for which the snapshots are used unscaled."""
+
 _SUBSPACE_TOLERANCE = 1e-10
 """Largest error of the kept modes' span (float64 outputs; float32 outputs allow their
 own eps) for which the method of snapshots is used rather than the thin SVD."""
@@ -115,42 +118,35 @@ def _svd_basis(matrix: Tensor, energy_tolerance: float, num_modes: int | None,
     return vh[:kept], singular_values
 
 
-def _correlation_basis(matrix: Tensor, energy_tolerance: float, num_modes: int | None,
-                       dtype: torch.dtype) -> tuple[Tensor, Tensor] | None:
-    """Method of snapshots on the (scaled, float64) n × 3M matrix Uᵀ, or None where it
-    would lose accuracy on the kept modes. Overwrites ``matrix`` when it returns modes.
+def _correlation_basis(matrix: Tensor, correlation: Tensor, energy_tolerance: float,
+                       num_modes: int | None, dtype: torch.dtype
+                       ) -> tuple[Tensor, Tensor] | None:
+    """Method of snapshots on the float64 n × 3M matrix Uᵀ and its correlation
+    matrix UᵀU, or None where it would lose accuracy on the kept modes.
 
-    The eigen-decomposition of the n × n correlation matrix UᵀU = V Σ² Vᵀ gives the
-    modes as U V Σ⁻¹ at the cost of two GEMMs, but squares the condition number: the
-    span of the first N modes is only accurate to about eps · σ_1² / (σ_N² − σ_{N+1}²).
-    Where that exceeds the tolerance, None is returned (the caller uses the thin SVD).
-    Otherwise the modes are re-orthonormalised (QR) and rotated by the SVD of the
-    small n × N matrix Uᵀ Q (Rayleigh–Ritz), which makes them orthonormal to rounding
-    and their singular values as accurate as an SVD's; the singular values of the
-    rest come from the correlation matrix of the residual U − Q Qᵀ U, so that they are
-    accurate relative to σ_{N+1}, not σ_1.
+    The eigen-decomposition UᵀU = V Σ² Vᵀ gives the modes as Σ⁻¹ Vᵀ Uᵀ at the cost of
+    two passes over U, but squares the condition number: the span of the first N
+    modes is accurate to about eps · σ_1² / (σ_N² − σ_{N+1}²). Where that exceeds the
+    tolerance, None is returned (the caller runs the thin SVD). The modes are
+    re-orthonormalised by a QR factorisation (3M × N, cheap for few modes).
     """
     count = matrix.shape[0]
-    correlation = matrix @ matrix.mT
     eigenvalues, vectors = torch.linalg.eigh(correlation)
     eigenvalues = eigenvalues.flip(0).clamp_min(0.0)
-    vectors = vectors.flip(1)
     kept = _kept_modes(eigenvalues, energy_tolerance, num_modes, count)
     following = float(eigenvalues[kept]) if kept < count else 0.0
     gap = float(eigenvalues[kept - 1]) - following
     tolerance = max(_SUBSPACE_TOLERANCE, torch.finfo(dtype).eps)
     if gap <= 0.0 or torch.finfo(torch.float64).eps * float(eigenvalues[0]) > tolerance * gap:
         return None
-    rough = (vectors[:, :kept].mT @ matrix) / eigenvalues[:kept].sqrt().unsqueeze(1)
-    basis, _ = torch.linalg.qr(rough.mT)  # (3M, N), orthonormal columns
-    reduced = matrix @ basis  # (n, N)
-    _, kept_values, rotation_h = torch.linalg.svd(reduced, full_matrices=False)
-    modes = rotation_h @ basis.mT  # (N, 3M)
-    residual = matrix.addmm_(reduced, basis.mT, alpha=-1.0)  # in place: matrix is a copy
-    tail = torch.linalg.eigvalsh(residual @ residual.mT).flip(0).clamp_min(0.0).sqrt()
-    singular_values = torch.cat([kept_values, tail[: count - kept]])
+    singular_values = eigenvalues.sqrt()
     _check_rank(num_modes, singular_values, tuple(matrix.shape), dtype)
-    return modes, singular_values
+    leading = vectors[:, count - kept :].flip(1)  # (n, N), descending
+    rough = (leading.mT @ matrix) / singular_values[:kept].unsqueeze(1)  # (N, 3M)
+    basis, triangle = torch.linalg.qr(rough.mT)  # (3M, N): orthonormal columns
+    signs = torch.sign(triangle.diagonal())  # QR may flip a column: keep each mode's sign
+    basis = basis * torch.where(signs == 0, 1.0, signs)
+    return basis.mT, singular_values
 
 
 def pod_basis(
@@ -199,17 +195,19 @@ def pod_basis(
 
     Notes
     -----
-    Computed in float64 whatever the input dtype, on the snapshots divided by their
-    largest entry (so that norms from 1e-300 to 1e300 neither underflow nor
-    overflow when squared); the singular values are scaled back.
+    Computed in float64 whatever the input dtype. Snapshots whose squared norms
+    leave [1e-250, 1e250] are first divided by a power of two near their largest
+    entry (exactly), so that norms from 1e-300 to 1e300 neither underflow nor
+    overflow when squared; the singular values are scaled back.
 
     The correlation route squares the condition number: the span of the N kept
     modes is accurate to about eps · σ_1² / (σ_N² − σ_{N+1}²). It is used only
     where that is below 1e-10 (float64 snapshots) or float32's eps (float32
     snapshots); otherwise the thin SVD runs. At case-B size (20 × 66,000) it takes
-    a few milliseconds against about 0.1 s for the SVD. The singular values
-    returned by the correlation route past the kept ones are accurate to about
-    sqrt(eps) · σ_{N+1}. The signs of the modes are arbitrary.
+    a few milliseconds against about 0.1 s for the SVD. Its singular values are
+    those of the correlation matrix: σ_i is accurate to about eps · σ_1² / σ_i, so
+    values below about 1e-7 · σ_1 are rounding noise (use ``method="svd"`` to
+    resolve them). The signs of the modes are arbitrary.
     """
     if not isinstance(snapshots, Tensor):
         raise TypeError(f"snapshots must be a torch.Tensor, got {type(snapshots).__name__}")
@@ -225,20 +223,28 @@ def pod_basis(
 
     # U^T = V Σ Z^T: the rows of Vh are the modes, already in the (N, M·3) layout
     matrix = snapshots.detach().reshape(count, 3 * num_points)
-    low, high = torch.aminmax(matrix)  # NaN or inf if any entry is
-    extent = max(-float(low), float(high))
-    if not math.isfinite(extent):
+    work = matrix if matrix.dtype == torch.float64 else matrix.double()
+    correlation = work @ work.mT
+    largest = float(correlation.diagonal().max())  # the largest squared snapshot norm
+    extent = 1.0
+    if not math.isfinite(largest) or not (_SAFE_SQUARES[0] <= largest <= _SAFE_SQUARES[1]):
+        # NaN/inf entries, all zero, or squares outside float64's comfortable range:
+        # divide by a power of two near the largest entry (exact) and start again
         check_finite(snapshots, "snapshots")
-    if extent == 0.0:
-        raise ValueError("snapshots are all zero: there is no displacement to reduce")
-    matrix = matrix.to(torch.float64, copy=True).div_(extent)
+        low, high = torch.aminmax(matrix)
+        if max(-float(low), float(high)) == 0.0:
+            raise ValueError("snapshots are all zero: there is no displacement to reduce")
+        extent = 2.0 ** math.frexp(max(-float(low), float(high)))[1]
+        work = matrix.to(torch.float64, copy=True).div_(extent)
+        correlation = work @ work.mT
     result = None
     if method == "correlation" or (
         method == "auto" and 3 * num_points >= _CORRELATION_MIN_ASPECT * count
     ):
-        result = _correlation_basis(matrix, energy_tolerance, num_modes, snapshots.dtype)
+        result = _correlation_basis(work, correlation, energy_tolerance, num_modes,
+                                    snapshots.dtype)
     if result is None:
-        result = _svd_basis(matrix, energy_tolerance, num_modes, snapshots.dtype)
+        result = _svd_basis(work, energy_tolerance, num_modes, snapshots.dtype)
     rows, scaled_values = result
     kept = rows.shape[0]
     energy = scaled_values.square()
