@@ -25,10 +25,9 @@ def test_writes_the_target_on_success(tmp_path):
 def test_failure_keeps_the_old_file_and_removes_the_temporary(tmp_path):
     target = tmp_path / "out.txt"
     target.write_text("old")
-    with pytest.raises(RuntimeError, match="writer failed"):
-        with atomic_output(target) as temporary:
-            temporary.write_text("half")
-            raise RuntimeError("writer failed")
+    with pytest.raises(RuntimeError, match="writer failed"), atomic_output(target) as temporary:
+        temporary.write_text("half")
+        raise RuntimeError("writer failed")
     assert target.read_text() == "old"
     assert [item.name for item in tmp_path.iterdir()] == ["out.txt"]
 
@@ -36,9 +35,8 @@ def test_failure_keeps_the_old_file_and_removes_the_temporary(tmp_path):
 def test_a_writer_that_writes_nothing_is_an_error(tmp_path):
     target = tmp_path / "out.txt"
     target.write_text("old")
-    with pytest.raises(RuntimeError, match="nothing was written for"):
-        with atomic_output(target):
-            pass
+    with pytest.raises(RuntimeError, match="nothing was written for"), atomic_output(target):
+        pass
     assert target.read_text() == "old"
 
 
@@ -57,6 +55,7 @@ def test_suffix_override_and_missing_directory(tmp_path):
         assert temporary.suffix == ".tmp"
         temporary.write_bytes(b"x")
     assert (tmp_path / "out.vtu").read_bytes() == b"x"
-    with pytest.raises(FileNotFoundError, match="path: directory .*does not exist"):
-        with atomic_output(tmp_path / "missing" / "out.vtu"):
-            pass
+    missing = tmp_path / "missing" / "out.vtu"
+    with pytest.raises(FileNotFoundError, match="path: directory .*does not exist"), \
+            atomic_output(missing):
+        pass

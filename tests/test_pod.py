@@ -366,7 +366,7 @@ def test_to_moves_buffers(cloud, rank_two):
     expected = reducer(d)
     reducer.to(torch.float32)
     assert reducer.modes_.dtype == torch.float32 and reducer.projection_.dtype == torch.float32
-    assert reducer.control_index_.dtype == torch.int64
+    assert reducer.reduced_rows_.dtype == torch.int64
     torch.testing.assert_close(reducer(d.float()), expected.float(), rtol=1e-5, atol=1e-6)
 
 
@@ -398,7 +398,8 @@ def test_mesh_morph_boundary_exact_interior_round_off(cube, online, selective):
     family = bumps(morph)
     reducer = PODReducer(online=online).fit(morph, family=family,
                                             parameters=random_parameters(8, 2, 31))
-    assert reducer.kind_ == "mesh" and reducer.num_modes_ == 2
+    assert torch.equal(reducer.copied_output_rows_, cube.boundary_nodes)
+    assert torch.equal(reducer.reduced_rows_, cube.interior_nodes) and reducer.num_modes_ == 2
     assert reducer.modes_.shape == (2, cube.interior_nodes.numel(), 3)
     mu = random_parameters(4, 2, 32)
     boundary = family(mu)
@@ -521,9 +522,10 @@ def test_more_modes_than_snapshots_or_rank(cloud, rank_two):
 
 def test_wrong_shapes_and_arguments(cloud, rank_two):
     n = cloud.num_controls
-    with pytest.raises(ValueError, match=rf"displacements must have shape \(n_train, {n}, 3\)"):
+    with pytest.raises(ValueError, match=r"displacements must have shape \(n_train, N_in, 3\)"):
         PODReducer().fit(cloud, torch.zeros(n, 3, dtype=F64))
-    with pytest.raises(ValueError, match="displacements must have shape"):
+    # the morph checks its own input rows
+    with pytest.raises(ValueError, match=rf"displacements must have shape \({n}, 3\) or"):
         PODReducer().fit(cloud, torch.zeros(2, n + 1, 3, dtype=F64))
     with pytest.raises(ValueError, match="no training data"):
         PODReducer().fit(cloud)
@@ -544,12 +546,12 @@ def test_wrong_shapes_and_arguments(cloud, rank_two):
     with pytest.raises(ValueError, match="when batched=True"):
         PODReducer().fit(cloud, family=lambda mu: torch.zeros(n, 3), parameters=torch.ones(2),
                          batched=True)
-    with pytest.raises(TypeError, match="morph must be an IDW or a MeshMorph"):
-        PODReducer().fit(torch.nn.Linear(3, 3), rank_two(torch.ones(2, 2, dtype=F64)))
+    with pytest.raises(TypeError, match="morph must be a callable linear map, got str"):
+        PODReducer().fit("idw", rank_two(torch.ones(2, 2, dtype=F64)))
 
     reducer = PODReducer().fit(cloud, family=rank_two, parameters=random_parameters(4, 2, 39))
     with pytest.raises(ValueError, match=rf"displacement must have shape \({n}, 3\) or "
-                                         rf"\(B, {n}, 3\) for {n} control points"):
+                                         rf"\(B, {n}, 3\) for the {n} input rows of the fitted morph"):
         reducer(torch.zeros(n - 1, 3, dtype=F64))
     with pytest.raises(ValueError, match="displacement must have shape"):
         reducer(torch.zeros(1, 1, n, 3, dtype=F64))
@@ -559,7 +561,7 @@ def test_wrong_shapes_and_arguments(cloud, rank_two):
         reducer.morph_parameters(torch.zeros(3, dtype=F64))
     with pytest.raises(ValueError, match="norm must be 'nodal' or 'l2'"):
         reducer.relative_error(rank_two(torch.ones(2, dtype=F64)), norm="energy")
-    with pytest.raises(ValueError, match="norm='l2' needs a reducer fitted to a MeshMorph"):
+    with pytest.raises(ValueError, match=r"norm='l2' needs mesh= \(the mass matrix lives"):
         reducer.relative_error(rank_two(torch.ones(2, dtype=F64)), norm="l2")
 
 
@@ -638,3 +640,110 @@ def test_pod_basis_rejects_half_precision_and_unknown_method():
             pod_basis(snapshots.to(dtype))
     with pytest.raises(ValueError, match="method must be 'auto', 'svd' or 'correlation'"):
         pod_basis(snapshots, method="qr")
+
+
+# ------------------------------------------------------------------ any linear map
+
+
+class DenseMap(torch.nn.Module):
+    """A user's linear map: output = A @ input per component, plus two copied rows."""
+
+    def __init__(self, matrix: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("matrix", matrix)
+
+    def forward(self, d: torch.Tensor) -> torch.Tensor:
+        interior = torch.einsum("ij,bjc->bic", self.matrix, d)
+        return torch.cat([d[:, :2], interior], 1)  # rows 0, 1 copy inputs 0, 1
+
+    def copied_rows(self):
+        return torch.tensor([0, 1]), torch.tensor([0, 1])
+
+
+def test_any_linear_map_without_type_dispatch(rank_two, cloud):
+    generator = torch.Generator().manual_seed(50)
+    matrix = torch.rand(40, cloud.num_controls, generator=generator, dtype=F64)
+    user = DenseMap(matrix)
+    training = random_parameters(6, 2, 51)
+    reducer = PODReducer().fit(user, family=rank_two, parameters=training)
+    assert reducer.num_inputs == cloud.num_controls and reducer.num_outputs == 42
+    assert reducer.reduced_rows_.tolist() == list(range(2, 42))
+    d = rank_two(random_parameters(3, 2, 52))
+    reduced, full = reducer(d), user(d)
+    assert torch.equal(reduced[:, :2], d[:, :2])  # copied rows exact
+    assert relative(reduced, full) < 1e-12
+    # P = Zᵀ A by autograd equals the closed form
+    expected = torch.einsum("lic,ij->ljc", reducer.modes_, matrix)
+    torch.testing.assert_close(reducer.projection_, expected, rtol=1e-12, atol=1e-14)
+    # a plain function (no module, no optional methods) works too
+    plain = PODReducer().fit(lambda x: torch.einsum("ij,bjc->bic", matrix, x),
+                             family=rank_two, parameters=training)
+    assert plain.copied_output_rows_.numel() == 0 and plain.num_outputs == 40
+    assert relative(plain(d), full[:, 2:]) < 1e-12
+    with pytest.raises(ValueError, match=r"online='paper' needs the morph's matrix W"):
+        PODReducer(online="paper").fit(user, family=rank_two, parameters=training)
+
+
+@pytest.mark.parametrize("mode", ["dense", "matrix_free"])
+def test_mesh_morph_adjoint_is_the_transpose(cube, mode):
+    morph = MeshMorph(cube, SelectionPlan({face: 0.6 for face in FACES_OF_CUBE}),
+                      mode=mode, generator=torch.Generator().manual_seed(53))
+    generator = torch.Generator().manual_seed(54)
+    d = torch.randn(2, morph.num_boundary, 3, generator=generator, dtype=F64)
+    g = torch.randn(2, morph.num_nodes, 3, generator=generator, dtype=F64)
+    left = (morph(d) * g).sum((1, 2))
+    right = (d * morph.adjoint(g)).sum((1, 2))
+    torch.testing.assert_close(left, right, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(morph.adjoint(g[0]), morph.adjoint(g)[0], rtol=0, atol=0)
+
+
+FACES_OF_CUBE = ("x0", "x1", "y0", "y1", "z0", "z1")
+
+
+def saved_state(module: torch.nn.Module) -> dict:
+    buffer = io.BytesIO()
+    torch.save(module.state_dict(), buffer)
+    buffer.seek(0)
+    return torch.load(buffer)
+
+
+@pytest.mark.parametrize("online", ONLINE)
+def test_mesh_reducer_round_trips_into_a_reducer_of_another_size(cube, online):
+    from conftest import structured_cube
+
+    morph = MeshMorph(cube)
+    reducer = PODReducer(online=online).fit(morph, family=bumps(morph),
+                                            parameters=random_parameters(6, 2, 55))
+    small = MeshMorph(structured_cube(2))
+    other = PODReducer(num_modes=1).fit(small, family=bumps(small),
+                                        parameters=random_parameters(4, 2, 56))
+    other.load_state_dict(saved_state(reducer))
+    assert other.online == online and other.num_modes is None
+    for name in (*PODReducer._FLOAT_BUFFERS, *PODReducer._INDEX_BUFFERS):
+        assert torch.equal(getattr(other, name), getattr(reducer, name)), name
+    boundary = bumps(morph)(random_parameters(3, 2, 57))
+    assert torch.equal(other(boundary), reducer(boundary))
+
+
+@pytest.mark.parametrize(("key", "change", "message"), [
+    ("modes_", lambda v: v[:, 1:], r"'modes_'\]: has shape \(2, 26, 3\), expected \(2, 27, 3\)"),
+    ("projection_", lambda v: v[:1], r"'projection_'\]: has shape"),
+    ("reduced_rows_", lambda v: v + 1000, r"'reduced_rows_'\]: holds rows outside \[0, 125\)"),
+    ("reduced_rows_", lambda v: v[:-1], r"reduced_rows_ and copied_output_rows_ must split"),
+    ("copied_input_rows_", lambda v: v[1:], r"must have the length of copied_output_rows_"),
+    ("singular_values_", lambda v: v[:1], r"'singular_values_'\]: must be 1-D with at least 2"),
+    ("_extra_state", lambda v: {**v, "num_modes_": 3}, r"'modes_'\]: has shape \(2, 27, 3\), "
+     r"expected \(3, 27, 3\)"),
+    ("_extra_state", lambda v: {**v, "num_outputs_": 0}, r"num_outputs_ must be a positive"),
+    ("_extra_state", lambda v: {**v, "online": "fast"}, r"online must be 'projection' or"),
+    ("_extra_state", lambda v: {**v, "version": 1}, r"version 1 is not 2"),
+])
+def test_a_tampered_reducer_state_fails_to_load(cube, key, change, message):
+    morph = MeshMorph(cube)
+    reducer = PODReducer().fit(morph, family=bumps(morph), parameters=random_parameters(6, 2, 58))
+    state = saved_state(reducer)
+    state[key] = change(state[key])
+    fresh = PODReducer()
+    with pytest.raises(ValueError, match=message):
+        fresh.load_state_dict(state)
+    assert not fresh.is_fitted and fresh.modes_.numel() == 0

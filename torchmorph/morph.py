@@ -262,6 +262,47 @@ class MeshMorph(nn.Module):
                                 targets=points[self.interior_nodes])
         return self.assemble(boundary_displacement, interior)
 
+    # ------------------------------------------------- the linear-map protocol
+    def copied_rows(self) -> tuple[Tensor, Tensor]:
+        """(output rows, input rows) that :meth:`forward` copies unchanged: every
+        boundary node takes its prescribed displacement. Used by
+        :class:`~torchmorph.pod.PODReducer`, which reproduces them exactly."""
+        rows = torch.arange(self.num_boundary, device=self.boundary_nodes.device)
+        return self.boundary_nodes, rows
+
+    @property
+    def weight_columns(self) -> Tensor:
+        """The input rows (boundary indices) that :meth:`weights_matrix` reads."""
+        return self.selected
+
+    def weights_matrix(self) -> Tensor:
+        """W (N_int, N_sel): ``forward(d)[:, interior_nodes] = W @ d[:, selected]``."""
+        return self.idw.weights_matrix()
+
+    def adjoint(self, fields: Tensor) -> Tensor:
+        """The transpose of the morph: nodal fields (B, N, 3) -> (B, N_b, 3).
+
+        Boundary rows pass through; interior rows are mapped by Wᵀ onto the control
+        points (one GEMM with a dense W, a vector-Jacobian product of the IDW
+        otherwise). The morph is linear, so ``<morph(d), g> = <d, adjoint(g)>``.
+        """
+        check_vectors(fields, "fields", self.num_nodes, what="mesh nodes")
+        batch = fields if fields.ndim == 3 else fields.unsqueeze(0)
+        interior = batch.index_select(1, self.interior_nodes)
+        weights = getattr(self.idw, "weights", None)
+        if isinstance(weights, Tensor):
+            columns = interior.permute(1, 0, 2).reshape(self.num_interior, -1)  # (N_int, 3B)
+            controls = (columns.mT @ weights).reshape(batch.shape[0], 3, -1).mT
+        else:
+            with torch.enable_grad():
+                probe = batch.new_zeros(batch.shape[0], self.num_controls, 3,
+                                        requires_grad=True)
+                (controls,) = torch.autograd.grad(self.idw(probe), probe,
+                                                  grad_outputs=interior)
+        result = batch.index_select(1, self.boundary_nodes)
+        result = result.index_add(1, self.selected, controls)
+        return result if fields.ndim == 3 else result[0]
+
     def deformed_points(self, displacement: Tensor) -> Tensor:
         """Reference points plus a nodal displacement (N, 3) or (B, N, 3)."""
         return self.points + displacement
@@ -339,9 +380,9 @@ def _check_morph_state(state_dict, prefix: str) -> None:
                                    f"{num_nodes} nodes into two sets")
     selected = index("selected", None if boundary is None else boundary.numel())
     controls = index("control_nodes", num_nodes)
-    if selected is not None and controls is not None and boundary is not None:
-        if not torch.equal(boundary.cpu()[selected.cpu()], controls.cpu()):
-            fail("control_nodes", "must equal boundary_nodes[selected]")
+    if selected is not None and controls is not None and boundary is not None \
+            and not torch.equal(boundary.cpu()[selected.cpu()], controls.cpu()):
+        fail("control_nodes", "must equal boundary_nodes[selected]")
     members = index("node_set_members", num_nodes)
     offsets = index("node_set_offsets")
     if members is not None and offsets is not None:
