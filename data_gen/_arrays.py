@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from torchmorph._tet import TET_EDGES
+
 __all__ = [
     "MeshArrays",
     "boundary_faces",
@@ -23,7 +25,7 @@ __all__ = [
 
 # Faces of a positively oriented tetrahedron (a, b, c, d), normals pointing out.
 _OUTWARD_FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])
-_TET_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+_TET_EDGES = np.array(TET_EDGES)  # the one table, torchmorph._tet
 
 
 @dataclass

@@ -19,7 +19,10 @@ from torch import Tensor, nn
 from ._checks import check_finite, check_float_dtype
 
 __all__ = [
+    "ONLINE_VARIANTS",
     "adjoint",
+    "as_parameters",
+    "check_online",
     "check_reducer_state",
     "copied_rows",
     "evaluate_family",
@@ -30,6 +33,31 @@ __all__ = [
 ]
 
 Family = Callable[[Tensor], Tensor]
+
+ONLINE_VARIANTS = ("projection", "paper")
+
+
+def check_online(value: str) -> str:
+    if value not in ONLINE_VARIANTS:
+        raise ValueError(f"online must be one of {', '.join(map(repr, ONLINE_VARIANTS))}, "
+                         f"got {value!r}")
+    return value
+
+
+def as_parameters(parameters: Any) -> Tensor:
+    """Training parameters as a tensor (n,) or (n, P), finite."""
+    if parameters is None:
+        raise ValueError("parameters must be given with family: shape (n_train,) or "
+                         "(n_train, P)")
+    if not isinstance(parameters, Tensor):
+        parameters = torch.as_tensor(np.asarray(parameters, dtype=np.float64))
+    if parameters.ndim not in (1, 2) or parameters.shape[0] == 0:
+        raise ValueError(
+            f"parameters must have shape (n_train,) or (n_train, P) with n_train >= 1, "
+            f"got {tuple(parameters.shape)}"
+        )
+    check_finite(parameters, "parameters")
+    return parameters
 
 
 # --------------------------------------------------------------------------------------

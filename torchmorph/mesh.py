@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from torchmorph._checks import as_index, as_points, check_finite, check_float_dtype
-from torchmorph.quality import _tet_edge_lengths_squared, _tet_volumes
+from torchmorph._tet import TET_EDGES, TET_OUTWARD_FACES, tet_edge_lengths_squared, tet_volumes
 
 __all__ = ["FLAT_TET_TOLERANCE", "TetMesh", "box_mesh"]
 
@@ -28,10 +28,6 @@ __all__ = ["FLAT_TET_TOLERANCE", "TetMesh", "box_mesh"]
 #: about ``1e-16 L**3``: the threshold lies far from both.
 FLAT_TET_TOLERANCE = 1e-12
 
-# Faces of a positively oriented tetrahedron (a, b, c, d), each ordered so that
-# its normal (right-hand rule) points out of the tetrahedron.
-_OUTWARD_FACES = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))
-_TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
 # Largest node count for which a face (i < j < k) fits one int64 key i*N² + j*N + k.
 _MAX_NODES_FOR_FACE_KEYS = 2_000_000
 
@@ -246,8 +242,8 @@ class TetMesh:
     def _find_edges(self) -> tuple[Tensor, Tensor]:
         if "edges" in self._topology and "tet_edges" in self._topology:
             return self._topology["edges"], self._topology["tet_edges"]
-        first = self._tets[:, [i for i, _ in _TET_EDGES]]
-        second = self._tets[:, [j for _, j in _TET_EDGES]]
+        first = self._tets[:, [i for i, _ in TET_EDGES]]
+        second = self._tets[:, [j for _, j in TET_EDGES]]
         n = self.num_nodes
         keys = torch.minimum(first, second) * n + torch.maximum(first, second)
         unique, inverse = torch.unique(keys.reshape(-1), sorted=True, return_inverse=True)
@@ -265,7 +261,7 @@ class TetMesh:
         All > 0 for a constructed mesh; a mesh from :meth:`deformed` may have
         negative ones (inverted tetrahedra).
         """
-        return self._cached_geometry("volumes", lambda: _tet_volumes(self._points, self._tets))
+        return self._cached_geometry("volumes", lambda: tet_volumes(self._points, self._tets))
 
     @property
     def bounding_box(self) -> Tensor:
@@ -378,13 +374,13 @@ def _orient(points: Tensor, tets: Tensor) -> Tensor:
     """Reject flat tetrahedra and swap the last two vertices of negative ones."""
     with torch.no_grad():
         exact = points.detach().to(torch.float64)
-        volumes = _tet_volumes(exact, tets)
+        volumes = tet_volumes(exact, tets)
         # Every edge is at most the bounding-box diagonal, so only tetrahedra below
         # the bound for that length can be flat: measure their edges alone.
         diagonal = float(torch.linalg.vector_norm(exact.amax(0) - exact.amin(0)))
         candidates = torch.nonzero(volumes.abs() <= FLAT_TET_TOLERANCE * diagonal**3).flatten()
         if candidates.numel() > 0:
-            longest = _tet_edge_lengths_squared(exact, tets[candidates]).amax(-1) ** 1.5
+            longest = tet_edge_lengths_squared(exact, tets[candidates]).amax(-1) ** 1.5
             flat = candidates[volumes[candidates].abs() <= FLAT_TET_TOLERANCE * longest]
         else:
             flat = candidates
@@ -417,7 +413,7 @@ def _face_structure(tets: Tensor, num_nodes: int) -> tuple[Tensor, Tensor, Tenso
         duplicated tetrahedra).
     """
     device = tets.device
-    faces = tets[:, torch.tensor(_OUTWARD_FACES, device=device)].reshape(-1, 3)
+    faces = tets[:, torch.tensor(TET_OUTWARD_FACES, device=device)].reshape(-1, 3)
     ordered = torch.sort(faces, dim=1).values
     if num_nodes <= _MAX_NODES_FOR_FACE_KEYS:
         keys = (ordered[:, 0] * num_nodes + ordered[:, 1]) * num_nodes + ordered[:, 2]
@@ -455,9 +451,9 @@ def _checked_faces(points: Tensor, tets: Tensor) -> Tensor:
         return boundary
     with torch.no_grad():
         exact = points.detach().to(torch.float64)
-        outward = tets[:, torch.tensor(_OUTWARD_FACES, device=tets.device)].reshape(-1, 3)
+        outward = tets[:, torch.tensor(TET_OUTWARD_FACES, device=tets.device)].reshape(-1, 3)
         opposite = tets[second // 4, second % 4]
-        sides = _tet_volumes(exact, torch.cat([outward[first], opposite[:, None]], 1))
+        sides = tet_volumes(exact, torch.cat([outward[first], opposite[:, None]], 1))
         folded = torch.nonzero(sides <= 0).flatten()
     if folded.numel() > 0:
         pairs = ", ".join(f"({int(first[k]) // 4}, {int(second[k]) // 4})"

@@ -22,13 +22,14 @@ import time
 from collections.abc import Callable
 from typing import Any, Literal
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
 from ._checks import check_finite, check_same_device_dtype, is_traced
 from ._pod_protocol import (
     adjoint,
+    as_parameters,
+    check_online,
     check_reducer_state,
     copied_rows,
     evaluate_family,
@@ -55,32 +56,8 @@ __all__ = [
 ]
 
 OnlineVariant = Literal["projection", "paper"]
-_ONLINE_VARIANTS = ("projection", "paper")
 
 Family = Callable[[Tensor], Tensor]
-
-
-def _check_online(value: str) -> str:
-    if value not in _ONLINE_VARIANTS:
-        raise ValueError(f"online must be one of {', '.join(map(repr, _ONLINE_VARIANTS))}, "
-                         f"got {value!r}")
-    return value
-
-
-def _as_parameters(parameters: Any) -> Tensor:
-    """Training parameters as a tensor (n,) or (n, P), finite."""
-    if parameters is None:
-        raise ValueError("parameters must be given with family: shape (n_train,) or "
-                         "(n_train, P)")
-    if not isinstance(parameters, Tensor):
-        parameters = torch.as_tensor(np.asarray(parameters, dtype=np.float64))
-    if parameters.ndim not in (1, 2) or parameters.shape[0] == 0:
-        raise ValueError(
-            f"parameters must have shape (n_train,) or (n_train, P) with n_train >= 1, "
-            f"got {tuple(parameters.shape)}"
-        )
-    check_finite(parameters, "parameters")
-    return parameters
 
 
 class PODReducer(nn.Module):
@@ -187,7 +164,7 @@ class PODReducer(nn.Module):
         super().__init__()
         self.energy_tolerance = check_energy_tolerance(energy_tolerance)
         self.num_modes = check_num_modes(num_modes)
-        self.online = _check_online(online)
+        self.online = check_online(online)
         for name in self._FLOAT_BUFFERS:
             self.register_buffer(name, torch.empty(0))
         for name in self._INDEX_BUFFERS:
@@ -249,7 +226,7 @@ class PODReducer(nn.Module):
     def set_extra_state(self, state: dict[str, Any]) -> None:
         self.energy_tolerance = check_energy_tolerance(state["energy_tolerance"])
         self.num_modes = check_num_modes(state["num_modes"])
-        self.online = _check_online(state["online"])
+        self.online = check_online(state["online"])
         self.num_modes_ = state["num_modes_"]
         self.num_inputs_ = state["num_inputs_"]
         self.num_outputs_ = state["num_outputs_"]
@@ -382,7 +359,7 @@ class PODReducer(nn.Module):
                     raise ValueError(f"family must be callable, got {type(family).__name__}")
                 if not isinstance(batched, bool):
                     raise ValueError(f"batched must be True or False, got {batched!r}")
-                parameters = _as_parameters(parameters)
+                parameters = as_parameters(parameters)
                 inputs = evaluate_family(family, parameters, None, batched)
                 inputs = training_inputs(inputs, "family(parameters)")
                 num_parameters = 0 if parameters.ndim == 1 else int(parameters.shape[1])

@@ -1,4 +1,4 @@
-"""Mesh quality and error measures (SPEC.md §5).
+"""Mesh quality and error measures (the paper's section 3.1: L2(Ω_h) errors).
 
 Pure functions over ``points (N, 3)`` / ``tets (M, 4)`` and a few that take a
 :class:`~torchmorph.mesh.TetMesh`:
@@ -7,7 +7,7 @@ Pure functions over ``points (N, 3)`` / ``tets (M, 4)`` and a few that take a
 - :func:`inverted`, :func:`count_inverted`, :func:`quality_summary` — what a
   displacement does to the mesh;
 - :func:`mass_matrix`, :func:`relative_l2_error` — the relative error in
-  L2(Ω_h) of SPEC.md §5;
+  L2(Ω_h) the paper reports in its tables;
 - :func:`validity_barrier` — a smooth penalty that keeps tetrahedra from
   collapsing, for use in shape optimisation.
 
@@ -18,16 +18,15 @@ points (and hence to a displacement).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from torchmorph._checks import check_finite, check_float_dtype
-
-if TYPE_CHECKING:
-    from torchmorph.mesh import TetMesh
+from torchmorph._tet import TET_EDGES, tet_edge_lengths_squared, tet_volumes  # noqa: F401
+from torchmorph.mesh import TetMesh
 
 __all__ = [
     "count_inverted",
@@ -40,33 +39,7 @@ __all__ = [
     "validity_barrier",
 ]
 
-# The six edges of a tetrahedron as pairs of local vertex numbers.
-TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-
-
 # --------------------------------------------------------------------------- kernels
-
-
-def _tet_vertices(points: Tensor, tets: Tensor) -> Tensor:
-    """Vertex coordinates of every tetrahedron; points (..., N, 3) -> (..., M, 4, 3)."""
-    gathered = points.index_select(-2, tets.reshape(-1))
-    return gathered.unflatten(-2, (tets.shape[0], 4))
-
-
-def _tet_volumes(points: Tensor, tets: Tensor) -> Tensor:
-    """Signed volumes without argument checks; points (..., N, 3) -> (..., M)."""
-    vertices = _tet_vertices(points, tets)
-    edges = vertices[..., 1:, :] - vertices[..., :1, :]
-    normal = torch.linalg.cross(edges[..., 0, :], edges[..., 1, :], dim=-1)
-    return (normal * edges[..., 2, :]).sum(-1) / 6.0
-
-
-def _tet_edge_lengths_squared(points: Tensor, tets: Tensor) -> Tensor:
-    """Squared lengths of the six edges (order of TET_EDGES); (..., N, 3) -> (..., M, 6)."""
-    vertices = _tet_vertices(points, tets)
-    vectors = torch.stack([vertices[..., j, :] - vertices[..., i, :] for i, j in TET_EDGES], -2)
-    return (vectors * vectors).sum(-1)
-
 
 # --------------------------------------------------------------------------- checks
 
@@ -96,8 +69,6 @@ def _check_geometry(points: Tensor, tets: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _check_mesh(mesh: TetMesh) -> None:
-    from torchmorph.mesh import TetMesh
-
     if not isinstance(mesh, TetMesh):
         raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
 
@@ -152,7 +123,7 @@ def signed_volumes(points: Tensor, tets: Tensor) -> Tensor:
         For wrong shapes or dtypes, or indices outside ``[0, N)``.
     """
     points, tets = _check_geometry(points, tets)
-    return _tet_volumes(points, tets)
+    return tet_volumes(points, tets)
 
 
 def edge_ratio(points: Tensor, tets: Tensor) -> Tensor:
@@ -175,7 +146,7 @@ def edge_ratio(points: Tensor, tets: Tensor) -> Tensor:
         Edge ratios; ``inf`` for a tetrahedron with a zero-length edge.
     """
     points, tets = _check_geometry(points, tets)
-    lengths_squared = _tet_edge_lengths_squared(points, tets)
+    lengths_squared = tet_edge_lengths_squared(points, tets)
     longest = lengths_squared.amax(-1)
     shortest = lengths_squared.amin(-1)
     return torch.sqrt(longest / shortest)
@@ -214,7 +185,7 @@ def inverted(mesh: TetMesh, displacement: Tensor | None = None) -> Tensor:
     _check_mesh(mesh)
     points = _deformed_points(mesh, displacement, batched=True)
     with torch.no_grad():
-        return _tet_volumes(points, mesh.tets) <= 0
+        return tet_volumes(points, mesh.tets) <= 0
 
 
 def count_inverted(mesh: TetMesh, displacement: Tensor | None = None) -> int:
@@ -235,7 +206,7 @@ def count_inverted(mesh: TetMesh, displacement: Tensor | None = None) -> int:
     _check_mesh(mesh)
     points = _deformed_points(mesh, displacement, batched=False)
     with torch.no_grad():
-        return int((_tet_volumes(points, mesh.tets) <= 0).sum())
+        return int((tet_volumes(points, mesh.tets) <= 0).sum())
 
 
 def quality_summary(mesh: TetMesh, displacement: Tensor | None = None) -> dict[str, float | int]:
@@ -266,8 +237,8 @@ def quality_summary(mesh: TetMesh, displacement: Tensor | None = None) -> dict[s
     points = _deformed_points(mesh, displacement, batched=False)
     with torch.no_grad():
         points = points.detach()
-        volumes = _tet_volumes(points, mesh.tets)
-        lengths_squared = _tet_edge_lengths_squared(points, mesh.tets)
+        volumes = tet_volumes(points, mesh.tets)
+        lengths_squared = tet_edge_lengths_squared(points, mesh.tets)
         q = torch.sqrt(lengths_squared.amax(-1) / lengths_squared.amin(-1))
         ratio = volumes / mesh.volumes.detach().to(volumes.dtype)
         return {
@@ -287,7 +258,7 @@ def _assemble_mass_matrix(mesh: TetMesh) -> Tensor:
     """P1 mass matrix of ``mesh`` as a coalesced float64 sparse COO tensor (N, N)."""
     n = mesh.num_nodes
     tets = mesh.tets
-    volumes = _tet_volumes(mesh.points.detach().to(torch.float64), tets).abs()
+    volumes = tet_volumes(mesh.points.detach().to(torch.float64), tets).abs()
     # M_K = |K| / 20 * (1 + delta_ij): |K|/20 on each of the six edges, |K|/10 on
     # the four diagonal entries. Sum per unique edge and per node.
     edges = mesh.edges
@@ -476,7 +447,7 @@ def validity_barrier(
     if reduction not in ("sum", "mean", "none"):
         raise ValueError(f"reduction must be 'sum', 'mean' or 'none', got {reduction!r}")
     displacement = _check_displacement(mesh, displacement, batched=True)
-    volumes = _tet_volumes(mesh.points + displacement, mesh.tets)
+    volumes = tet_volumes(mesh.points + displacement, mesh.tets)
     ratio = volumes / mesh.volumes.detach().to(volumes.dtype)
     shortfall = torch.clamp(threshold - ratio, min=0.0) / threshold
     penalty = shortfall * shortfall
