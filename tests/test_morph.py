@@ -10,6 +10,7 @@ import torch
 from torch.autograd import gradcheck
 
 from torchmorph import MeshMorph, TetMesh
+from torchmorph.quality import count_inverted
 from torchmorph.selection import SelectionPlan
 
 F64 = torch.float64
@@ -119,8 +120,13 @@ def test_count_inverted(cube):
     crushed = morph(morph.boundary_displacement(
         "z1", lambda p: torch.tensor([0.0, 0.0, -1.5], dtype=F64).expand_as(p)))
     assert morph.count_inverted(crushed) > 0
-    counts = morph.count_inverted(torch.stack([gentle, crushed]))
-    assert counts[0] == 0 and counts[1] > 0
+    count = morph.count_inverted(crushed)
+    assert isinstance(count, int)
+    assert count == count_inverted(cube, crushed)
+    counts = morph.inverted(torch.stack([gentle, crushed])).sum(-1)
+    assert counts.tolist() == [0, count]
+    with pytest.raises(ValueError, match=r"count_inverted takes one field \(N, 3\)"):
+        morph.count_inverted(torch.stack([gentle, crushed]))
 
 
 def test_errors(cube):

@@ -67,6 +67,13 @@ class TetMesh:
     than two tetrahedra (a non-manifold or duplicated input) and tetrahedra
     folded over a neighbour (inverted reference elements: the two tetrahedra of
     an interior face on the same side of it) raise ``ValueError``.
+
+    Overlapping tetrahedra that share no face are detected where they share a
+    node: the solid angles of the tetrahedra at a node may add up to at most one
+    sphere (4π), and to exactly 4π at a node off the boundary. Not detected: two
+    parts of the mesh that overlap without sharing a node (e.g. two separate
+    blocks pushed into each other) — check the boundary surface for
+    self-intersections if your input may have them.
     """
 
     def __init__(
@@ -84,6 +91,7 @@ class TetMesh:
         if name is not None and not isinstance(name, str):
             raise TypeError(f"name must be a string or None, got {type(name).__name__}")
         boundary_faces = _checked_faces(points, tets)
+        _check_interior_solid_angles(points, tets, boundary_faces)
         self._points = points
         self._tets = tets
         self._node_sets = _as_node_sets(node_sets, points.shape[0], points.device)
@@ -464,6 +472,46 @@ def _checked_faces(points: Tensor, tets: Tensor) -> Tensor:
             f"side (inverted, folded reference tetrahedra), e.g. tetrahedra {pairs}{more}"
         )
     return boundary
+
+
+_SOLID_ANGLE_TOLERANCE = 1e-8
+"""Relative tolerance of the full-sphere check of the solid angles at interior nodes."""
+
+
+def _check_interior_solid_angles(points: Tensor, tets: Tensor, boundary_faces: Tensor) -> None:
+    """Raise ``ValueError`` if the tetrahedra around a node cover more than one sphere
+    (4π: overlapping tetrahedra), or those around an interior node less (a gap)."""
+    if tets.numel() == 0:
+        return
+    with torch.no_grad():
+        exact = points.detach().to(torch.float64)
+        vertices = exact[tets]  # (M, 4, 3)
+        angles = []
+        for corner in range(4):
+            others = [k for k in range(4) if k != corner]
+            u, v, w = (vertices[:, k] - vertices[:, corner] for k in others)
+            lu, lv, lw = u.norm(dim=1), v.norm(dim=1), w.norm(dim=1)
+            triple = (u * torch.linalg.cross(v, w, dim=1)).sum(1).abs()
+            below = lu * lv * lw + (u * v).sum(1) * lw + (u * w).sum(1) * lv \
+                + (v * w).sum(1) * lu
+            angles.append(2.0 * torch.atan2(triple, below))  # Van Oosterom–Strackee
+        total = exact.new_zeros(points.shape[0]).index_add_(
+            0, tets.reshape(-1), torch.stack(angles, 1).reshape(-1))
+        interior = torch.zeros(points.shape[0], dtype=torch.bool, device=tets.device)
+        interior[tets.reshape(-1)] = True
+        interior[boundary_faces.reshape(-1)] = False
+        sphere = 4.0 * torch.pi
+        over = total > sphere * (1.0 + _SOLID_ANGLE_TOLERANCE)  # anywhere: overlap
+        under = interior & (total < sphere * (1.0 - _SOLID_ANGLE_TOLERANCE))
+        wrong = torch.nonzero(over | under).flatten()
+    if wrong.numel() > 0:
+        node = int(wrong[0])
+        raise ValueError(
+            f"tets: the tetrahedra around {wrong.numel()} node(s) cover more than one sphere "
+            f"(overlapping tetrahedra) or, at an interior node, less (a gap), e.g. node "
+            f"{node}: solid angle "
+            f"{float(total[node]) / sphere:.6g} x 4π"
+        )
 
 
 def _as_node_sets(

@@ -307,17 +307,26 @@ class MeshMorph(nn.Module):
         """Reference points plus a nodal displacement (N, 3) or (B, N, 3)."""
         return self.points + displacement
 
-    def count_inverted(self, displacement: Tensor) -> int | Tensor:
-        """Number of tets whose signed volume is <= 0 after ``displacement``.
+    def inverted(self, displacement: Tensor) -> Tensor:
+        """Mask of the tets whose signed volume is <= 0 after ``displacement``.
 
-        ``displacement`` is a nodal field (N, 3) (an int is returned) or a batch
-        (B, N, 3) (a tensor of B counts).
+        ``displacement`` is a nodal field (N, 3) or a batch (B, N, 3); the mask has
+        shape (M,) or (B, M) (as :func:`torchmorph.quality.inverted`).
         """
         check_vectors(displacement, "displacement", self.num_nodes, what="mesh nodes")
         with torch.no_grad():
-            counts = (signed_volumes(self.deformed_points(displacement.detach()), self.tets) <= 0)
-            counts = counts.sum(-1)
-        return int(counts) if counts.ndim == 0 else counts
+            return signed_volumes(self.deformed_points(displacement.detach()), self.tets) <= 0
+
+    def count_inverted(self, displacement: Tensor) -> int:
+        """Number of tets whose signed volume is <= 0 after ``displacement`` (N, 3).
+
+        Always an int, as :func:`torchmorph.quality.count_inverted`; for a batch
+        (B, N, 3) count with ``inverted(displacement).sum(-1)``.
+        """
+        if isinstance(displacement, Tensor) and displacement.ndim == 3:
+            raise ValueError("displacement: count_inverted takes one field (N, 3); for a "
+                             "batch (B, N, 3) use inverted(displacement).sum(-1)")
+        return int(self.inverted(displacement).sum())
 
     def extra_repr(self) -> str:
         return (f"num_nodes={self.num_nodes}, num_boundary={self.num_boundary}, "
