@@ -1,7 +1,8 @@
 """Plain NumPy tetrahedral-mesh helpers shared by the meshers.
 
-The builders work on NumPy arrays (they run before and without torch) and wrap
-the result in :class:`torchmorph.mesh.TetMesh` at the very end.
+The builders work on NumPy arrays and wrap the result in
+:class:`torchmorph.mesh.TetMesh` at the very end; the tetrahedron's edge table is
+torchmorph's own (:mod:`torchmorph._tet`), so importing data_gen imports torch.
 """
 
 from __future__ import annotations
