@@ -732,8 +732,8 @@ def test_mesh_reducer_round_trips_into_a_reducer_of_another_size(cube, online):
     ("reduced_rows_", lambda v: v[:-1], r"reduced_rows_ and copied_output_rows_ must split"),
     ("copied_input_rows_", lambda v: v[1:], r"must have the length of copied_output_rows_"),
     ("singular_values_", lambda v: v[:1], r"'singular_values_'\]: must be 1-D with at least 2"),
-    ("_extra_state", lambda v: {**v, "num_modes_": 3}, r"'modes_'\]: has shape \(2, 27, 3\), "
-     r"expected \(3, 27, 3\)"),
+    ("_extra_state", lambda v: {**v, "num_modes_": 3},
+     r"'modes_'\]: has shape \(2, 27, 3\), expected \(3, 27, 3\)"),
     ("_extra_state", lambda v: {**v, "num_outputs_": 0}, r"num_outputs_ must be a positive"),
     ("_extra_state", lambda v: {**v, "online": "fast"}, r"online must be 'projection' or"),
     ("_extra_state", lambda v: {**v, "version": 1}, r"version 1 is not 2"),
