@@ -87,7 +87,7 @@ def compact(
 
 
 def edge_ratio(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Mesh quality Q per tetrahedron: longest / shortest edge (SPEC.md §5), shape (M,)."""
+    """Mesh quality Q per tetrahedron: longest / shortest edge (the paper's section 3.1.1), shape (M,)."""
     ends = tets[:, _TET_EDGES]
     lengths = np.linalg.norm(points[ends[:, :, 0]] - points[ends[:, :, 1]], axis=2)
     return lengths.max(axis=1) / lengths.min(axis=1)

@@ -1,4 +1,4 @@
-"""The Algorithm 2 morph of a tetrahedral mesh (SPEC.md §3)."""
+"""The Algorithm 2 morph of a tetrahedral mesh (the paper's section 2)."""
 
 from __future__ import annotations
 

@@ -127,7 +127,7 @@ def signed_volumes(points: Tensor, tets: Tensor) -> Tensor:
 
 
 def edge_ratio(points: Tensor, tets: Tensor) -> Tensor:
-    """Quality ``Q`` of every tetrahedron: longest edge / shortest edge (SPEC.md §5).
+    """Quality ``Q`` of every tetrahedron: longest edge / shortest edge (the paper's section 3.1.1).
 
     ``Q >= 1``; 1 for a regular tetrahedron. The measure does not see the
     orientation: an inverted tetrahedron can have a good ``Q`` (use
@@ -189,7 +189,7 @@ def inverted(mesh: TetMesh, displacement: Tensor | None = None) -> Tensor:
 
 
 def count_inverted(mesh: TetMesh, displacement: Tensor | None = None) -> int:
-    """Number of tetrahedra whose signed volume becomes ``<= 0`` (SPEC.md §5).
+    """Number of tetrahedra whose signed volume becomes ``<= 0`` (the paper's section 3.1.1).
 
     Parameters
     ----------
@@ -223,7 +223,7 @@ def quality_summary(mesh: TetMesh, displacement: Tensor | None = None) -> dict[s
     -------
     dict
         ``num_tets`` (int), ``max_edge_ratio`` and ``mean_edge_ratio`` (float,
-        the quality ``Q`` of SPEC.md §5), ``min_volume`` (float, smallest
+        the quality ``Q`` of the paper's section 3.1.1), ``min_volume`` (float, smallest
         signed volume), ``min_volume_ratio`` (float, smallest deformed /
         reference volume; 1.0 without a displacement) and ``num_inverted``
         (int, tetrahedra with signed volume ``<= 0``).
@@ -316,7 +316,7 @@ def relative_l2_error(
     *,
     norm: Literal["l2", "nodal"] = "l2",
 ) -> Tensor:
-    """Relative error ``||d - d_ref|| / ||d_ref||`` of a nodal vector field (SPEC.md §5).
+    """Relative error ``||d - d_ref|| / ||d_ref||`` of a nodal vector field (the paper's section 3.1.1).
 
     With ``norm="l2"`` the norm is the L2(Ω_h) norm of the P1 interpolant,
     ``||u||_M² = Σ_c u_c^T M u_c`` summed over the three components ``c``,
