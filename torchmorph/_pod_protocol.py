@@ -27,7 +27,9 @@ __all__ = [
     "copied_rows",
     "evaluate_family",
     "index_runs",
+    "is_single_value",
     "reference_tensor",
+    "training_data",
     "training_inputs",
     "weights_of",
 ]
@@ -84,6 +86,48 @@ def training_inputs(value: Any, name: str) -> Tensor:
     check_float_dtype(value, name)
     check_finite(value, name)
     return value.detach()
+
+
+def training_data(displacements: Any, family: Family | None, parameters: Any,
+                  batched: bool) -> tuple[Tensor, int | None]:
+    """Training inputs (n, N_in, 3) from displacements or a family, and the number of
+    parameters P (0 for scalars, None without a family), with every argument checked."""
+    if family is None:
+        if parameters is not None:
+            raise ValueError("parameters given without family: pass family=callable "
+                             "or training displacements")
+        if displacements is None:
+            raise ValueError("no training data: pass displacements (n_train, N_in, 3) "
+                             "or family= and parameters=")
+        return training_inputs(displacements, "displacements"), None
+    if displacements is not None:
+        raise ValueError("pass either displacements or family= with parameters=, not both")
+    if not callable(family):
+        raise ValueError(f"family must be callable, got {type(family).__name__}")  # noqa: TRY004
+    if not isinstance(batched, bool):
+        raise ValueError(f"batched must be True or False, got {batched!r}")  # noqa: TRY004
+    parameters = as_parameters(parameters)
+    inputs = training_inputs(evaluate_family(family, parameters, None, batched),
+                             "family(parameters)")
+    return inputs, 0 if parameters.ndim == 1 else int(parameters.shape[1])
+
+
+def is_single_value(mu: Tensor, num_parameters: int | None) -> bool:
+    """Whether ``mu`` is one parameter value (else a batch), after checking its shape
+    against the P parameters of the fitted family (None: fitted from displacements,
+    where only a 0-d ``mu`` is one value)."""
+    if num_parameters is None:
+        if mu.ndim not in (0, 1, 2):
+            raise ValueError(f"mu must have shape (), (B,) or (B, P), got {tuple(mu.shape)}")
+        return mu.ndim == 0
+    single_ndim = 1 if num_parameters else 0
+    if mu.ndim not in (single_ndim, single_ndim + 1) or (
+        num_parameters and mu.shape[-1] != num_parameters
+    ):
+        expected = "() or (B,)" if num_parameters == 0 else (
+            f"({num_parameters},) or (B, {num_parameters})")
+        raise ValueError(f"mu must have shape {expected}, got {tuple(mu.shape)}")
+    return mu.ndim == single_ndim
 
 
 def evaluate_family(

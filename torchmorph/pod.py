@@ -28,14 +28,14 @@ from torch import Tensor, nn
 from ._checks import check_finite, check_same_device_dtype, is_traced
 from ._pod_protocol import (
     adjoint,
-    as_parameters,
     check_online,
     check_reducer_state,
     copied_rows,
     evaluate_family,
     index_runs,
+    is_single_value,
     reference_tensor,
-    training_inputs,
+    training_data,
     weights_of,
 )
 from .mesh import TetMesh
@@ -342,27 +342,7 @@ class PODReducer(nn.Module):
         start = time.perf_counter()
         reference = reference_tensor(morph)
         with torch.no_grad():
-            if family is None:
-                if parameters is not None:
-                    raise ValueError("parameters given without family: pass family=callable "
-                                     "or training displacements")
-                if displacements is None:
-                    raise ValueError("no training data: pass displacements (n_train, N_in, 3) "
-                                     "or family= and parameters=")
-                inputs = training_inputs(displacements, "displacements")
-                num_parameters = None
-            else:
-                if displacements is not None:
-                    raise ValueError("pass either displacements or family= with parameters=, "
-                                     "not both")
-                if not callable(family):
-                    raise ValueError(f"family must be callable, got {type(family).__name__}")
-                if not isinstance(batched, bool):
-                    raise ValueError(f"batched must be True or False, got {batched!r}")
-                parameters = as_parameters(parameters)
-                inputs = evaluate_family(family, parameters, None, batched)
-                inputs = training_inputs(inputs, "family(parameters)")
-                num_parameters = 0 if parameters.ndim == 1 else int(parameters.shape[1])
+            inputs, num_parameters = training_data(displacements, family, parameters, batched)
             if reference is not None:
                 inputs = inputs.to(device=reference.device, dtype=reference.dtype)
             num_inputs = inputs.shape[1]
@@ -592,20 +572,7 @@ class PODReducer(nn.Module):
                                "(a family is not saved by state_dict)")
         if not isinstance(mu, Tensor):
             mu = torch.as_tensor(mu, dtype=self.modes_.dtype, device=self.modes_.device)
-        num_parameters = self.num_parameters_
-        if num_parameters is None:  # fitted from displacements: scalars or batches only
-            if mu.ndim not in (0, 1, 2):
-                raise ValueError(f"mu must have shape (), (B,) or (B, P), got {tuple(mu.shape)}")
-            single = mu.ndim == 0
-        else:
-            single_ndim = 1 if num_parameters else 0
-            if mu.ndim not in (single_ndim, single_ndim + 1) or (
-                num_parameters and mu.shape[-1] != num_parameters
-            ):
-                expected = "() or (B,)" if num_parameters == 0 else (
-                    f"({num_parameters},) or (B, {num_parameters})")
-                raise ValueError(f"mu must have shape {expected}, got {tuple(mu.shape)}")
-            single = mu.ndim == single_ndim
+        single = is_single_value(mu, self.num_parameters_)
         batch = mu.unsqueeze(0) if single else mu
         if batched is None:
             batched = self._family_batched if family is self.family else True
