@@ -205,8 +205,9 @@ def pod_basis(
     count, num_points = snapshots.shape[0], snapshots.shape[1]
 
     # U^T = V Σ Z^T: the rows of Vh are the modes, already in the (N, M·3) layout
-    matrix = snapshots.detach().reshape(count, 3 * num_points)
-    work = matrix if matrix.dtype == torch.float64 else matrix.double()
+    snapshots = snapshots.detach()
+    # the layout first (a strided copy is fastest in the narrower dtype), then float64
+    work = snapshots.contiguous().reshape(count, 3 * num_points).to(torch.float64)
     correlation = work @ work.mT
     largest = float(correlation.diagonal().max())  # the largest squared snapshot norm
     extent = 1.0
@@ -214,11 +215,12 @@ def pod_basis(
         # NaN/inf entries, all zero, or squares outside float64's comfortable range:
         # divide by a power of two near the largest entry (exact) and start again
         check_finite(snapshots, "snapshots")
-        low, high = torch.aminmax(matrix)
+        low, high = torch.aminmax(snapshots)
         if max(-float(low), float(high)) == 0.0:
             raise ValueError("snapshots are all zero: there is no displacement to reduce")
         extent = 2.0 ** math.frexp(max(-float(low), float(high)))[1]
-        work = matrix.to(torch.float64, copy=True).div_(extent)
+        work = snapshots.reshape(count, 3 * num_points).to(torch.float64, copy=True)
+        work = work.div_(extent)
         correlation = work @ work.mT
     result = None
     if method == "correlation" or (
