@@ -134,9 +134,12 @@ class MeshMorph(nn.Module):
 
     @property
     def node_sets(self) -> dict[str, Tensor]:
-        """The mesh's named node sets (global node ids), as given to the constructor."""
+        """The mesh's named node sets (global node ids), as given to the constructor.
+
+        Copies: editing them does not change the morph (its state is the
+        ``node_set_members`` / ``node_set_offsets`` buffers)."""
         offsets = self.node_set_offsets.tolist()
-        return {name: self.node_set_members[offsets[k] : offsets[k + 1]]
+        return {name: self.node_set_members[offsets[k] : offsets[k + 1]].clone()
                 for k, name in enumerate(self._node_set_names)}
 
     def get_extra_state(self) -> dict[str, Any]:
@@ -177,11 +180,12 @@ class MeshMorph(nn.Module):
         """Boolean mask over the boundary nodes of the nodes in the named sets."""
         names = [names] if isinstance(names, str) else list(names)
         mask = torch.zeros(self.num_nodes, dtype=torch.bool, device=self.points.device)
+        node_sets = self.node_sets
         for name in names:
-            if name not in self.node_sets:
-                known = ", ".join(sorted(self.node_sets)) or "none"
+            if name not in node_sets:
+                known = ", ".join(sorted(node_sets)) or "none"
                 raise ValueError(f"unknown node set {name!r}; known: {known}")
-            mask[self.node_sets[name].to(mask.device)] = True
+            mask[node_sets[name].to(mask.device)] = True
         return mask[self.boundary_nodes]
 
     def boundary_displacement(
