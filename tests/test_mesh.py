@@ -297,3 +297,17 @@ def test_overlapping_tets_that_share_no_face_are_rejected():
     with pytest.raises(ValueError, match=r"tets: the tetrahedra around \d+ node\(s\) cover more "
                                          r"than one sphere .* e\.g\. node \d+: solid angle"):
         TetMesh(cube.points, tets)
+
+
+def test_the_mesh_copies_its_inputs():
+    cube = box_mesh(2)
+    points, tets = cube.points.clone(), cube.tets.clone()
+    mesh = TetMesh(points, tets)
+    volumes = mesh.volumes.clone()
+    points.mul_(2.0)
+    tets[:, [2, 3]] = tets[:, [3, 2]]
+    assert torch.equal(mesh.points, cube.points) and torch.equal(mesh.tets, cube.tets)
+    assert torch.equal(TetMesh(mesh.points, mesh.tets).volumes, volumes)
+    moved = cube.points.clone().requires_grad_(True)
+    TetMesh(moved, cube.tets).volumes.sum().backward()
+    assert moved.grad is not None

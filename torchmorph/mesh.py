@@ -62,7 +62,9 @@ class TetMesh:
 
     Notes
     -----
-    Nodes that belong to no tetrahedron are allowed; they are not on the
+    ``points`` and ``tets`` are copied (a tensor that requires grad keeps its
+    autograd link through the copy), so editing the caller's arrays afterwards
+    does not change the mesh. Nodes that belong to no tetrahedron are allowed; they are not on the
     boundary and so count among :attr:`interior_nodes`. Faces shared by more
     than two tetrahedra (a non-manifold or duplicated input) and tetrahedra
     folded over a neighbour (inverted reference elements: the two tetrahedra of
@@ -85,8 +87,13 @@ class TetMesh:
         name: str | None = None,
     ) -> None:
         dtype = None if isinstance(points, Tensor) else torch.float64
+        given_points, given_tets = points, tets
         points = as_points(points, "points", dtype=dtype)
+        if points is given_points:  # a copy: later in-place edits by the caller cannot
+            points = points.clone()  # make the cached topology and geometry stale
         tets = _as_tets(tets, points.shape[0]).to(points.device)
+        if tets is given_tets:
+            tets = tets.clone()
         tets = _orient(points, tets)
         if name is not None and not isinstance(name, str):
             raise TypeError(f"name must be a string or None, got {type(name).__name__}")
