@@ -17,6 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_finite, check_float_dtype
+from .pod_functional import projection_matrix
 
 __all__ = [
     "ONLINE_VARIANTS",
@@ -183,15 +184,24 @@ def copied_rows(morph: Any, num_inputs: int, num_outputs: int,
     return output_rows.clone(), input_rows.clone(), torch.nonzero(keep).flatten()
 
 
-def adjoint(morph: Any, fields: Tensor, num_inputs: int) -> Tensor:
-    """Lᵀ applied to N output fields (N, N_out, 3) -> (N, N_in, 3).
+def adjoint(morph: Any, fields: Tensor, num_inputs: int, reduced: Tensor) -> Tensor:
+    """Lᵀ applied to N output fields (N, N_out, 3) that are zero outside the reduced
+    rows: (N, N_in, 3), the projection matrix P = Zᵀ L.
 
-    The morph's own ``adjoint`` if it has one (a dense W: one GEMM); otherwise, since
-    the morph is linear, the vector-Jacobian product at any input, by autograd for
-    all N fields in one batched call (a matrix-free IDW never forms W).
+    In order of preference: the morph's stored W (a tensor attribute ``weights``,
+    reading the inputs ``weight_columns``): one GEMM; the morph's own ``adjoint``;
+    otherwise, since the morph is linear, the vector-Jacobian product at any input,
+    by autograd for all N fields in one batched call (a matrix-free IDW never forms W).
     """
+    stored = getattr(morph, "weights", None)
     method = getattr(morph, "adjoint", None)
-    if method is not None:
+    if isinstance(stored, Tensor) and stored.ndim == 2 and stored.shape[0] == reduced.numel():
+        columns = getattr(morph, "weight_columns", None)
+        columns = torch.arange(num_inputs) if columns is None else torch.as_tensor(columns)
+        result = fields.new_zeros(fields.shape[0], num_inputs, 3)
+        result.index_copy_(1, columns.long().to(result.device),
+                           projection_matrix(fields.index_select(1, reduced), stored))
+    elif method is not None:
         result = method(fields)
     else:
         with torch.enable_grad():

@@ -117,8 +117,9 @@ class PODReducer(nn.Module):
       (B, N_in, 3) to (B, N_out, 3), differentiable in ``d`` (or with an ``adjoint``
       method). Optional methods make it faster or exact: ``copied_rows()`` returns
       (output rows, input rows) that ``morph`` copies unchanged (not reduced, exact);
-      ``adjoint(fields)`` applies the transpose, (B, N_out, 3) to (B, N_in, 3)
-      (else autograd computes it from one vector-Jacobian product);
+      a stored matrix ``weights`` (N_red, len(weight_columns)) gives P by one GEMM;
+      else ``adjoint(fields)`` applies the transpose, (B, N_out, 3) to (B, N_in, 3);
+      else autograd computes it from one vector-Jacobian product;
       ``weights_matrix()`` returns W with ``morph(d)[:, reduced_rows] =
       W @ d[:, weight_columns]`` per component, and the attribute ``weight_columns``
       (default: every input row), for ``online="paper"``. :class:`~torchmorph.idw.IDW`
@@ -373,7 +374,7 @@ class PODReducer(nn.Module):
             if self.online == "projection":
                 spread = modes if copied_out.numel() == 0 else modes.new_zeros(
                     modes.shape[0], num_outputs, 3).index_copy_(1, reduced, modes)
-                projection = adjoint(morph, spread, num_inputs)
+                projection = adjoint(morph, spread, num_inputs, reduced)
                 system, rhs = empty, empty
             else:
                 weights, columns = weights_of(morph, num_inputs, reduced.numel())
