@@ -50,7 +50,15 @@ from torch import Tensor
 from torchmorph._atomic import atomic_output
 from torchmorph.mesh import TetMesh
 
-__all__ = ["MESH_FORMATS", "from_meshio", "read_mesh", "to_meshio", "write_mesh"]
+__all__ = [
+    "MESH_FORMATS",
+    "decode_set_name",
+    "encode_set_name",
+    "from_meshio",
+    "read_mesh",
+    "to_meshio",
+    "write_mesh",
+]
 
 #: File extensions understood by :func:`read_mesh` and :func:`write_mesh`, and
 #: the meshio format used for each.
@@ -377,7 +385,7 @@ def write_mesh(
     for kind, names in (("point_data", converted.point_data), ("cell_data", converted.cell_data)):
         for key in names:
             if not key.startswith(NODE_SET_PREFIX):
-                check_field_name(key, file_format, f"{kind}[{key!r}]")
+                _check_field_name(key, file_format, f"{kind}[{key!r}]")
     options = {"binary": True} if file_format == "gmsh" else {}
     if file_format == "xdmf":
         _write_xdmf(path, converted)
@@ -452,7 +460,7 @@ def decode_set_name(stored: str) -> str:
     return urllib.parse.unquote(stored, errors="strict") if "%" in stored else stored
 
 
-def check_field_name(name: str, file_format: str, argument: str) -> None:
+def _check_field_name(name: str, file_format: str, argument: str) -> None:
     """Raise ``ValueError`` if a point/cell data name cannot be stored in ``file_format``.
 
     Control characters are refused everywhere; VTU refuses ``" ' < > &``
