@@ -67,7 +67,9 @@ def test_one_tet_edge_table():
     assert [name for name in holders if name != "paper.py"] == ["_tet.py"]
 
 
-@pytest.mark.parametrize("module", [*CORE, "pod_functional", "_pod_protocol", "_tet", "_sidw"])
+@pytest.mark.parametrize("module", ["selection", "_sidw", "morph", "pod", "pod_functional",
+                                    "_pod_protocol", "mesh", "quality", "io", "_tet"])
 def test_core_files_stay_small(module):
+    """About 600 lines at most (docstrings included), so that a module stays one concept."""
     lines = (LIBRARY / f"{module}.py").read_text().count("\n")
-    assert lines <= 680, f"{module}.py has {lines} lines"
+    assert lines <= 630, f"{module}.py has {lines} lines"

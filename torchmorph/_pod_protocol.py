@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_float_dtype
+from ._checks import check_finite, check_float_dtype, is_traced
 from .pod_functional import projection_matrix
 
 __all__ = [
@@ -27,6 +27,8 @@ __all__ = [
     "check_reducer_state",
     "copied_rows",
     "evaluate_family",
+    "expand",
+    "expand_by_runs",
     "index_runs",
     "is_single_value",
     "reference_tensor",
@@ -249,6 +251,56 @@ def index_runs(rows: Tensor, sources: Tensor) -> list[tuple[int, int, int]] | No
     ends = [*breaks.tolist(), rows.numel()]
     return [(int(rows[start]), int(sources[start]), end - start)
             for start, end in zip(starts, ends, strict=True)]
+
+
+# --------------------------------------------------------------------------------------
+# the online expansion (step (g) of Algorithm 3)
+# --------------------------------------------------------------------------------------
+
+
+def expand(beta: Tensor, output_basis: Tensor, displacement: Tensor, copied_output_rows: Tensor,
+           copied_input_rows: Tensor, out: Tensor | None) -> Tensor:
+    """(B, N) coefficients -> output fields (B, N_out, 3): ``beta @ basis`` over every
+    output row (the basis is zero on the copied rows), then the copied rows."""
+    count, batch = output_basis.shape[0], beta.shape[0]
+    basis = output_basis.reshape(count, -1)
+    # one mode: a broadcast product (BLAS with an inner dimension of 1 is slower)
+    product = torch.mul if count == 1 else torch.matmul
+    if out is None:
+        field = product(beta, basis).reshape(batch, -1, 3)
+    else:
+        product(beta, basis, out=out.view(batch, -1))
+        field = out
+    if copied_output_rows.numel():
+        copied = displacement.index_select(1, copied_input_rows)
+        if is_traced(field):  # vmap has no batching rule for the in-place index_copy_
+            field = field.index_copy(1, copied_output_rows, copied)
+        else:
+            field.index_copy_(1, copied_output_rows, copied)
+    return field
+
+
+def expand_by_runs(beta: Tensor, modes: Tensor, displacement: Tensor,
+                   runs: tuple[list[tuple[int, int, int]], list[tuple[int, int, int]]],
+                   num_outputs: int, out: Tensor | None) -> Tensor:
+    """:func:`expand` when the copied and reduced rows form a few contiguous runs
+    (``(copied runs, reduced runs)`` of :func:`index_runs`): slice products and copies
+    instead of a full-size product and an indexed scatter. No autograd."""
+    count, batch = modes.shape[0], beta.shape[0]
+    if out is None:
+        out = beta.new_empty(batch, num_outputs, 3)
+    flat_out = out.view(batch, -1)
+    flat_in = displacement.reshape(batch, -1)
+    modes = modes.reshape(count, -1)
+    product = torch.mul if count == 1 else torch.matmul
+    copied_runs, reduced_runs = runs
+    for node, row, length in reduced_runs:
+        product(beta, modes[:, 3 * row : 3 * (row + length)],
+                out=flat_out[:, 3 * node : 3 * (node + length)])
+    for node, row, length in copied_runs:
+        flat_out[:, 3 * node : 3 * (node + length)].copy_(
+            flat_in[:, 3 * row : 3 * (row + length)])
+    return out
 
 
 # --------------------------------------------------------------------------------------

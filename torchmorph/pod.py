@@ -32,6 +32,8 @@ from ._pod_protocol import (
     check_reducer_state,
     copied_rows,
     evaluate_family,
+    expand,
+    expand_by_runs,
     index_runs,
     is_single_value,
     reference_tensor,
@@ -449,45 +451,6 @@ class PODReducer(nn.Module):
             return rhs
         return torch.linalg.solve(self.system_matrix_, rhs.mT).mT
 
-    def _expand(self, beta: Tensor, displacement: Tensor, out: Tensor | None) -> Tensor:
-        """(B, N) coefficients -> output fields (B, N_out, 3) (online step (g))."""
-        count, batch = self.num_modes_, beta.shape[0]
-        basis = self._output_basis.reshape(count, -1)
-        # one mode: a broadcast product (BLAS with an inner dimension of 1 is slower)
-        product = torch.mul if count == 1 else torch.matmul
-        if out is None:
-            field = product(beta, basis).reshape(batch, -1, 3)
-        else:
-            product(beta, basis, out=out.view(batch, -1))
-            field = out
-        if self.copied_output_rows_.numel():
-            copied = displacement.index_select(1, self.copied_input_rows_)
-            if is_traced(field):  # vmap has no batching rule for the in-place index_copy_
-                field = field.index_copy(1, self.copied_output_rows_, copied)
-            else:
-                field.index_copy_(1, self.copied_output_rows_, copied)
-        return field
-
-    def _expand_by_runs(self, beta: Tensor, displacement: Tensor, out: Tensor | None) -> Tensor:
-        """:meth:`_expand` when the copied and reduced rows form a few contiguous runs:
-        slice products and copies instead of a full-size product and an indexed
-        scatter. No autograd."""
-        count, batch = self.num_modes_, beta.shape[0]
-        if out is None:
-            out = beta.new_empty(batch, self.num_outputs_, 3)
-        flat_out = out.view(batch, -1)
-        flat_in = displacement.reshape(batch, -1)
-        modes = self.modes_.reshape(count, -1)
-        product = torch.mul if count == 1 else torch.matmul
-        copied_runs, reduced_runs = self._runs
-        for node, row, length in reduced_runs:
-            product(beta, modes[:, 3 * row : 3 * (row + length)],
-                    out=flat_out[:, 3 * node : 3 * (node + length)])
-        for node, row, length in copied_runs:
-            flat_out[:, 3 * node : 3 * (node + length)].copy_(
-                flat_in[:, 3 * row : 3 * (row + length)])
-        return out
-
     def forward(self, displacement: Tensor, *, out: Tensor | None = None) -> Tensor:
         """Reduced morph: what the fitted morph's ``forward`` returns, from N modes.
 
@@ -526,9 +489,10 @@ class PODReducer(nn.Module):
         slices = self._runs is not None and not is_traced(beta) and not (
             torch.is_grad_enabled() and beta.requires_grad)
         if slices:
-            result = self._expand_by_runs(beta, inputs, out)
+            result = expand_by_runs(beta, self.modes_, inputs, self._runs, self.num_outputs_, out)
         else:
-            result = self._expand(beta, inputs, out)
+            result = expand(beta, self._output_basis, inputs, self.copied_output_rows_,
+                            self.copied_input_rows_, out)
         return result if batched else result[0]
 
     def _check_out(self, out: Tensor, displacement: Tensor) -> Tensor:
