@@ -1,4 +1,4 @@
-"""Benchmark of the POD-reduced morph (Algorithm 3, SPEC.md §4) at the size of case B.
+"""Benchmark of the POD-reduced morph (Algorithm 3 of Ballarin et al. 2017, section 3) at the size of case B.
 
 A problem of the size of the paper's case B (fluid wing in a tunnel): 14,126
 control points (tunnel walls, random points, plus a NACA0012 wing surface of span 2π
@@ -9,7 +9,9 @@ values as in the paper. With ``--mesh`` the generated case-B mesh
 boundary node a control point are used instead.
 
 Printed (markdown): the offline phase (W assembly by the IDW module, then the POD
-fit: snapshots, SVD, online matrices), the online phase per μ (one value) and per
+fit: snapshots, SVD, online matrices; ``projection_matrix`` alone), the POD basis of
+the same snapshots by ``pod_basis`` and by EZyRB's ``POD`` (when ``ezyrb`` is
+installed), the online phase per μ (one value) and per
 batch of 1000 values, the full IDW morph for one value and for a batch of 100
 (a batch of 1000 would take ~10x that and 1.3 GB of output per 100 values in
 float64; it is extrapolated, and said so), the ratios, and the relative error of
@@ -38,10 +40,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _timing import median_and_min
+from _timing import median_and_min, median_time
 
 from torchmorph.idw import IDW
-from torchmorph.pod import PODReducer
+from torchmorph.pod import PODReducer, pod_basis, projection_matrix
 
 BOX = np.array([10.0, 5.0, 4.0 * math.pi])  # tunnel, x along the flow, z span-wise
 CHORD, SPAN = 1.01, 2.0 * math.pi
@@ -144,6 +146,51 @@ def seconds(value: float) -> str:
     return f"{value * 1e3:,.3f} ms" if value < 1 else f"{value:,.2f} s"
 
 
+def pod_versus_ezyrb(snapshots: torch.Tensor, energy_tolerance: float, repeats: int) -> list[str]:
+    """Rows: the POD basis of the same snapshots by ``pod_basis`` and by EZyRB's ``POD``.
+
+    EZyRB keeps the modes reaching a cumulative energy ``1 - ε`` and gets the
+    snapshots as a float64 NumPy array, one snapshot per column (its layout; the
+    conversion is not timed); ``pod_basis`` gets them as the morph returned them.
+    The contenders are timed in turns (one call each per round, after a warm-up
+    round), so that a change in the machine's load hits all of them alike.
+    """
+    snapshots64 = snapshots.double().contiguous()
+    contenders = {
+        "pod_basis (auto)": lambda: pod_basis(snapshots, energy_tolerance=energy_tolerance),
+        "pod_basis (auto), float64 contiguous copy (what EZyRB gets)": lambda: pod_basis(
+            snapshots64, energy_tolerance=energy_tolerance),
+        "pod_basis(method='svd')": lambda: pod_basis(snapshots, method="svd",
+                                                     energy_tolerance=energy_tolerance),
+    }
+    try:
+        from ezyrb import POD
+    except ImportError:
+        POD = None
+    if POD is not None:
+        columns = snapshots.double().reshape(snapshots.shape[0], -1).T.contiguous().numpy()
+        for method in ("svd", "correlation_matrix"):
+            contenders[f"EZyRB POD('{method}').fit"] = (
+                lambda method=method: POD(method, rank=1.0 - energy_tolerance).fit(columns))
+    times: dict[str, list[float]] = {name: [] for name in contenders}
+    for round_ in range(repeats + 1):
+        for name, call in contenders.items():
+            start = time.perf_counter()
+            call()
+            if round_:
+                times[name].append(time.perf_counter() - start)
+    median = {name: statistics.median(values) for name, values in times.items()}
+    if POD is None:
+        return [row("POD basis, pod_basis (auto)", median["pod_basis (auto)"]), "",
+                "EZyRB is not installed (pip install ezyrb): no comparison row."]
+    fastest = min(value for name, value in median.items() if name.startswith("EZyRB"))
+    rows = []
+    for name, value in median.items():
+        label = f"POD fit vs EZyRB on the same snapshots: {name}" if not rows else name
+        rows.append(row(label, value, "", f"{fastest / value:,.2f}x EZyRB's fastest"))
+    return rows
+
+
 def row(name: str, timing, paper: str = "", ratio: str = "") -> str:
     """A table row; ``timing`` is seconds or (median, minimum)."""
     if isinstance(timing, tuple):
@@ -190,6 +237,14 @@ def main() -> None:
     if args.paper:
         paper_fit = PODReducer(online="paper").fit(morph, family=family, parameters=training)
 
+    with torch.no_grad():
+        snapshots = morph(family(training)) if not args.mesh else morph.idw(
+            morph.controls_from_boundary(family(training)))
+        comparison = pod_versus_ezyrb(snapshots, reducer.energy_tolerance, args.repeats)
+        weights = morph.idw.weights_matrix() if args.mesh else morph.weights_matrix()
+        modes = reducer.modes_
+        projection = median_time(lambda: projection_matrix(modes, weights), args.repeats)
+
     # ---------------------------------------------------------------- online
     mu_one = random_mu(1)[0]
     d_one = family(mu_one)
@@ -228,6 +283,8 @@ def main() -> None:
     print(row("offline: snapshots (one batched morph)", offline["snapshots"]))
     print(row("offline: SVD", offline["svd"]))
     print(row("offline: online matrices P = Zᵀ W", offline["online_matrices"]))
+    print(row(f"offline: projection_matrix (one GEMM, {reducer.num_modes_} mode(s), "
+              f"{num_controls} -> {num_targets})", projection))
     print(row("offline: total fit", offline["total"], f"{PAPER['offline']:,.0f} s",
               f"{PAPER['offline'] / offline['total']:,.0f}x faster"))
     print(row("offline: setup + fit", setup + offline["total"], f"{PAPER['offline']:,.0f} s",
@@ -248,6 +305,11 @@ def main() -> None:
     print(row(f"full IDW: batch of {args.full_batch} μ", full_batch))
     print(row(f"full IDW: batch of {args.batch} μ (extrapolated ×{args.batch / args.full_batch:g})",
               full_extrapolated, "", f"POD {full_extrapolated / batch[0]:,.0f}x faster"))
+    print()
+    print("| POD basis of the fit's snapshots | median | | ratio |")
+    print("|---|---|---|---|")
+    for line in comparison:
+        print(line)
     print()
     print(f"relative nodal error of the reduced morph on 20 fresh μ: max {float(error.max()):.2e}"
           + (f"; paper variant: max {float(paper_error.max()):.2e}" if paper_error is not None

@@ -6,6 +6,9 @@ python -m data_gen wing --size paper --mesher gmsh -o wing.vtu
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -70,30 +73,74 @@ def _format(value) -> str:
 
 
 def _write(path: Path, mesh) -> None:
-    try:
-        from torchmorph.io import write_mesh
-        from torchmorph.mesh import TetMesh
-    except ImportError:  # torchmorph not importable: write with meshio directly
-        import meshio
-        import numpy as np
+    from torchmorph.io import write_mesh
+    from torchmorph.mesh import TetMesh
 
-        flags = {}
-        for name, nodes in mesh.node_sets.items():
-            flag = np.zeros(len(mesh.points), dtype=np.int8)
-            flag[nodes] = 1
-            flags[f"set:{name}"] = flag
-        meshio.write(path, meshio.Mesh(mesh.points, [("tetra", mesh.tets)], point_data=flags))
-        return
     write_mesh(path, TetMesh(mesh.points, mesh.tets, mesh.node_sets))
+
+
+class _ArgumentError(ValueError):
+    """A bad command-line argument, reported as one line before any meshing."""
+
+
+def _check_arguments(args: argparse.Namespace) -> str:
+    """The canonical case name, after checking every argument that meshing would use.
+
+    Raises ``_ArgumentError`` with a message that names the argument (and path).
+    """
+    try:
+        case = canonical_case(args.case)
+    except (TypeError, ValueError) as error:
+        raise _ArgumentError(f"case: {error}") from None
+    if not math.isfinite(args.mesh_scale) or args.mesh_scale <= 0:
+        raise _ArgumentError(f"--mesh-scale must be a finite number > 0, got {args.mesh_scale!r}")
+    if args.seed < 0:
+        raise _ArgumentError(f"--seed must be >= 0, got {args.seed}")
+    if args.output is not None:
+        from torchmorph.io import MESH_FORMATS
+
+        output = args.output
+        if output.is_dir():
+            raise _ArgumentError(f"--output: {str(output)!r} is a directory")
+        if output.suffix.lower() not in MESH_FORMATS:
+            raise _ArgumentError(f"--output: unsupported mesh file extension "
+                                 f"{output.suffix or '(none)'!r} in {str(output)!r}; supported: "
+                                 f"{', '.join(sorted(MESH_FORMATS))}")
+        parent = output.parent if str(output.parent) else Path(".")
+        if not parent.is_dir():
+            raise _ArgumentError(f"--output: directory {str(parent)!r} does not exist")
+        if not os.access(parent, os.W_OK):
+            raise _ArgumentError(f"--output: directory {str(parent)!r} is not writable")
+        if MESH_FORMATS[output.suffix.lower()] == "xdmf":
+            try:
+                import h5py  # noqa: F401
+            except ImportError:
+                raise _ArgumentError(f"--output: XDMF files ({str(output)!r}) need the h5py "
+                                     "package: pip install h5py") from None
+    if args.cache_dir is not None and args.cache_dir.exists() and not args.cache_dir.is_dir():
+        raise _ArgumentError(f"--cache-dir: {str(args.cache_dir)!r} is not a directory")
+    module = {"gmsh": "gmsh", "pytetwild": "pytetwild"}[args.mesher]
+    if importlib.util.find_spec(module) is None:
+        raise _ArgumentError(f"--mesher {args.mesher}: the {module} package is not installed "
+                             f"(pip install {module})")
+    return case
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        case = canonical_case(args.case)
-    except ValueError as error:
+        case = _check_arguments(args)
+    except _ArgumentError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    try:
+        return _run(case, args)
+    except (OSError, RuntimeError, ValueError, ImportError) as error:
+        print(f"error: {type(error).__name__}: {error}", file=sys.stderr)
+        return 1
+
+
+def _run(case: str, args: argparse.Namespace) -> int:
     cached = (
         not args.no_cache
         and cache_path(

@@ -1,7 +1,8 @@
 """Plain NumPy tetrahedral-mesh helpers shared by the meshers.
 
-The builders work on NumPy arrays (they run before and without torch) and wrap
-the result in :class:`torchmorph.mesh.TetMesh` at the very end.
+The builders work on NumPy arrays and wrap the result in
+:class:`torchmorph.mesh.TetMesh` at the very end; the tetrahedron's edge table is
+torchmorph's own (:mod:`torchmorph._tet`), so importing data_gen imports torch.
 """
 
 from __future__ import annotations
@@ -9,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from torchmorph._tet import TET_EDGES
 
 __all__ = [
     "MeshArrays",
@@ -23,7 +26,7 @@ __all__ = [
 
 # Faces of a positively oriented tetrahedron (a, b, c, d), normals pointing out.
 _OUTWARD_FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])
-_TET_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+_TET_EDGES = np.array(TET_EDGES)  # the one table, torchmorph._tet
 
 
 @dataclass

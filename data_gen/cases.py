@@ -400,13 +400,14 @@ def build_arrays(
     cache: bool = True,
     verbose: bool = False,
 ) -> MeshArrays:
-    """Like :func:`build`, but return NumPy arrays (:class:`MeshArrays`), no torch needed."""
+    """Like :func:`build`, but return NumPy arrays (:class:`MeshArrays`), not a TetMesh."""
     case, record = _resolve(case, size, mesher, mesh_scale, seed)
     path = cache_path(case, size, mesher, mesh_scale=mesh_scale, seed=seed, cache_dir=cache_dir)
-    if cache and path.exists():
+    cached = _cache.load_or_none(path) if cache else None  # a corrupt entry: rebuilt
+    if cached is not None:
         if verbose:
             print(f"[data_gen] {case} ({size}, {mesher}): cached {path}")
-        return _cache.load(path)
+        return cached
     if verbose:
         print(f"[data_gen] {case} ({size}, {mesher}): meshing with {record['params']}")
     start = time.perf_counter()
@@ -436,10 +437,8 @@ def build_arrays(
     mesh = MeshArrays(points=points, tets=tets, node_sets=sets, info=info)
     if verbose:
         print(f"[data_gen] {case} ({size}, {mesher}): {info['figures']} in {seconds:.2f} s")
-    if cache:
-        _cache.save(path, mesh)
-        if verbose:
-            print(f"[data_gen] saved {path}")
+    if cache and _cache.save(path, mesh) and verbose:  # a failed write only warns
+        print(f"[data_gen] saved {path}")
     return mesh
 
 

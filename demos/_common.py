@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
 
+from torchmorph._timing import median_time, synchronise
 from torchmorph.paper import VARIANTS, CaseResult, get_case, reproduce
 
 __all__ = ["case_main", "median_seconds", "set_threads", "synchronise"]
@@ -21,28 +20,11 @@ def set_threads(threads: int | None) -> None:
         torch.set_num_threads(int(threads))
 
 
-def synchronise(device: torch.device | None) -> None:
-    """Wait for the work queued on ``device`` when it is a CUDA device; nothing otherwise."""
-    if device is not None and device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def median_seconds(function: Callable[[], Any], repeats: int,
                    device: torch.device | None = None) -> float:
-    """Median wall time of ``repeats`` calls of ``function`` after one untimed call.
-
-    With a CUDA ``device``, the device is synchronised after the warm-up call and after
-    each timed call; with None (the default) nothing is synchronised here.
-    """
-    function()
-    synchronise(device)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        synchronise(device)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    """Median wall time of ``repeats`` calls of ``function`` after one untimed call
+    (:func:`torchmorph._timing.median_time`, the helper the benchmarks use too)."""
+    return median_time(function, repeats, warmup=1, device=device)
 
 
 def case_main(case: str, argv: Sequence[str] | None = None) -> CaseResult:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import time
 
 import numpy as np
@@ -415,3 +416,110 @@ def test_pytetwild_small_mesh_is_valid_and_tagged(case, tmp_path):
     again = data_gen.build_arrays(case, "small", "pytetwild", cache_dir=tmp_path)
     assert time.perf_counter() - start < seconds
     assert np.array_equal(again.points, mesh.points) and np.array_equal(again.tets, mesh.tets)
+
+
+# --------------------------------------------------------------------------- robustness
+
+
+def tiny_mesh():
+    from data_gen._arrays import MeshArrays
+
+    return MeshArrays(points=np.eye(4, 3), tets=np.array([[0, 1, 2, 3]]),
+                      node_sets={"all": np.arange(4)}, info={"case": "tiny"})
+
+
+def test_cache_files_are_readable_and_round_trip(tmp_path):
+    import os
+    import stat
+
+    from data_gen import cache
+
+    path = tmp_path / "nested" / "tiny.npz"
+    umask = os.umask(0o022)
+    try:
+        assert cache.save(path, tiny_mesh())
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
+    assert [item.name for item in path.parent.iterdir()] == ["tiny.npz"]  # no temporary left
+    loaded = cache.load(path)
+    assert np.array_equal(loaded.tets, [[0, 1, 2, 3]]) and loaded.info == {"case": "tiny"}
+
+
+def test_unwritable_cache_warns_and_keeps_the_mesh(tmp_path):
+    from data_gen import cache
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    with pytest.warns(RuntimeWarning, match=r"could not write the mesh cache entry .*file"):
+        assert cache.save(blocker / "tiny.npz", tiny_mesh()) is False
+
+
+@pytest.mark.parametrize("content", [b"", b"PK\x03\x04 truncated", b"garbage"])
+def test_corrupt_cache_entry_is_reported_removed_and_rebuilt(tmp_path, monkeypatch, content):
+    from data_gen import cache
+
+    path = data_gen.cache_path("wing", "small", cache_dir=tmp_path)
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=r"mesh cache entry .* is unreadable"):
+        cache.load(path)
+
+    def meshing(*args, **kwargs):
+        raise RuntimeError("meshing again")
+
+    monkeypatch.setattr(cases, "_generate", meshing)
+    with pytest.warns(RuntimeWarning, match="is unreadable .*building the mesh again"), \
+            pytest.raises(RuntimeError, match="meshing again"):
+        data_gen.build_arrays("wing", "small", cache_dir=tmp_path)
+    assert not path.exists()
+
+
+def test_read_only_cache_still_returns_the_built_mesh(tmp_path, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    monkeypatch.setattr(cases, "_generate", lambda *a, **k: (None, None, None))
+    monkeypatch.setattr(cases, "_finish", lambda *a, **k: (
+        np.eye(4, 3), np.array([[0, 1, 2, 3]]), {"all": np.arange(4)}, 0))
+    monkeypatch.setattr(cases, "mesh_figures", lambda points, tets: {})
+    with pytest.warns(RuntimeWarning, match="could not write the mesh cache entry"):
+        mesh = data_gen.build_arrays("wing", "small", cache_dir=blocker / "cache")
+    assert np.array_equal(mesh.tets, [[0, 1, 2, 3]])
+
+
+@pytest.mark.parametrize(("arguments", "message"), [
+    (["D"], r"^error: case: case must be one of"),
+    (["A", "--mesh-scale", "0"], r"^error: --mesh-scale must be a finite number > 0, got 0.0$"),
+    (["A", "--mesh-scale", "nan"], r"^error: --mesh-scale must be a finite number > 0"),
+    (["A", "--seed", "-1"], r"^error: --seed must be >= 0, got -1$"),
+    (["A", "-o", "{tmp}/mesh.stl"], r"^error: --output: unsupported mesh file extension '.stl'"),
+    (["A", "-o", "{tmp}/missing/mesh.vtu"], r"^error: --output: directory .*' does not exist$"),
+    (["A", "-o", "{tmp}"], r"^error: --output: .* is a directory$"),
+    (["A", "--cache-dir", "{tmp}/file"], r"^error: --cache-dir: .*file' is not a directory$"),
+])
+def test_cli_bad_arguments_are_one_line_errors_before_meshing(tmp_path, monkeypatch, capsys,
+                                                              arguments, message):
+    from data_gen.__main__ import main
+
+    (tmp_path / "file").write_text("x")
+
+    def no_meshing(*args, **kwargs):
+        raise AssertionError("meshing started")
+
+    monkeypatch.setattr(cases, "_generate", no_meshing)
+    arguments = [argument.replace("{tmp}", str(tmp_path)) for argument in arguments]
+    assert main(arguments) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1, error
+    assert re.search(message, error.strip()), error
+
+
+def test_cli_failure_while_meshing_is_one_line(tmp_path, monkeypatch, capsys):
+    pytest.importorskip("gmsh")
+    from data_gen.__main__ import main
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("the mesher gave up")
+
+    monkeypatch.setattr(cases, "_generate", failing)
+    assert main(["A", "--size", "small", "--cache-dir", str(tmp_path)]) == 1
+    assert capsys.readouterr().err == "error: RuntimeError: the mesher gave up\n"

@@ -176,3 +176,113 @@ def test_write_rejects_bad_fields(tmp_path, cube):
         write_mesh(path, cube, cell_data={"q": torch.zeros(47)})
     with pytest.raises(ValueError, match=r"point_data\['set:x'\]: names starting with 'set:'"):
         write_mesh(path, cube, point_data={"set:x": torch.zeros(27)})
+
+
+# --------------------------------------------------------------------------- awkward names
+
+AWKWARD_SET_NAMES = [
+    "inlet wall", 'q"uote', "less<than", "amp&ersand", "tab\tname", "new\nline",
+    "apos'trophe", "greater>than", "per%cent", "per%41cent", "ümlaut-ε", "semi;colon",
+    "col:on", " leading", "trailing ", "no\u00a0break", "set:nested", "back\\slash",
+]
+
+
+@pytest.mark.parametrize("extension", FORMATS)
+def test_awkward_node_set_names_round_trip(tmp_path, cube, extension):
+    needs_h5py(extension)
+    sets = {name: [index] for index, name in enumerate(AWKWARD_SET_NAMES)}
+    mesh = TetMesh(cube.points, cube.tets, sets)
+    path = tmp_path / f"awkward{extension}"
+    write_mesh(path, mesh)
+    back = read_mesh(path)
+    assert sorted(back.node_sets) == sorted(AWKWARD_SET_NAMES)
+    for name, nodes in sets.items():
+        assert back.node_sets[name].tolist() == nodes
+
+
+def test_node_set_names_are_percent_encoded_only_where_needed(cube):
+    from torchmorph.io import decode_set_name, encode_set_name
+
+    assert encode_set_name("wing") == "wing"
+    assert encode_set_name("ε-wall_2") == "ε-wall_2"
+    assert encode_set_name('a b"<&%') == "a%20b%22%3C%26%25"
+    assert encode_set_name("tab\tline\n") == "tab%09line%0A"
+    for name in AWKWARD_SET_NAMES:
+        assert decode_set_name(encode_set_name(name)) == name
+    converted = to_meshio(TetMesh(cube.points, cube.tets, {"inlet wall": [0]}))
+    assert "set:inlet%20wall" in converted.point_data
+
+
+# Field names each format refuses (before writing anything) and the ones it keeps.
+FIELD_NAMES = {
+    ".vtu": (['q"x', "l<x", "g>x", "a&x", "p'x", "t\tx", "n\nx"], ["a b", "ü", "c:d"]),
+    ".vtk": (["a b", "t\tx", "n\nx", " lead"], ['q"x', "l<x", "a&x", "ü"]),
+    ".xdmf": (["t\tx", "n\nx"], ["a b", 'q"x', "l<x", "a&x", "ü"]),
+    ".msh": (['q"x', "t\tx", "n\nx"], ["a b", "l<x", "a&x", "ü"]),
+}
+
+
+@pytest.mark.parametrize("extension", FORMATS)
+def test_field_names_validated_per_format(tmp_path, cube, extension):
+    needs_h5py(extension)
+    refused, kept = FIELD_NAMES[extension]
+    path = tmp_path / f"fields{extension}"
+    values = np.arange(cube.num_nodes, dtype=np.float64)
+    for name in refused:
+        with pytest.raises(ValueError, match=r"point_data\[.*cannot hold the character"):
+            write_mesh(path, cube, point_data={name: values})
+        with pytest.raises(ValueError, match=r"cell_data\[.*cannot hold the character"):
+            write_mesh(path, cube, cell_data={name: np.ones(cube.num_tets)})
+        assert list(tmp_path.iterdir()) == []  # nothing written, no temporary left
+    write_mesh(path, cube, point_data={name: values for name in kept})
+    _, point_data, _ = read_mesh(path, return_data=True)
+    assert sorted(point_data) == sorted(kept)
+    for name in kept:
+        np.testing.assert_array_equal(point_data[name].numpy().ravel(), values)
+
+
+@pytest.mark.parametrize("extension", FORMATS)
+def test_failing_overwrite_leaves_the_old_file_intact(tmp_path, cube, extension, monkeypatch):
+    needs_h5py(extension)
+    path = tmp_path / f"mesh{extension}"
+    write_mesh(path, cube)
+    before = {item.name: item.read_bytes() for item in tmp_path.iterdir()}
+
+    def broken_write(filename, mesh, *args, **kwargs):
+        with open(filename, "wb") as handle:  # half a file, then a failure
+            handle.write(b"truncated")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(meshio, "write", broken_write)
+    with pytest.raises(OSError, match="disk full"):
+        write_mesh(path, TetMesh(cube.points * 2.0, cube.tets))
+    after = {item.name: item.read_bytes() for item in tmp_path.iterdir()}
+    assert after == before  # old file(s) unchanged, no temporary left behind
+    assert torch.equal(read_mesh(path).points, cube.points)
+
+
+def test_xdmf_overwrite_replaces_both_files(tmp_path, cube):
+    pytest.importorskip("h5py")
+    path = tmp_path / "mesh.xdmf"
+    write_mesh(path, cube)
+    write_mesh(path, TetMesh(cube.points * 2.0, cube.tets))
+    assert sorted(item.name for item in tmp_path.iterdir()) == ["mesh.h5", "mesh.xdmf"]
+    assert torch.allclose(read_mesh(path).points, cube.points * 2.0)
+
+
+def test_written_files_are_readable_by_others(tmp_path, cube):
+    import os
+    import stat
+
+    umask = os.umask(0o022)
+    try:
+        write_mesh(tmp_path / "mesh.vtu", cube)
+    finally:
+        os.umask(umask)
+    mode = stat.S_IMODE((tmp_path / "mesh.vtu").stat().st_mode)
+    assert mode == 0o644
+
+
+def test_write_into_a_missing_directory(tmp_path, cube):
+    with pytest.raises(FileNotFoundError, match="path: directory .*does not exist"):
+        write_mesh(tmp_path / "missing" / "mesh.vtu", cube)

@@ -7,7 +7,7 @@ import pytest
 import torch
 from _grids import kuhn_grid
 
-from torchmorph.mesh import FLAT_TET_TOLERANCE, TetMesh
+from torchmorph.mesh import FLAT_TET_TOLERANCE, TetMesh, box_mesh
 
 F64 = torch.float64
 
@@ -275,3 +275,39 @@ def test_fold_check_agrees_without_int64_face_keys(monkeypatch):
                        torch.sort(reference.sort(1).values, 0).values)
     with pytest.raises(ValueError, match="belong to more than two tetrahedra"):
         TetMesh(points, np.concatenate([tets, tets[:1]]))
+
+
+def test_overlapping_tets_that_share_no_face_are_rejected():
+    from itertools import combinations
+
+    cube = box_mesh(2)  # one interior node, the centre
+    (centre,) = cube.interior_nodes.tolist()
+    corners = [k for k in range(cube.num_nodes)
+               if all(float(x) in (0.0, 1.0) for x in cube.points[k])]
+    faces = {tuple(sorted(face)) for tet in cube.tets.tolist()
+             for face in combinations(tet, 3)}
+    for a, b, c in combinations(corners, 3):
+        extra = [centre, a, b, c]
+        if any(tuple(sorted(face)) in faces for face in combinations(extra, 3)):
+            continue
+        volume = torch.linalg.det(cube.points[[a, b, c]] - cube.points[centre])
+        if abs(float(volume)) > 1e-3:
+            break
+    tets = torch.cat([cube.tets, torch.tensor([extra])])
+    with pytest.raises(ValueError, match=r"tets: the tetrahedra around \d+ node\(s\) cover more "
+                                         r"than one sphere .* e\.g\. node \d+: solid angle"):
+        TetMesh(cube.points, tets)
+
+
+def test_the_mesh_copies_its_inputs():
+    cube = box_mesh(2)
+    points, tets = cube.points.clone(), cube.tets.clone()
+    mesh = TetMesh(points, tets)
+    volumes = mesh.volumes.clone()
+    points.mul_(2.0)
+    tets[:, [2, 3]] = tets[:, [3, 2]]
+    assert torch.equal(mesh.points, cube.points) and torch.equal(mesh.tets, cube.tets)
+    assert torch.equal(TetMesh(mesh.points, mesh.tets).volumes, volumes)
+    moved = cube.points.clone().requires_grad_(True)
+    TetMesh(moved, cube.tets).volumes.sum().backward()
+    assert moved.grad is not None

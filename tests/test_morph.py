@@ -1,13 +1,16 @@
-"""The Algorithm 2 morph of a tetrahedral mesh (SPEC.md §3)."""
+"""The Algorithm 2 morph of a tetrahedral mesh (the paper's section 2)."""
 
 from __future__ import annotations
+
+import io
 
 import numpy as np
 import pytest
 import torch
 from torch.autograd import gradcheck
 
-from torchmorph import MeshMorph
+from torchmorph import MeshMorph, TetMesh
+from torchmorph.quality import count_inverted
 from torchmorph.selection import SelectionPlan
 
 F64 = torch.float64
@@ -117,8 +120,13 @@ def test_count_inverted(cube):
     crushed = morph(morph.boundary_displacement(
         "z1", lambda p: torch.tensor([0.0, 0.0, -1.5], dtype=F64).expand_as(p)))
     assert morph.count_inverted(crushed) > 0
-    counts = morph.count_inverted(torch.stack([gentle, crushed]))
-    assert counts[0] == 0 and counts[1] > 0
+    count = morph.count_inverted(crushed)
+    assert isinstance(count, int)
+    assert count == count_inverted(cube, crushed)
+    counts = morph.inverted(torch.stack([gentle, crushed])).sum(-1)
+    assert counts.tolist() == [0, count]
+    with pytest.raises(ValueError, match=r"count_inverted takes one field \(N, 3\)"):
+        morph.count_inverted(torch.stack([gentle, crushed]))
 
 
 def test_errors(cube):
@@ -133,3 +141,64 @@ def test_errors(cube):
         morph(torch.zeros(98, 3))
     with pytest.raises(TypeError, match="mesh must be a TetMesh"):
         MeshMorph(cube.points)
+
+
+# ------------------------------------------------------------------ state
+
+
+def saved(module: torch.nn.Module) -> dict:
+    buffer = io.BytesIO()
+    torch.save(module.state_dict(), buffer)
+    buffer.seek(0)
+    return torch.load(buffer, weights_only=False)
+
+
+def test_state_dict_keeps_node_sets_and_loads_into_another_mesh(cube):
+    from conftest import structured_cube
+
+    small = structured_cube(2)
+    source = MeshMorph(cube, SelectionPlan({face: 0.6 for face in FACES}),
+                       generator=torch.Generator().manual_seed(1))
+    target = MeshMorph(TetMesh(small.points, small.tets, {"other": [0, 1]}))
+    target.load_state_dict(saved(source))
+    assert sorted(target.node_sets) == sorted(source.node_sets)
+    for name, nodes in source.node_sets.items():
+        assert torch.equal(target.node_sets[name], nodes)
+    for name in MeshMorph._STATE_BUFFERS:
+        assert torch.equal(getattr(target, name), getattr(source, name)), name
+    boundary = source.boundary_displacement("z1", bend_top)
+    assert torch.equal(target.boundary_displacement("z1", bend_top), boundary)
+    assert torch.equal(target(boundary), source(boundary))
+
+
+def test_node_sets_are_copies_of_the_mesh_sets(cube):
+    mesh = TetMesh(cube.points, cube.tets, {k: v.clone() for k, v in cube.node_sets.items()})
+    morph = MeshMorph(mesh)
+    before = morph.boundary_mask("z1").clone()
+    mesh.node_sets["z1"][:] = 0  # the caller edits its own arrays afterwards
+    morph.node_sets["z1"][:] = 0  # or the ones the morph hands out
+    assert torch.equal(morph.boundary_mask("z1"), before)
+
+
+@pytest.mark.parametrize(("key", "change", "message"), [
+    ("selected", lambda v: v + 1000, r"'selected'\]: holds indices outside"),
+    ("control_nodes", lambda v: v.flip(0), r"'control_nodes'\]: must equal boundary_nodes"),
+    ("interior_nodes", lambda v: v[1:], r"'interior_nodes'\]: boundary_nodes and interior"),
+    ("tets", lambda v: v + 10_000, r"'tets'\]: holds vertex indices outside"),
+    ("node_set_members", lambda v: v + 10_000, r"'node_set_members'\]: holds indices"),
+    ("node_set_offsets", lambda v: v[:-1], r"'node_set_offsets'\]: must rise from 0"),
+    ("idw.targets", lambda v: v[1:], r"'idw.targets'\]: has 26 rows but the morph's state needs 27"),
+    ("_extra_state", lambda v: {**v, "node_set_names": ["a"]},
+     r"'node_set_offsets'\]: holds 6 node sets but the names are 1"),
+    ("_extra_state", lambda v: {**v, "version": 99}, r"'_extra_state'\]: version 99"),
+])
+def test_a_tampered_state_fails_to_load_and_leaves_the_module_intact(cube, key, change,
+                                                                     message):
+    morph = MeshMorph(cube, SelectionPlan({face: 0.6 for face in FACES}))
+    state = saved(morph)
+    state[key] = change(state[key])
+    before = {name: getattr(morph, name).clone() for name in MeshMorph._STATE_BUFFERS}
+    with pytest.raises(ValueError, match=message):
+        morph.load_state_dict(state)
+    for name, value in before.items():
+        assert torch.equal(getattr(morph, name), value), name

@@ -1,4 +1,4 @@
-"""Tests of torchmorph.selection: Algorithm 1 (SPEC.md §2) and selection plans (§3)."""
+"""Tests of torchmorph.selection: Algorithm 1 (the paper's section 2.2) and selection plans (2.2.1)."""
 
 from __future__ import annotations
 

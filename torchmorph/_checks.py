@@ -18,6 +18,7 @@ __all__ = [
     "as_index",
     "as_points",
     "check_finite",
+    "check_float_dtype",
     "check_positive",
     "check_same_device_dtype",
     "check_vectors",
@@ -43,7 +44,8 @@ def as_points(
     ------
     ValueError
         If the shape is not (N, dim), N == 0 (unless ``allow_empty``), the
-        dtype is not floating point, or any entry is NaN or infinite.
+        dtype is not floating point or is half precision (float16, bfloat16),
+        or any entry is NaN or infinite.
     """
     if not isinstance(value, Tensor):
         array = np.asarray(value)
@@ -54,8 +56,7 @@ def as_points(
         value = torch.from_numpy(np.ascontiguousarray(array))
     if dtype is not None:
         value = value.to(dtype)
-    if not value.is_floating_point():
-        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    check_float_dtype(value, name)
     if value.ndim != 2 or value.shape[1] != dim:
         raise ValueError(f"{name} must have shape (N, {dim}), got {tuple(value.shape)}")
     if value.shape[0] == 0 and not allow_empty:
@@ -144,6 +145,27 @@ def check_finite(value: Tensor, name: str) -> None:
             raise ValueError(f"{name} holds {bad} NaN or infinite value(s)")
 
 
+HALF_DTYPES = (torch.float16, torch.bfloat16)
+
+
+def check_float_dtype(value: Tensor, name: str) -> None:
+    """Raise ``ValueError`` unless ``value`` is float32 or float64 (or another
+    floating dtype of at least single precision).
+
+    Half precision is refused rather than silently promoted: IDW squares
+    distances, and float16 overflows above 65,504 and flushes below 6e-5 (its
+    weights come out NaN or uniform); bfloat16 keeps 8 bits of mantissa, too few
+    for exact reproduction at the controls. Convert with ``.float()``.
+    """
+    if not value.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    if value.dtype in HALF_DTYPES:
+        raise ValueError(
+            f"{name} has dtype {value.dtype}: half precision is not supported (squared "
+            "distances leave its range); convert to float32 or float64 with .float() or .double()"
+        )
+
+
 def check_positive(value: float, name: str) -> float:
     """Return ``value`` as float if it is finite and > 0, else raise ``ValueError``."""
     number = float(value)
@@ -177,7 +199,6 @@ def check_vectors(value: Tensor, name: str, count: int, *, what: str) -> bool:
             f"{name} must have shape ({count}, 3) or (B, {count}, 3) for {count} {what}, "
             f"got {tuple(value.shape)}"
         )
-    if not value.is_floating_point():
-        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    check_float_dtype(value, name)
     check_finite(value, name)
     return value.ndim == 3

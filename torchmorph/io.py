@@ -15,7 +15,17 @@ extension   notes
 
 Node sets are stored as point-data flag arrays named ``set:<name>`` (1 for a
 member, 0 otherwise), so they survive a round trip in every format and show up
-in ParaView and Gmsh (as views). Reading also turns Gmsh physical groups of
+in ParaView and Gmsh (as views). Characters that some format cannot hold in a
+name (``%``, ``"``, ``'``, ``<``, ``>``, ``&``, white space and control
+characters) are percent-encoded in the stored name (``"inlet wall"`` is stored
+as ``set:inlet%20wall``) and decoded on reading, so every node-set name round-trips
+in every format. Names of point and cell data fields are not renamed: a name the
+target format cannot hold is rejected before anything is written.
+
+Writes are atomic (:func:`torchmorph._atomic.atomic_output`): the file is written
+beside the target and renamed over it only when complete, so a failing overwrite
+leaves the previous file intact. XDMF writes its ``.h5`` file first, then the
+``.xdmf`` file that refers to it. Reading also turns Gmsh physical groups of
 points, curves and surfaces into node sets named after the group, and meshio
 ``point_sets`` (Abaqus, MED, …) into node sets.
 
@@ -26,6 +36,9 @@ Only linear tetrahedra (meshio's ``"tetra"`` cells) are read; other cell blocks
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
+import urllib.parse
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Literal, overload
@@ -34,9 +47,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchmorph._atomic import atomic_output
 from torchmorph.mesh import TetMesh
 
-__all__ = ["MESH_FORMATS", "from_meshio", "read_mesh", "to_meshio", "write_mesh"]
+__all__ = [
+    "MESH_FORMATS",
+    "decode_set_name",
+    "encode_set_name",
+    "from_meshio",
+    "read_mesh",
+    "to_meshio",
+    "write_mesh",
+]
 
 #: File extensions understood by :func:`read_mesh` and :func:`write_mesh`, and
 #: the meshio format used for each.
@@ -107,7 +129,7 @@ def to_meshio(
     for name, nodes in mesh.node_sets.items():
         flags = np.zeros(mesh.num_nodes, dtype=np.uint8)
         flags[_to_numpy(nodes)] = 1
-        fields[NODE_SET_PREFIX + name] = flags
+        fields[NODE_SET_PREFIX + encode_set_name(name)] = flags
     cells: dict[str, list[np.ndarray]] = {}
     for key, value in (cell_data or {}).items():
         if not isinstance(key, str) or not key:
@@ -175,7 +197,7 @@ def from_meshio(m, *, name: str | None = None, return_data: bool = False):
     for key, value in m.point_data.items():
         value = np.asarray(value)
         if key.startswith(NODE_SET_PREFIX):
-            node_sets[key[len(NODE_SET_PREFIX) :]] = np.flatnonzero(
+            node_sets[decode_set_name(key[len(NODE_SET_PREFIX) :])] = np.flatnonzero(
                 value.reshape(num_nodes, -1)[:, 0]
             )
         elif not key.startswith(_BOOKKEEPING_PREFIXES):
@@ -336,10 +358,19 @@ def write_mesh(
     ------
     ValueError
         For an unsupported extension, fields of the wrong length, reserved
-        names, or a missing h5py for XDMF.
+        names, a field name the format cannot hold (control characters anywhere;
+        ``" ' < > &`` in ``.vtu``; white space in ``.vtk``; ``"`` in ``.msh``),
+        or a missing h5py for XDMF. Nothing is written then.
+    FileNotFoundError
+        If the target's directory does not exist.
 
     Notes
     -----
+    The write is atomic: an existing file is replaced only once the new one is
+    complete; if writing fails, the old file is left as it was. Node-set names
+    are percent-encoded where needed (see the module's notes) and come back
+    unchanged from :func:`read_mesh`.
+
     Gmsh stores node data as float64: integer fields come back as floats from
     ``.msh`` files. Gmsh node data must have 1, 3 or 9 components to be shown
     as scalars, vectors or tensors in Gmsh itself.
@@ -351,8 +382,99 @@ def write_mesh(
     if file_format == "xdmf":
         _require_h5py(path)
     converted = to_meshio(mesh, point_data=point_data, cell_data=cell_data)
+    for kind, names in (("point_data", converted.point_data), ("cell_data", converted.cell_data)):
+        for key in names:
+            if not key.startswith(NODE_SET_PREFIX):
+                _check_field_name(key, file_format, f"{kind}[{key!r}]")
     options = {"binary": True} if file_format == "gmsh" else {}
-    meshio.write(path, converted, file_format=file_format, **options)
+    if file_format == "xdmf":
+        _write_xdmf(path, converted)
+        return
+    with atomic_output(path) as temporary:
+        meshio.write(temporary, converted, file_format=file_format, **options)
+
+
+def _write_xdmf(path: Path, converted) -> None:
+    """XDMF and its ``.h5`` file, each atomically, the ``.h5`` first.
+
+    meshio names the heavy-data file after the ``.xdmf`` file and refers to it by
+    name, so both are written under their final names in a temporary directory
+    beside the target, then moved into place.
+    """
+    import meshio
+
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise FileNotFoundError(f"path: directory {str(directory)!r} does not exist")
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=directory))
+    try:
+        staged = staging / path.name
+        meshio.write(staged, converted, file_format="xdmf")
+        heavy = staged.with_suffix(".h5")
+        with atomic_output(path.with_suffix(".h5")) as temporary:
+            os.replace(heavy, temporary)
+        with atomic_output(path) as temporary:
+            os.replace(staged, temporary)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------- names
+
+# Characters percent-encoded in stored node-set names: the escape character itself,
+# what XML attributes (VTU, XDMF) and Gmsh's quoted strings cannot hold, and white
+# space (legacy VTK splits names on it).
+_ENCODED_CHARACTERS = frozenset('%"\'<>&')
+
+# Characters each format cannot hold in a field name (beyond control characters,
+# which no format holds).
+_FORBIDDEN_IN_FIELD_NAMES: dict[str, str] = {
+    "vtu": '"\'<>&',
+    "vtk": "",  # and white space
+    "xdmf": "",
+    "gmsh": '"',
+}
+
+
+def _needs_encoding(character: str) -> bool:
+    return (character in _ENCODED_CHARACTERS or character.isspace()
+            or not character.isprintable())
+
+
+def encode_set_name(name: str) -> str:
+    """The stored form of a node-set name: unsafe characters percent-encoded.
+
+    ``%``, ``"``, ``'``, ``<``, ``>``, ``&``, white space and non-printable
+    characters become ``%XX`` (their UTF-8 bytes); everything else is kept, so
+    ordinary names (``"wing"``, ``"z1"``, ``"ε-wall"``) are stored unchanged.
+    :func:`decode_set_name` inverts it.
+    """
+    return "".join(
+        urllib.parse.quote(character, safe="") if _needs_encoding(character) else character
+        for character in name
+    )
+
+
+def decode_set_name(stored: str) -> str:
+    """Inverse of :func:`encode_set_name` (``%XX`` sequences decoded as UTF-8)."""
+    return urllib.parse.unquote(stored, errors="strict") if "%" in stored else stored
+
+
+def _check_field_name(name: str, file_format: str, argument: str) -> None:
+    """Raise ``ValueError`` if a point/cell data name cannot be stored in ``file_format``.
+
+    Control characters are refused everywhere; VTU refuses ``" ' < > &``
+    (XML attributes), legacy VTK refuses white space, Gmsh refuses ``"``.
+    """
+    bad = sorted({c for c in name if not c.isprintable()
+                  or c in _FORBIDDEN_IN_FIELD_NAMES[file_format]
+                  or (file_format == "vtk" and c.isspace())})
+    if bad:
+        shown = ", ".join(repr(c) for c in bad)
+        raise ValueError(
+            f"{argument}: a {file_format} file cannot hold the character(s) {shown} in a field "
+            "name; rename the field"
+        )
 
 
 # --------------------------------------------------------------------------- helpers

@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchmorph._checks import as_index, as_points, check_finite
-from torchmorph.quality import _tet_edge_lengths_squared, _tet_volumes
+from torchmorph._checks import as_index, as_points, check_finite, check_float_dtype
+from torchmorph._tet import TET_EDGES, TET_OUTWARD_FACES, tet_edge_lengths_squared, tet_volumes
 
 __all__ = ["FLAT_TET_TOLERANCE", "TetMesh", "box_mesh"]
 
@@ -28,10 +28,6 @@ __all__ = ["FLAT_TET_TOLERANCE", "TetMesh", "box_mesh"]
 #: about ``1e-16 L**3``: the threshold lies far from both.
 FLAT_TET_TOLERANCE = 1e-12
 
-# Faces of a positively oriented tetrahedron (a, b, c, d), each ordered so that
-# its normal (right-hand rule) points out of the tetrahedron.
-_OUTWARD_FACES = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))
-_TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
 # Largest node count for which a face (i < j < k) fits one int64 key i*N² + j*N + k.
 _MAX_NODES_FOR_FACE_KEYS = 2_000_000
 
@@ -66,11 +62,20 @@ class TetMesh:
 
     Notes
     -----
-    Nodes that belong to no tetrahedron are allowed; they are not on the
+    ``points`` and ``tets`` are copied (a tensor that requires grad keeps its
+    autograd link through the copy), so editing the caller's arrays afterwards
+    does not change the mesh. Nodes that belong to no tetrahedron are allowed; they are not on the
     boundary and so count among :attr:`interior_nodes`. Faces shared by more
     than two tetrahedra (a non-manifold or duplicated input) and tetrahedra
     folded over a neighbour (inverted reference elements: the two tetrahedra of
     an interior face on the same side of it) raise ``ValueError``.
+
+    Overlapping tetrahedra that share no face are detected where they share a
+    node: the solid angles of the tetrahedra at a node may add up to at most one
+    sphere (4π), and to exactly 4π at a node off the boundary. Not detected: two
+    parts of the mesh that overlap without sharing a node (e.g. two separate
+    blocks pushed into each other) — check the boundary surface for
+    self-intersections if your input may have them.
     """
 
     def __init__(
@@ -82,12 +87,18 @@ class TetMesh:
         name: str | None = None,
     ) -> None:
         dtype = None if isinstance(points, Tensor) else torch.float64
+        given_points, given_tets = points, tets
         points = as_points(points, "points", dtype=dtype)
+        if points is given_points:  # a copy: later in-place edits by the caller cannot
+            points = points.clone()  # make the cached topology and geometry stale
         tets = _as_tets(tets, points.shape[0]).to(points.device)
+        if tets is given_tets:
+            tets = tets.clone()
         tets = _orient(points, tets)
         if name is not None and not isinstance(name, str):
             raise TypeError(f"name must be a string or None, got {type(name).__name__}")
         boundary_faces = _checked_faces(points, tets)
+        _check_interior_solid_angles(points, tets, boundary_faces)
         self._points = points
         self._tets = tets
         self._node_sets = _as_node_sets(node_sets, points.shape[0], points.device)
@@ -246,8 +257,8 @@ class TetMesh:
     def _find_edges(self) -> tuple[Tensor, Tensor]:
         if "edges" in self._topology and "tet_edges" in self._topology:
             return self._topology["edges"], self._topology["tet_edges"]
-        first = self._tets[:, [i for i, _ in _TET_EDGES]]
-        second = self._tets[:, [j for _, j in _TET_EDGES]]
+        first = self._tets[:, [i for i, _ in TET_EDGES]]
+        second = self._tets[:, [j for _, j in TET_EDGES]]
         n = self.num_nodes
         keys = torch.minimum(first, second) * n + torch.maximum(first, second)
         unique, inverse = torch.unique(keys.reshape(-1), sorted=True, return_inverse=True)
@@ -265,7 +276,7 @@ class TetMesh:
         All > 0 for a constructed mesh; a mesh from :meth:`deformed` may have
         negative ones (inverted tetrahedra).
         """
-        return self._cached_geometry("volumes", lambda: _tet_volumes(self._points, self._tets))
+        return self._cached_geometry("volumes", lambda: tet_volumes(self._points, self._tets))
 
     @property
     def bounding_box(self) -> Tensor:
@@ -309,10 +320,7 @@ class TetMesh:
                 f"displacement must have shape ({self.num_nodes}, 3), "
                 f"got {tuple(displacement.shape)}"
             )
-        if not displacement.is_floating_point():
-            raise ValueError(
-                f"displacement must be a floating-point tensor, got dtype {displacement.dtype}"
-            )
+        check_float_dtype(displacement, "displacement")
         if displacement.device != self.device:
             raise ValueError(
                 f"displacement is on device {displacement.device} but the mesh is on {self.device}"
@@ -381,13 +389,13 @@ def _orient(points: Tensor, tets: Tensor) -> Tensor:
     """Reject flat tetrahedra and swap the last two vertices of negative ones."""
     with torch.no_grad():
         exact = points.detach().to(torch.float64)
-        volumes = _tet_volumes(exact, tets)
+        volumes = tet_volumes(exact, tets)
         # Every edge is at most the bounding-box diagonal, so only tetrahedra below
         # the bound for that length can be flat: measure their edges alone.
         diagonal = float(torch.linalg.vector_norm(exact.amax(0) - exact.amin(0)))
         candidates = torch.nonzero(volumes.abs() <= FLAT_TET_TOLERANCE * diagonal**3).flatten()
         if candidates.numel() > 0:
-            longest = _tet_edge_lengths_squared(exact, tets[candidates]).amax(-1) ** 1.5
+            longest = tet_edge_lengths_squared(exact, tets[candidates]).amax(-1) ** 1.5
             flat = candidates[volumes[candidates].abs() <= FLAT_TET_TOLERANCE * longest]
         else:
             flat = candidates
@@ -420,7 +428,7 @@ def _face_structure(tets: Tensor, num_nodes: int) -> tuple[Tensor, Tensor, Tenso
         duplicated tetrahedra).
     """
     device = tets.device
-    faces = tets[:, torch.tensor(_OUTWARD_FACES, device=device)].reshape(-1, 3)
+    faces = tets[:, torch.tensor(TET_OUTWARD_FACES, device=device)].reshape(-1, 3)
     ordered = torch.sort(faces, dim=1).values
     if num_nodes <= _MAX_NODES_FOR_FACE_KEYS:
         keys = (ordered[:, 0] * num_nodes + ordered[:, 1]) * num_nodes + ordered[:, 2]
@@ -458,9 +466,9 @@ def _checked_faces(points: Tensor, tets: Tensor) -> Tensor:
         return boundary
     with torch.no_grad():
         exact = points.detach().to(torch.float64)
-        outward = tets[:, torch.tensor(_OUTWARD_FACES, device=tets.device)].reshape(-1, 3)
+        outward = tets[:, torch.tensor(TET_OUTWARD_FACES, device=tets.device)].reshape(-1, 3)
         opposite = tets[second // 4, second % 4]
-        sides = _tet_volumes(exact, torch.cat([outward[first], opposite[:, None]], 1))
+        sides = tet_volumes(exact, torch.cat([outward[first], opposite[:, None]], 1))
         folded = torch.nonzero(sides <= 0).flatten()
     if folded.numel() > 0:
         pairs = ", ".join(f"({int(first[k]) // 4}, {int(second[k]) // 4})"
@@ -471,6 +479,46 @@ def _checked_faces(points: Tensor, tets: Tensor) -> Tensor:
             f"side (inverted, folded reference tetrahedra), e.g. tetrahedra {pairs}{more}"
         )
     return boundary
+
+
+_SOLID_ANGLE_TOLERANCE = 1e-8
+"""Relative tolerance of the full-sphere check of the solid angles at interior nodes."""
+
+
+def _check_interior_solid_angles(points: Tensor, tets: Tensor, boundary_faces: Tensor) -> None:
+    """Raise ``ValueError`` if the tetrahedra around a node cover more than one sphere
+    (4π: overlapping tetrahedra), or those around an interior node less (a gap)."""
+    if tets.numel() == 0:
+        return
+    with torch.no_grad():
+        exact = points.detach().to(torch.float64)
+        vertices = exact[tets]  # (M, 4, 3)
+        angles = []
+        for corner in range(4):
+            others = [k for k in range(4) if k != corner]
+            u, v, w = (vertices[:, k] - vertices[:, corner] for k in others)
+            lu, lv, lw = u.norm(dim=1), v.norm(dim=1), w.norm(dim=1)
+            triple = (u * torch.linalg.cross(v, w, dim=1)).sum(1).abs()
+            below = lu * lv * lw + (u * v).sum(1) * lw + (u * w).sum(1) * lv \
+                + (v * w).sum(1) * lu
+            angles.append(2.0 * torch.atan2(triple, below))  # Van Oosterom–Strackee
+        total = exact.new_zeros(points.shape[0]).index_add_(
+            0, tets.reshape(-1), torch.stack(angles, 1).reshape(-1))
+        interior = torch.zeros(points.shape[0], dtype=torch.bool, device=tets.device)
+        interior[tets.reshape(-1)] = True
+        interior[boundary_faces.reshape(-1)] = False
+        sphere = 4.0 * torch.pi
+        over = total > sphere * (1.0 + _SOLID_ANGLE_TOLERANCE)  # anywhere: overlap
+        under = interior & (total < sphere * (1.0 - _SOLID_ANGLE_TOLERANCE))
+        wrong = torch.nonzero(over | under).flatten()
+    if wrong.numel() > 0:
+        node = int(wrong[0])
+        raise ValueError(
+            f"tets: the tetrahedra around {wrong.numel()} node(s) cover more than one sphere "
+            f"(overlapping tetrahedra) or, at an interior node, less (a gap), e.g. node "
+            f"{node}: solid angle "
+            f"{float(total[node]) / sphere:.6g} x 4π"
+        )
 
 
 def _as_node_sets(

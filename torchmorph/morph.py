@@ -1,4 +1,4 @@
-"""Shape morphing of a tetrahedral mesh, SPEC.md §3 (the paper's Algorithm 2).
+"""Shape morphing of a tetrahedral mesh (Ballarin et al. 2017, section 2, Algorithm 2).
 
 :class:`MeshMorph` composes the pieces: control points chosen from the
 boundary nodes (all of them, or a :class:`~torchmorph.selection.SelectionPlan`
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor, nn
@@ -116,14 +116,41 @@ class MeshMorph(nn.Module):
         self.register_buffer("interior_nodes", interior.clone())
         self.register_buffer("selected", selected)
         self.register_buffer("control_nodes", control_nodes.clone())
-        self.node_sets = {name: nodes.clone() for name, nodes in mesh.node_sets.items()}
+        names = list(mesh.node_sets)
+        members = [mesh.node_sets[name].reshape(-1).long() for name in names]
+        sizes = torch.tensor([0, *(len(nodes) for nodes in members)], dtype=torch.long)
+        self._node_set_names: list[str] = names
+        self.register_buffer("node_set_members", torch.cat(
+            [boundary.new_empty(0), *(nodes.to(boundary.device) for nodes in members)]))
+        self.register_buffer("node_set_offsets", torch.cumsum(sizes, 0).to(boundary.device))
         self.idw = IDW(self.points[control_nodes], self.points[interior], power=power, mode=mode,
                        block_bytes=block_bytes, dense_bytes=dense_bytes)
         self.assembly_time = self.idw.assembly_time
 
+    # ------------------------------------------------------------------ state
+    _STATE_BUFFERS = ("points", "tets", "boundary_nodes", "interior_nodes", "selected",
+                      "control_nodes", "node_set_members", "node_set_offsets")
+    _STATE_VERSION = 1
+
+    @property
+    def node_sets(self) -> dict[str, Tensor]:
+        """The mesh's named node sets (global node ids), as given to the constructor.
+
+        Copies: editing them does not change the morph (its state is the
+        ``node_set_members`` / ``node_set_offsets`` buffers)."""
+        offsets = self.node_set_offsets.tolist()
+        return {name: self.node_set_members[offsets[k] : offsets[k + 1]].clone()
+                for k, name in enumerate(self._node_set_names)}
+
+    def get_extra_state(self) -> dict[str, Any]:
+        return {"version": self._STATE_VERSION, "node_set_names": list(self._node_set_names)}
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        self._node_set_names = list(state["node_set_names"])
+
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        resize_buffers_for_load(self, state_dict, prefix, (
-            "points", "tets", "boundary_nodes", "interior_nodes", "selected", "control_nodes"))
+        _check_morph_state(state_dict, prefix)
+        resize_buffers_for_load(self, state_dict, prefix, self._STATE_BUFFERS)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ------------------------------------------------------------------ sizes
@@ -153,11 +180,12 @@ class MeshMorph(nn.Module):
         """Boolean mask over the boundary nodes of the nodes in the named sets."""
         names = [names] if isinstance(names, str) else list(names)
         mask = torch.zeros(self.num_nodes, dtype=torch.bool, device=self.points.device)
+        node_sets = self.node_sets
         for name in names:
-            if name not in self.node_sets:
-                known = ", ".join(sorted(self.node_sets)) or "none"
+            if name not in node_sets:
+                known = ", ".join(sorted(node_sets)) or "none"
                 raise ValueError(f"unknown node set {name!r}; known: {known}")
-            mask[self.node_sets[name].to(mask.device)] = True
+            mask[node_sets[name].to(mask.device)] = True
         return mask[self.boundary_nodes]
 
     def boundary_displacement(
@@ -238,23 +266,148 @@ class MeshMorph(nn.Module):
                                 targets=points[self.interior_nodes])
         return self.assemble(boundary_displacement, interior)
 
+    # ------------------------------------------------- the linear-map protocol
+    def copied_rows(self) -> tuple[Tensor, Tensor]:
+        """(output rows, input rows) that :meth:`forward` copies unchanged: every
+        boundary node takes its prescribed displacement. Used by
+        :class:`~torchmorph.pod.PODReducer`, which reproduces them exactly."""
+        rows = torch.arange(self.num_boundary, device=self.boundary_nodes.device)
+        return self.boundary_nodes, rows
+
+    @property
+    def weight_columns(self) -> Tensor:
+        """The input rows (boundary indices) that :meth:`weights_matrix` reads."""
+        return self.selected
+
+    def weights_matrix(self) -> Tensor:
+        """W (N_int, N_sel): ``forward(d)[:, interior_nodes] = W @ d[:, selected]``."""
+        return self.idw.weights_matrix()
+
+    def adjoint(self, fields: Tensor) -> Tensor:
+        """The transpose of the morph: nodal fields (B, N, 3) -> (B, N_b, 3).
+
+        Boundary rows pass through; interior rows are mapped by Wᵀ onto the control
+        points (one GEMM with a dense W, a vector-Jacobian product of the IDW
+        otherwise). The morph is linear, so ``<morph(d), g> = <d, adjoint(g)>``.
+        """
+        check_vectors(fields, "fields", self.num_nodes, what="mesh nodes")
+        batch = fields if fields.ndim == 3 else fields.unsqueeze(0)
+        interior = batch.index_select(1, self.interior_nodes)
+        weights = getattr(self.idw, "weights", None)
+        if isinstance(weights, Tensor):
+            columns = interior.permute(1, 0, 2).reshape(self.num_interior, -1)  # (N_int, 3B)
+            controls = (columns.mT @ weights).reshape(batch.shape[0], 3, -1).mT
+        else:
+            with torch.enable_grad():
+                probe = batch.new_zeros(batch.shape[0], self.num_controls, 3,
+                                        requires_grad=True)
+                (controls,) = torch.autograd.grad(self.idw(probe), probe,
+                                                  grad_outputs=interior)
+        result = batch.index_select(1, self.boundary_nodes)
+        result = result.index_add(1, self.selected, controls)
+        return result if fields.ndim == 3 else result[0]
+
     def deformed_points(self, displacement: Tensor) -> Tensor:
         """Reference points plus a nodal displacement (N, 3) or (B, N, 3)."""
         return self.points + displacement
 
-    def count_inverted(self, displacement: Tensor) -> int | Tensor:
-        """Number of tets whose signed volume is <= 0 after ``displacement``.
+    def inverted(self, displacement: Tensor) -> Tensor:
+        """Mask of the tets whose signed volume is <= 0 after ``displacement``.
 
-        ``displacement`` is a nodal field (N, 3) (an int is returned) or a batch
-        (B, N, 3) (a tensor of B counts).
+        ``displacement`` is a nodal field (N, 3) or a batch (B, N, 3); the mask has
+        shape (M,) or (B, M) (as :func:`torchmorph.quality.inverted`).
         """
         check_vectors(displacement, "displacement", self.num_nodes, what="mesh nodes")
         with torch.no_grad():
-            counts = (signed_volumes(self.deformed_points(displacement.detach()), self.tets) <= 0)
-            counts = counts.sum(-1)
-        return int(counts) if counts.ndim == 0 else counts
+            return signed_volumes(self.deformed_points(displacement.detach()), self.tets) <= 0
+
+    def count_inverted(self, displacement: Tensor) -> int:
+        """Number of tets whose signed volume is <= 0 after ``displacement`` (N, 3).
+
+        Always an int, as :func:`torchmorph.quality.count_inverted`; for a batch
+        (B, N, 3) count with ``inverted(displacement).sum(-1)``.
+        """
+        if isinstance(displacement, Tensor) and displacement.ndim == 3:
+            raise ValueError("displacement: count_inverted takes one field (N, 3); for a "
+                             "batch (B, N, 3) use inverted(displacement).sum(-1)")
+        return int(self.inverted(displacement).sum())
 
     def extra_repr(self) -> str:
         return (f"num_nodes={self.num_nodes}, num_boundary={self.num_boundary}, "
                 f"num_interior={self.num_interior}, num_controls={self.num_controls}, "
                 f"mode={self.idw.mode!r}")
+
+
+def _check_morph_state(state_dict, prefix: str) -> None:
+    """Raise ``ValueError`` naming the field if a MeshMorph state is inconsistent.
+
+    Runs before anything is loaded, so a rejected state leaves the module as it was.
+    Missing entries are left to ``load_state_dict``'s own missing-key report.
+    """
+    def entry(name: str) -> Any:
+        return state_dict.get(prefix + name)
+
+    def fail(name: str, message: str) -> None:
+        raise ValueError(f"state_dict[{prefix + name!r}]: {message}")
+
+    def index(name: str, size: int | None = None) -> Tensor | None:
+        value = entry(name)
+        if value is None:
+            return None
+        if not isinstance(value, Tensor) or value.ndim != 1 or value.is_floating_point() \
+                or value.dtype == torch.bool:
+            fail(name, "must be a 1-D integer tensor")
+        if size is not None and value.numel() and (int(value.min()) < 0
+                                                   or int(value.max()) >= size):
+            fail(name, f"holds indices outside [0, {size})")
+        return value
+
+    extra = entry("_extra_state")
+    if extra is not None:
+        if not isinstance(extra, dict) or not isinstance(extra.get("node_set_names"), list) \
+                or not all(isinstance(n, str) and n for n in extra["node_set_names"]):
+            fail("_extra_state", "must hold 'node_set_names', a list of non-empty strings")
+        if extra.get("version") != MeshMorph._STATE_VERSION:
+            fail("_extra_state", f"version {extra.get('version')!r} is not "
+                                 f"{MeshMorph._STATE_VERSION}")
+    points = entry("points")
+    if points is None:
+        return
+    if not isinstance(points, Tensor) or points.ndim != 2 or points.shape[1] != 3 \
+            or not points.is_floating_point():
+        fail("points", f"must be a floating tensor (N, 3), got {getattr(points, 'shape', points)}")
+    num_nodes = points.shape[0]
+    tets = entry("tets")
+    if tets is not None:
+        if not isinstance(tets, Tensor) or tets.ndim != 2 or tets.shape[1] != 4:
+            fail("tets", "must have shape (M, 4)")
+        if tets.numel() and (int(tets.min()) < 0 or int(tets.max()) >= num_nodes):
+            fail("tets", f"holds vertex indices outside [0, {num_nodes})")
+    boundary = index("boundary_nodes", num_nodes)
+    interior = index("interior_nodes", num_nodes)
+    if boundary is not None and interior is not None:
+        together = torch.cat([boundary, interior]).cpu()
+        if together.numel() != num_nodes or not torch.equal(
+                torch.sort(together).values, torch.arange(num_nodes)):
+            fail("interior_nodes", f"boundary_nodes and interior_nodes must split the "
+                                   f"{num_nodes} nodes into two sets")
+    selected = index("selected", None if boundary is None else boundary.numel())
+    controls = index("control_nodes", num_nodes)
+    if selected is not None and controls is not None and boundary is not None \
+            and not torch.equal(boundary.cpu()[selected.cpu()], controls.cpu()):
+        fail("control_nodes", "must equal boundary_nodes[selected]")
+    members = index("node_set_members", num_nodes)
+    offsets = index("node_set_offsets")
+    if members is not None and offsets is not None:
+        steps = offsets.cpu().diff()
+        if offsets.numel() == 0 or int(offsets[0]) != 0 or int(offsets[-1]) != members.numel() \
+                or bool((steps < 0).any()):
+            fail("node_set_offsets", "must rise from 0 to the number of node_set_members")
+        if extra is not None and offsets.numel() != len(extra["node_set_names"]) + 1:
+            fail("node_set_offsets", f"holds {offsets.numel() - 1} node sets but the names are "
+                                     f"{len(extra['node_set_names'])}")
+    for name, expected in (("idw.controls", None if controls is None else controls.numel()),
+                           ("idw.targets", None if interior is None else interior.numel())):
+        value = entry(name)
+        if expected is not None and isinstance(value, Tensor) and value.shape[0] != expected:
+            fail(name, f"has {value.shape[0]} rows but the morph's state needs {expected}")

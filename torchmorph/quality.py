@@ -20,16 +20,15 @@ points (and hence to a displacement).
 from __future__ import annotations
 
 import warnings
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from torchmorph._checks import check_finite
-
-if TYPE_CHECKING:
-    from torchmorph.mesh import TetMesh
+from torchmorph._checks import check_finite, check_float_dtype
+from torchmorph._tet import TET_EDGES, tet_edge_lengths_squared, tet_volumes  # noqa: F401
+from torchmorph.mesh import TetMesh
 
 __all__ = [
     "ERROR_NORMS",
@@ -44,33 +43,7 @@ __all__ = [
     "validity_barrier",
 ]
 
-# The six edges of a tetrahedron as pairs of local vertex numbers.
-TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-
-
 # --------------------------------------------------------------------------- kernels
-
-
-def _tet_vertices(points: Tensor, tets: Tensor) -> Tensor:
-    """Vertex coordinates of every tetrahedron; points (..., N, 3) -> (..., M, 4, 3)."""
-    gathered = points.index_select(-2, tets.reshape(-1))
-    return gathered.unflatten(-2, (tets.shape[0], 4))
-
-
-def _tet_volumes(points: Tensor, tets: Tensor) -> Tensor:
-    """Signed volumes without argument checks; points (..., N, 3) -> (..., M)."""
-    vertices = _tet_vertices(points, tets)
-    edges = vertices[..., 1:, :] - vertices[..., :1, :]
-    normal = torch.linalg.cross(edges[..., 0, :], edges[..., 1, :], dim=-1)
-    return (normal * edges[..., 2, :]).sum(-1) / 6.0
-
-
-def _tet_edge_lengths_squared(points: Tensor, tets: Tensor) -> Tensor:
-    """Squared lengths of the six edges (order of TET_EDGES); (..., N, 3) -> (..., M, 6)."""
-    vertices = _tet_vertices(points, tets)
-    vectors = torch.stack([vertices[..., j, :] - vertices[..., i, :] for i, j in TET_EDGES], -2)
-    return (vectors * vectors).sum(-1)
-
 
 # --------------------------------------------------------------------------- checks
 
@@ -83,8 +56,7 @@ def _check_geometry(points: Tensor, tets: Tensor) -> tuple[Tensor, Tensor]:
         raise TypeError(f"tets must be a torch.Tensor, got {type(tets).__name__}")
     if points.ndim < 2 or points.shape[-1] != 3:
         raise ValueError(f"points must have shape (N, 3) or (B, N, 3), got {tuple(points.shape)}")
-    if not points.is_floating_point():
-        raise ValueError(f"points must be a floating-point tensor, got dtype {points.dtype}")
+    check_float_dtype(points, "points")
     if tets.ndim != 2 or tets.shape[1] != 4:
         raise ValueError(f"tets must have shape (M, 4), got {tuple(tets.shape)}")
     if tets.is_floating_point() or tets.dtype == torch.bool or tets.is_complex():
@@ -101,8 +73,6 @@ def _check_geometry(points: Tensor, tets: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _check_mesh(mesh: TetMesh) -> None:
-    from torchmorph.mesh import TetMesh
-
     if not isinstance(mesh, TetMesh):
         raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
 
@@ -120,8 +90,7 @@ def _check_displacement(
         raise ValueError(
             f"{name} must have shape {shapes} for a mesh of {n} nodes, got {tuple(value.shape)}"
         )
-    if not value.is_floating_point():
-        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    check_float_dtype(value, name)
     if value.device != mesh.points.device:
         raise ValueError(
             f"{name} is on device {value.device} but the mesh is on {mesh.points.device}"
@@ -158,7 +127,7 @@ def signed_volumes(points: Tensor, tets: Tensor) -> Tensor:
         For wrong shapes or dtypes, or indices outside ``[0, N)``.
     """
     points, tets = _check_geometry(points, tets)
-    return _tet_volumes(points, tets)
+    return tet_volumes(points, tets)
 
 
 def edge_ratio(points: Tensor, tets: Tensor) -> Tensor:
@@ -181,7 +150,7 @@ def edge_ratio(points: Tensor, tets: Tensor) -> Tensor:
         Edge ratios; ``inf`` for a tetrahedron with a zero-length edge.
     """
     points, tets = _check_geometry(points, tets)
-    lengths_squared = _tet_edge_lengths_squared(points, tets)
+    lengths_squared = tet_edge_lengths_squared(points, tets)
     longest = lengths_squared.amax(-1)
     shortest = lengths_squared.amin(-1)
     return torch.sqrt(longest / shortest)
@@ -220,7 +189,7 @@ def inverted(mesh: TetMesh, displacement: Tensor | None = None) -> Tensor:
     _check_mesh(mesh)
     points = _deformed_points(mesh, displacement, batched=True)
     with torch.no_grad():
-        return _tet_volumes(points, mesh.tets) <= 0
+        return tet_volumes(points, mesh.tets) <= 0
 
 
 def count_inverted(mesh: TetMesh, displacement: Tensor | None = None) -> int:
@@ -241,7 +210,7 @@ def count_inverted(mesh: TetMesh, displacement: Tensor | None = None) -> int:
     _check_mesh(mesh)
     points = _deformed_points(mesh, displacement, batched=False)
     with torch.no_grad():
-        return int((_tet_volumes(points, mesh.tets) <= 0).sum())
+        return int((tet_volumes(points, mesh.tets) <= 0).sum())
 
 
 def quality_summary(mesh: TetMesh, displacement: Tensor | None = None) -> dict[str, float | int]:
@@ -272,8 +241,8 @@ def quality_summary(mesh: TetMesh, displacement: Tensor | None = None) -> dict[s
     points = _deformed_points(mesh, displacement, batched=False)
     with torch.no_grad():
         points = points.detach()
-        volumes = _tet_volumes(points, mesh.tets)
-        lengths_squared = _tet_edge_lengths_squared(points, mesh.tets)
+        volumes = tet_volumes(points, mesh.tets)
+        lengths_squared = tet_edge_lengths_squared(points, mesh.tets)
         q = torch.sqrt(lengths_squared.amax(-1) / lengths_squared.amin(-1))
         ratio = volumes / mesh.volumes.detach().to(volumes.dtype)
         return {
@@ -293,7 +262,7 @@ def _assemble_mass_matrix(mesh: TetMesh) -> Tensor:
     """P1 mass matrix of ``mesh`` as a coalesced float64 sparse COO tensor (N, N)."""
     n = mesh.num_nodes
     tets = mesh.tets
-    volumes = _tet_volumes(mesh.points.detach().to(torch.float64), tets).abs()
+    volumes = tet_volumes(mesh.points.detach().to(torch.float64), tets).abs()
     # M_K = |K| / 20 * (1 + delta_ij): |K|/20 on each of the six edges, |K|/10 on
     # the four diagonal entries. Sum per unique edge and per node.
     edges = mesh.edges
@@ -514,7 +483,7 @@ def validity_barrier(
     if reduction not in ("sum", "mean", "none"):
         raise ValueError(f"reduction must be 'sum', 'mean' or 'none', got {reduction!r}")
     displacement = _check_displacement(mesh, displacement, batched=True)
-    volumes = _tet_volumes(mesh.points + displacement, mesh.tets)
+    volumes = tet_volumes(mesh.points + displacement, mesh.tets)
     ratio = volumes / mesh.volumes.detach().to(volumes.dtype)
     shortfall = torch.clamp(threshold - ratio, min=0.0) / threshold
     penalty = shortfall * shortfall
