@@ -178,7 +178,7 @@ def idw_table(device: torch.device, repeats: int, large: bool,
                 rows.append((label, name, seconds_, f"{w_bytes / seconds_ / 1e9:,.0f} GB/s",
                              f"{w_bytes / seconds_ / bandwidth:.2f}",
                              error(result[0] if result.ndim == 3 else result)))
-            del dense
+            dense = None  # free W before the next dtype
         if device.type == "cuda":
             torch.cuda.empty_cache()
     if large:

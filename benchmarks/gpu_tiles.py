@@ -12,8 +12,6 @@ float64 torch reference. The fastest candidates go into ``_TILES`` of that modul
 from __future__ import annotations
 
 import argparse
-import itertools
-import math
 import sys
 
 import torch
@@ -144,7 +142,6 @@ def main(argv: list[str] | None = None) -> int:
         controls, targets = graded_cloud(N_CONTROLS, N_TARGETS, dtype, "cuda")
         targets_t, controls_t = normalise(targets, controls)
         nearest = kernels.nearest_squared(targets_t, controls_t)
-        reference_nearest = None
         for columns in (3, 48):
             values = torch.randn(N_CONTROLS, columns, dtype=dtype, device="cuda")
             expected = reference_apply(targets, controls, values)
@@ -163,8 +160,6 @@ def main(argv: list[str] | None = None) -> int:
             tkernel = "transposed" if columns <= kernels.SMALL_COLUMNS else "transposed_dot"
 
             def run_transposed():
-                got = kernels.apply_transposed(targets_t, controls_t, grad, nearest, sums, 4.0,
-                                               1e-20)
                 return (event_time(lambda: kernels.apply_transposed(
                     targets_t, controls_t, grad, nearest, sums, 4.0, 1e-20)), 0.0)
 
@@ -173,7 +168,6 @@ def main(argv: list[str] | None = None) -> int:
                                           f"{tkernel} {name} K={columns}")
 
         def run_nearest():
-            got = kernels.nearest_squared(targets_t, controls_t)
             return event_time(lambda: kernels.nearest_squared(targets_t, controls_t)), 0.0
 
         best[("nearest", name)] = sweep("nearest", run_nearest, square, f"nearest {name}")
@@ -200,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"(reads {gib:.2f} GB: {gib / best[('dense_apply', name)][1]:.0f} GB/s; "
               f"cuBLAS W@d {event_time(lambda: out @ values) * 1e3:.3f} ms, "
               f"(dT WT)T {event_time(lambda: (values.T.contiguous() @ out.T).T) * 1e3:.3f} ms)")
-        del out
+        out = None  # free W before the next dtype
     print()
     for key, (candidate, seconds) in best.items():
         print(f"best {key}: {candidate} {seconds * 1e3:.3f} ms")

@@ -410,7 +410,7 @@ def test_mesh_morph_boundary_exact_interior_round_off(cube, online, selective):
     for r, f in zip(reduced[:, interior], full[:, interior], strict=True):
         assert relative(r, f) < 1e-10
     assert float(reducer.relative_error(boundary).max()) < 1e-10
-    assert float(reducer.relative_error(boundary, norm="l2").max()) < 1e-10
+    assert float(reducer.relative_error(boundary, norm="mass").max()) < 1e-10
     torch.testing.assert_close(reducer.morph_parameters(mu[1]), reduced[1], rtol=1e-13, atol=0)
 
 
@@ -559,10 +559,10 @@ def test_wrong_shapes_and_arguments(cloud, rank_two):
         reducer([[0.0, 0.0, 0.0]] * n)
     with pytest.raises(ValueError, match=r"mu must have shape \(2,\) or \(B, 2\)"):
         reducer.morph_parameters(torch.zeros(3, dtype=F64))
-    with pytest.raises(ValueError, match="norm must be 'nodal' or 'l2'"):
+    with pytest.raises(ValueError, match="norm must be 'nodal' or 'mass'"):
         reducer.relative_error(rank_two(torch.ones(2, dtype=F64)), norm="energy")
-    with pytest.raises(ValueError, match=r"norm='l2' needs mesh= \(the mass matrix lives"):
-        reducer.relative_error(rank_two(torch.ones(2, dtype=F64)), norm="l2")
+    with pytest.raises(ValueError, match=r"norm='mass' needs mesh= \(the mass matrix lives"):
+        reducer.relative_error(rank_two(torch.ones(2, dtype=F64)), norm="mass")
 
 
 # ------------------------------------------------------------------ POD basis: method and scale

@@ -19,6 +19,7 @@ an output field (N_out, 3) — an :class:`~torchmorph.idw.IDW`, a
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -552,7 +553,7 @@ class PODReducer(nn.Module):
         displacements: Tensor,
         *,
         morph: nn.Module | None = None,
-        norm: Literal["nodal", "l2"] = "nodal",
+        norm: Literal["nodal", "mass", "l2"] = "nodal",
         mesh: Any = None,
     ) -> Tensor:
         """Relative error of the reduced morph against the full one, per sample.
@@ -564,13 +565,14 @@ class PODReducer(nn.Module):
         morph : linear map, optional
             The full morph; defaults to the one given to ``fit`` (needed after
             ``load_state_dict``, which does not restore it).
-        norm : {"nodal", "l2"}
+        norm : {"nodal", "mass"}
             ``"nodal"``: ``||d_pod - d_full||_F / ||d_full||_F`` over all output
-            nodes. ``"l2"``: the L2(Ω_h) norm of the paper's section 3.1 (P1 mass
-            matrix) through :func:`torchmorph.quality.relative_l2_error`, for a
-            map whose outputs are the nodes of a mesh.
+            nodes. ``"mass"``: the L2(Ω_h) norm with the P1 mass matrix (the paper's
+            Section 2.3.1) through :func:`torchmorph.quality.relative_l2_error`, for
+            a map whose outputs are the nodes of a mesh. ``"l2"`` is a deprecated
+            spelling of ``"mass"``.
         mesh : TetMesh, optional
-            The reference mesh for ``norm="l2"``; defaults to
+            The reference mesh for ``norm="mass"``; defaults to
             ``TetMesh(morph.points, morph.tets)`` when the morph has both (a
             MeshMorph does).
 
@@ -584,14 +586,18 @@ class PODReducer(nn.Module):
         if morph is None:
             raise RuntimeError("no full morph to compare with: pass morph= (load_state_dict "
                                "does not restore it)")
-        if norm not in ("nodal", "l2"):
-            raise ValueError(f"norm must be 'nodal' or 'l2', got {norm!r}")
+        if norm == "l2":
+            warnings.warn("relative_error(norm='l2') is deprecated: use norm='mass' (the P1 "
+                          "mass-matrix norm) or norm='nodal'", DeprecationWarning, stacklevel=2)
+            norm = "mass"
+        if norm not in ("nodal", "mass"):
+            raise ValueError(f"norm must be 'nodal' or 'mass', got {norm!r}")
         batched = self._check_input(displacements, "displacements")
         inputs = displacements if batched else displacements.unsqueeze(0)
         with torch.no_grad():
             reduced = self(inputs)
             full = morph(inputs)
-            if norm == "l2":
+            if norm == "mass":
                 if mesh is None:
                     points, tets = getattr(morph, "points", None), getattr(morph, "tets", None)
                     if not isinstance(points, Tensor) or not isinstance(tets, Tensor):

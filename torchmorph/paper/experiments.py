@@ -4,8 +4,6 @@ sensitivity sweeps (Figs. 5–7, 10, 13–16) and :func:`reproduce` (Tables 1–
 from __future__ import annotations
 
 import math
-import statistics
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
+from .._timing import median_time
 from ..mesh import TetMesh
 from ..morph import MeshMorph
 from ..quality import edge_ratio, inverted, quality_summary, relative_l2_error
@@ -59,13 +58,7 @@ def _mesh_figures(mesh: TetMesh, summary: dict[str, Any]) -> dict[str, Any]:
 
 def _median_time(function: Callable[[], Any], repeats: int) -> float:
     """Median wall-clock seconds of ``repeats`` calls after one warm-up call."""
-    function()
-    times = []
-    for _ in range(max(1, int(repeats))):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return median_time(function, max(1, int(repeats)))
 
 
 @dataclass

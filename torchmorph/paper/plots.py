@@ -10,6 +10,7 @@ import numpy as np
 from torch import Tensor
 
 from .._atomic import atomic_output
+from .._tet import TET_EDGES
 from ..morph import MeshMorph
 from .cases import HULL_CENTRE
 
@@ -18,7 +19,7 @@ if TYPE_CHECKING:
 
 __all__ = ["plane_section", "plot_case", "plot_one_mode_bound"]
 
-_TET_EDGES = np.array(((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)))
+_TET_EDGES = np.asarray(TET_EDGES)
 
 
 def plane_section(
