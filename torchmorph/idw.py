@@ -33,7 +33,6 @@ default) takes the fused kernels where they apply and torch elsewhere.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import time
@@ -42,7 +41,6 @@ from typing import Literal
 
 import torch
 from torch import Tensor, nn
-from torch.utils.checkpoint import checkpoint
 
 from ._checks import (
     as_points,
@@ -52,24 +50,35 @@ from ._checks import (
     is_traced,
     plain_tensor,
 )
+from ._idw_fused import (
+    IMPLEMENTATIONS,
+    _check_implementation,
+    _fused_for,
+    _FusedApply,
+    _FusedDenseApply,
+    fused_available,
+)
+from ._idw_torch import (
+    DEFAULT_BLOCK_BYTES,
+    DEFAULT_CUDA_BLOCK_BYTES,
+    _block_bytes,
+    _functional,
+    _rows_per_block,
+    _torch_apply,
+    _weights_block,
+)
 from ._state import resize_buffers_for_load
 
 __all__ = [
     "DEFAULT_BLOCK_BYTES",
+    "DEFAULT_CUDA_BLOCK_BYTES",
     "DEFAULT_DENSE_BYTES",
     "IDW",
+    "IMPLEMENTATIONS",
     "fused_available",
     "idw_apply",
     "idw_weights",
 ]
-
-DEFAULT_BLOCK_BYTES = 4 * 2**20
-"""Working-set size of one block of pairwise temporaries of the torch implementation
-on the CPU (bytes). Blocks of a few MB stay in cache; much larger ones were slower."""
-
-DEFAULT_CUDA_BLOCK_BYTES = 256 * 2**20
-"""The same on a CUDA device, where a block is one launch: large blocks keep the
-device busy between launches (64 MiB to 1 GiB measured alike on an H100)."""
 
 DEFAULT_DENSE_BYTES: int | None = None
 """``mode="auto"`` stores W (dense) when it takes at most this many bytes; ``None``
@@ -81,7 +90,6 @@ diagonal take that control's displacement exactly."""
 
 Mode = Literal["auto", "dense", "matrix_free"]
 Implementation = Literal["auto", "fused", "torch"]
-IMPLEMENTATIONS = ("auto", "fused", "torch")
 
 
 # --------------------------------------------------------------------------- #
@@ -89,14 +97,6 @@ IMPLEMENTATIONS = ("auto", "fused", "torch")
 # --------------------------------------------------------------------------- #
 def _check_power(power: float) -> float:
     return check_positive(power, "power")
-
-
-def _functional(*tensors: Tensor) -> bool:
-    """Whether to compute out of place: autograd records through one of ``tensors``,
-    or the call is traced (``torch.compile``, or functorch-wrapped tensors)."""
-    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-        return True
-    return any(is_traced(t) for t in tensors)
 
 
 def _check_tolerance(tolerance: float) -> float:
@@ -134,296 +134,6 @@ def _normalise(targets: Tensor, controls: Tensor, tolerance: float
         if not (is_traced(t) or is_traced(c)):
             radius2 = float(radius2)
     return targets * scale, controls * scale, radius2
-
-
-# --------------------------------------------------------------------------- #
-# fused kernels: one table of backends
-# --------------------------------------------------------------------------- #
-class _TritonBackend:
-    """Triton kernels on CUDA; geometry laid out axis by axis, (D, N)."""
-
-    def __init__(self):
-        from . import _triton_kernels
-
-        self.kernels = _triton_kernels
-
-    @staticmethod
-    def layout(points: Tensor) -> Tensor:
-        return points.T.contiguous()
-
-    def nearest(self, targets, controls):
-        return self.kernels.nearest_squared(targets, controls)
-
-    def apply(self, targets, controls, values, power, radius2, nearest2):
-        out, nearest2, sums = self.kernels.apply(targets, controls, values, power, radius2,
-                                                 nearest2)
-        return out, sums
-
-    def apply_transposed(self, targets, controls, grad, power, radius2, nearest2, sums):
-        return self.kernels.apply_transposed(targets, controls, grad, nearest2, sums, power,
-                                             radius2)
-
-    def weights(self, targets, controls, power, radius2, out=None):
-        return self.kernels.weights(targets, controls, power, radius2, out=out)
-
-    def dense_columns(self) -> int:
-        """Up to how many columns :meth:`dense_apply` beats the BLAS product."""
-        return self.kernels.SMALL_COLUMNS
-
-    def position_gradients_for(self, dim: int, columns: int) -> bool:
-        """Whether :meth:`position_gradients` handles this many dimensions and columns."""
-        return dim <= 3 and columns <= self.kernels.POSITION_GRAD_COLUMNS
-
-    def position_gradients(self, targets, controls, values, grad, out, nearest2, sums, power,
-                           radius2, need_targets, need_controls):
-        return self.kernels.position_gradients(targets, controls, values, grad, out, nearest2,
-                                               sums, power, radius2, need_targets, need_controls)
-
-    def dense_apply(self, weights, values):
-        return self.kernels.dense_apply(weights, values)
-
-
-class _NumbaBackend:
-    """numba kernels on the CPU; geometry as given, (N, D) rows."""
-
-    def __init__(self):
-        from . import _cpu_kernels
-
-        if not _cpu_kernels.available():
-            raise ImportError("numba is not installed")
-        self.kernels = _cpu_kernels
-
-    @staticmethod
-    def layout(points: Tensor) -> Tensor:
-        return points.contiguous()
-
-    def nearest(self, targets, controls):
-        tiny = torch.finfo(targets.dtype).tiny
-        return self.kernels.nearest_squared(targets, controls).clamp_min(tiny)
-
-    def apply(self, targets, controls, values, power, radius2, nearest2):
-        return self.kernels.apply(targets, controls, values, power, radius2, nearest2)
-
-    def apply_transposed(self, targets, controls, grad, power, radius2, nearest2, sums):
-        return self.kernels.apply_transposed(targets, controls, grad, power, radius2, nearest2,
-                                             sums)
-
-    def weights(self, targets, controls, power, radius2, out=None):
-        return self.kernels.weights(targets, controls, power, radius2, out=out)
-
-    def dense_columns(self) -> int:
-        return 3 if hasattr(self.kernels, "dense_apply") else 0
-
-    def position_gradients_for(self, dim: int, columns: int) -> bool:
-        return False
-
-    def dense_apply(self, weights, values):
-        return self.kernels.dense_apply(weights, values)
-
-
-_BACKENDS = {"cuda": _TritonBackend, "cpu": _NumbaBackend}
-_LOADED: dict[str, object] = {}
-
-
-def _backend(device: torch.device):
-    """The fused backend for ``device``, or None where there is none (or it cannot load)."""
-    kind = device.type
-    if kind not in _LOADED:
-        factory = _BACKENDS.get(kind)
-        try:
-            _LOADED[kind] = factory() if factory is not None else None
-        except ImportError:
-            _LOADED[kind] = None
-    return _LOADED[kind]
-
-
-def fused_available(device: torch.device | str = "cpu") -> bool:
-    """Whether fused kernels run on ``device`` (Triton on CUDA, numba on the CPU)."""
-    return _backend(torch.device(device)) is not None
-
-
-def _check_implementation(implementation: str) -> str:
-    if implementation not in IMPLEMENTATIONS:
-        raise ValueError(f"implementation must be 'auto', 'fused' or 'torch', "
-                         f"got {implementation!r}")
-    return implementation
-
-
-def _fused_for(implementation: str, *tensors: Tensor, positions_grad: bool = False,
-               shape: tuple[int, int] = (3, 3)):
-    """The fused backend to use for ``tensors``, or None for the torch implementation.
-
-    ``positions_grad``: gradients to the points are wanted, for points of dimension
-    ``shape[0]`` and ``shape[1]`` value columns. ``implementation="fused"`` raises where
-    the kernels cannot run, saying why.
-    """
-    implementation = _check_implementation(implementation)
-    if implementation == "torch":
-        return None
-    reason = None
-    reference = tensors[0]
-    if any(is_traced(t) for t in tensors):
-        reason = "the call is traced (torch.compile or torch.func): use the torch implementation"
-    elif reference.dtype not in (torch.float32, torch.float64):
-        reason = f"dtype {reference.dtype} (the kernels take float32 and float64)"
-    elif _backend(reference.device) is None:
-        reason = (f"no fused kernels on device {reference.device} (Triton on CUDA; numba on "
-                  f"the CPU, installed with torchmorph)")
-    elif positions_grad and not _backend(reference.device).position_gradients_for(*shape):
-        reason = (f"gradients to point positions are fused on CUDA for D <= 3 and at most "
-                  f"{_POSITION_GRAD_COLUMNS} value columns, here {reference.device}, D = "
-                  f"{shape[0]}, {shape[1]} columns: the torch implementation computes them")
-    if reason is None:
-        return _backend(reference.device)
-    if implementation == "fused":
-        raise ValueError(f"implementation='fused' cannot run here: {reason}")
-    return None
-
-
-_POSITION_GRAD_COLUMNS = 24
-
-
-class _FusedApply(torch.autograd.Function):
-    """``W @ values`` by a fused backend (points in the backend's layout). The backward
-    pass is fused too: Wᵀ applied to the incoming gradient for the values, and two
-    passes (one over targets, one over controls) for the point positions."""
-
-    @staticmethod
-    def forward(ctx, targets, controls, values, backend, power, radius2, nearest2):
-        if nearest2 is None:
-            nearest2 = backend.nearest(targets.detach(), controls.detach())
-        values = values.contiguous()
-        out, sums = backend.apply(targets.detach(), controls.detach(), values.detach(), power,
-                                  radius2, nearest2)
-        ctx.save_for_backward(targets.detach(), controls.detach(), values.detach(), out,
-                              nearest2, sums)
-        ctx.settings = (backend, power, radius2)
-        return out
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad):
-        targets, controls, values, out, nearest2, sums = ctx.saved_tensors
-        backend, power, radius2 = ctx.settings
-        grad = grad.contiguous()
-        grad_targets = grad_controls = grad_values = None
-        if ctx.needs_input_grad[2]:
-            grad_values = backend.apply_transposed(targets, controls, grad, power, radius2,
-                                                   nearest2, sums)
-        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
-            grad_targets, grad_controls = backend.position_gradients(
-                targets, controls, values, grad, out, nearest2, sums, power, radius2,
-                ctx.needs_input_grad[0], ctx.needs_input_grad[1])
-        return grad_targets, grad_controls, grad_values, None, None, None, None
-
-
-class _FusedDenseApply(torch.autograd.Function):
-    """``W @ values`` for a stored W by a fused kernel that reads W once; backward Wᵀ g."""
-
-    @staticmethod
-    def forward(ctx, weights, values, backend):
-        ctx.save_for_backward(weights)
-        return backend.dense_apply(weights, values.contiguous())
-
-    @staticmethod
-    def backward(ctx, grad):
-        (weights,) = ctx.saved_tensors
-        return None, weights.mT @ grad, None
-
-
-def _squared_distances(
-    targets: Tensor, controls: Tensor, out: Tensor | None = None, *, floor: float = 0.0,
-    controls_t: Tensor | None = None,
-) -> Tensor:
-    """(n_t, n_c) squared distances from direct coordinate differences, plus ``floor``.
-
-    Without autograd the passes run in place (into ``out`` when given); a
-    ``floor`` (the dtype's smallest normal) then costs no extra pass. With autograd,
-    or when traced, the result is computed out of place and ``floor`` is not added.
-    ``controls_t`` is ``controls.T.contiguous()`` when the caller has it: contiguous
-    coordinate rows make the broadcast subtractions about 1.6x faster.
-    """
-    if _functional(targets, controls):
-        return (targets[:, None, :] - controls[None, :, :]).square().sum(-1)
-    shape = (targets.shape[0], controls.shape[0])
-    dist2 = out if out is not None else targets.new_empty(shape)
-    dist2.fill_(floor)
-    diff = targets.new_empty(shape)
-    columns = controls.T.contiguous() if controls_t is None else controls_t
-    for axis in range(targets.shape[1]):
-        torch.sub(targets[:, axis : axis + 1], columns[axis], out=diff)
-        dist2.addcmul_(diff, diff)
-    return dist2
-
-
-def _ratio_powers(nearest2: Tensor, dist2: Tensor, power: float) -> Tensor:
-    """Unnormalised weights ``(m_i / d²_ik)^(p/2)``, every entry in [0, 1].
-
-    Both ``m`` and ``d²`` are kept at or above the dtype's smallest normal
-    number (``dist2`` must come from :func:`_squared_distances` with that
-    ``floor`` when autograd is off), so a control that coincides exactly with
-    its target gets ratio 1 and all others underflow to 0 without a branch.
-    ``nearest2`` carries no gradient: the normalised weights do not depend on
-    the common scale ``m_i``. Without autograd ``dist2`` is overwritten.
-    """
-    tiny = torch.finfo(dist2.dtype).tiny
-    nearest2 = nearest2.detach().clamp_min(tiny)
-    if _functional(dist2):
-        ratio = nearest2 / dist2.clamp_min(tiny)
-        return ratio.square() if power == 4.0 else ratio.pow(power / 2)
-    ratio = dist2  # already floored at ``tiny`` by _squared_distances
-    torch.div(nearest2, ratio, out=ratio)
-    return ratio.square_() if power == 4.0 else ratio.pow_(power / 2)
-
-
-def _rows_per_block(columns: int, itemsize: int, block_bytes: int, copies: int = 2) -> int:
-    return max(1, int(block_bytes) // max(1, columns * itemsize * copies))
-
-
-def _block_bytes(block_bytes: int | None, device: torch.device) -> int:
-    """The caller's block budget, or the device's default."""
-    if block_bytes is not None:
-        return int(check_positive(block_bytes, "block_bytes"))
-    return DEFAULT_CUDA_BLOCK_BYTES if device.type == "cuda" else DEFAULT_BLOCK_BYTES
-
-
-def _coincident_weights(dist2: Tensor, radius2: float) -> Tensor:
-    """Rows of W for coincident targets: the mean over the controls within the radius."""
-    indicator = (dist2 <= radius2).to(dist2.dtype)
-    return indicator / indicator.sum(1, keepdim=True)
-
-
-def _weights_block(
-    targets: Tensor, controls: Tensor, power: float, radius2: float,
-    out: Tensor | None = None, controls_t: Tensor | None = None,
-) -> Tensor:
-    """Rows of W for a block of (normalised) targets against all controls; in place
-    into ``out`` when autograd is off.
-
-    With autograd, or traced (``torch.compile``, ``torch.func``), coincident rows are
-    selected with ``torch.where``; their ordinary-weight branch is computed from
-    harmless values so that no NaN reaches the gradient.
-    """
-    tiny = torch.finfo(controls.dtype).tiny
-    if _functional(targets, controls):
-        dist2 = _squared_distances(targets, controls).clamp_min(tiny)
-        nearest2 = dist2.detach().amin(1, keepdim=True)
-        coincident = nearest2 <= radius2  # (n, 1)
-        exact = _coincident_weights(dist2.detach(), radius2)
-        safe = torch.where(coincident, torch.ones_like(dist2), dist2)
-        ratio = _ratio_powers(torch.where(coincident, torch.ones_like(nearest2), nearest2),
-                              safe, power)
-        return torch.where(coincident, exact, ratio / ratio.sum(1, keepdim=True))
-    dist2 = _squared_distances(targets, controls, out, floor=tiny, controls_t=controls_t)
-    nearest2 = dist2.amin(1, keepdim=True)
-    coincident = (nearest2 <= radius2).flatten()
-    rows = torch.nonzero(coincident).flatten() if bool(coincident.any()) else None
-    exact = _coincident_weights(dist2[rows], radius2) if rows is not None else None
-    weights = _ratio_powers(nearest2, dist2, power)
-    weights.div_(weights.sum(1, keepdim=True))
-    if rows is not None:
-        weights[rows] = exact
-    return weights
 
 
 def _assemble_weights(
@@ -523,76 +233,6 @@ def _dim_of(points) -> int:
     return 3
 
 
-def _nearest_squared_distance(targets: Tensor, controls: Tensor, tiles: tuple[int, int]) -> Tensor:
-    """Squared distance from each target to its nearest control, shape (N_t, 1).
-
-    On the CPU a KD-tree finds the nearest control and the distance is recomputed
-    with the same arithmetic as the tiles; elsewhere a tiled min pass is used.
-    Inside ``torch.func`` transforms the KD-tree runs on the plain tensors under the
-    wrappers (positions batched by ``vmap`` take the tiled pass, which does not
-    support them: matrix-free mode does not ``vmap`` over positions).
-    """
-    with torch.no_grad():
-        t, c = targets.detach(), controls.detach()
-        plain_t, batched_t = plain_tensor(targets)
-        plain_c, batched_c = plain_tensor(controls)
-        if t.device.type == "cpu" and not (batched_t or batched_c):
-            from scipy.spatial import cKDTree
-
-            with _functorch_disabled():
-                _, nearest = cKDTree(plain_c.detach().numpy()).query(
-                    plain_t.detach().numpy(), k=1)
-                nearest = torch.from_numpy(nearest).long()
-            return (t - c[nearest]).square().sum(1, keepdim=True)
-        rows, cols = tiles
-        best = torch.full((t.shape[0], 1), math.inf, dtype=t.dtype, device=t.device)
-        for r in range(0, t.shape[0], rows):
-            for k in range(0, c.shape[0], cols):
-                block = _squared_distances(t[r : r + rows], c[k : k + cols]).amin(1, keepdim=True)
-                torch.minimum(best[r : r + rows], block, out=best[r : r + rows])
-        return best
-
-
-def _functorch_disabled():
-    """A context in which tensors are plain (NumPy conversions allowed) inside
-    ``torch.func`` transforms."""
-    disable = getattr(torch._C, "_DisableFuncTorch", None)
-    return disable() if disable is not None else contextlib.nullcontext()
-
-
-def _tile_shape(n_targets: int, n_controls: int, itemsize: int, block_bytes: int) -> tuple[int, int]:
-    """(rows, columns) of a tile whose two pairwise temporaries fit ``block_bytes``."""
-    elements = max(1, int(block_bytes) // (2 * itemsize))
-    columns = min(n_controls, max(256, elements // 256))
-    rows = max(1, elements // columns)
-    return rows, columns
-
-
-def _matrix_free_rows(
-    targets: Tensor, controls: Tensor, augmented: Tensor, nearest2: Tensor,
-    power: float, radius2: float, columns: int,
-) -> Tensor:
-    """IDW at a block of targets, tiling over controls (torch implementation).
-
-    ``augmented`` is ``[values, 1]`` of shape (N_c, K + 1): the last column
-    accumulates the weights' sum, by which the first K are divided at the end.
-    """
-    accumulated = targets.new_zeros(targets.shape[0], augmented.shape[1])
-    floor = torch.finfo(controls.dtype).tiny
-    for k in range(0, controls.shape[0], columns):
-        dist2 = _squared_distances(targets, controls[k : k + columns], floor=floor)
-        ratio = _ratio_powers(nearest2, dist2, power)
-        accumulated = accumulated + ratio @ augmented[k : k + columns]
-    result = accumulated[:, :-1] / accumulated[:, -1:]
-    coincident = (nearest2.clamp_min(floor) <= radius2).flatten()
-    if bool(coincident.any()):
-        rows = torch.nonzero(coincident).flatten()
-        dist2 = _squared_distances(targets[rows].detach(), controls.detach()).clamp_min(floor)
-        exact = _coincident_weights(dist2, radius2) @ augmented[:, :-1]
-        result = result.index_put((rows,), exact)
-    return result
-
-
 def idw_apply(
     targets: Tensor,
     controls: Tensor,
@@ -660,27 +300,6 @@ def idw_apply(
         result = _torch_apply(targets, controls, values, power, radius2, block_bytes)
     result = result.reshape(targets.shape[0], batch, 3)
     return result.permute(1, 0, 2) if batched else result[:, 0]
-
-
-def _torch_apply(targets: Tensor, controls: Tensor, values: Tensor, power: float,
-                 radius2: float, block_bytes: int | None) -> Tensor:
-    """The torch implementation of matrix-free ``W @ values`` (normalised points)."""
-    rows, columns = _tile_shape(targets.shape[0], controls.shape[0], controls.element_size(),
-                                _block_bytes(block_bytes, controls.device))
-    nearest2 = _nearest_squared_distance(targets, controls, (rows, columns))
-    inputs = (targets, controls, values)
-    needs_graph = torch.is_grad_enabled() and any(x.requires_grad for x in inputs)
-    needs_graph = needs_graph and not any(is_traced(x) for x in inputs)
-    augmented = torch.cat([values, values.new_ones(values.shape[0], 1)], 1)
-    blocks = []
-    for start in range(0, targets.shape[0], rows):
-        args = (targets[start : start + rows], controls, augmented, nearest2[start : start + rows],
-                power, radius2, columns)
-        if needs_graph:
-            blocks.append(checkpoint(_matrix_free_rows, *args, use_reentrant=False))
-        else:
-            blocks.append(_matrix_free_rows(*args))
-    return torch.cat(blocks) if blocks else values.new_zeros(0, values.shape[1])
 
 
 def _dense_apply(weights: Tensor, displacements: Tensor, implementation: str = "auto") -> Tensor:

@@ -1,0 +1,209 @@
+"""Dispatch to the fused IDW kernels: one table of backends, and the autograd functions.
+
+Triton kernels on CUDA devices (:mod:`torchmorph._triton_kernels`) and numba kernels on
+the CPU (:mod:`torchmorph._cpu_kernels`, when numba is installed) share one interface,
+so :mod:`torchmorph.idw` picks a backend per call in one place (:func:`_fused_for`).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ._checks import is_traced
+
+__all__ = ["IMPLEMENTATIONS", "fused_available"]
+
+IMPLEMENTATIONS = ("auto", "fused", "torch")
+
+
+class _TritonBackend:
+    """Triton kernels on CUDA; geometry laid out axis by axis, (D, N)."""
+
+    def __init__(self):
+        from . import _triton_kernels
+
+        self.kernels = _triton_kernels
+
+    @staticmethod
+    def layout(points: Tensor) -> Tensor:
+        return points.T.contiguous()
+
+    def nearest(self, targets, controls):
+        return self.kernels.nearest_squared(targets, controls)
+
+    def apply(self, targets, controls, values, power, radius2, nearest2):
+        out, nearest2, sums = self.kernels.apply(targets, controls, values, power, radius2,
+                                                 nearest2)
+        return out, sums
+
+    def apply_transposed(self, targets, controls, grad, power, radius2, nearest2, sums):
+        return self.kernels.apply_transposed(targets, controls, grad, nearest2, sums, power,
+                                             radius2)
+
+    def weights(self, targets, controls, power, radius2, out=None):
+        return self.kernels.weights(targets, controls, power, radius2, out=out)
+
+    def dense_columns(self) -> int:
+        """Up to how many columns :meth:`dense_apply` beats the BLAS product."""
+        return self.kernels.SMALL_COLUMNS
+
+    def position_gradients_for(self, dim: int, columns: int) -> bool:
+        """Whether :meth:`position_gradients` handles this many dimensions and columns."""
+        return dim <= 3 and columns <= self.kernels.POSITION_GRAD_COLUMNS
+
+    def position_gradients(self, targets, controls, values, grad, out, nearest2, sums, power,
+                           radius2, need_targets, need_controls):
+        return self.kernels.position_gradients(targets, controls, values, grad, out, nearest2,
+                                               sums, power, radius2, need_targets, need_controls)
+
+    def dense_apply(self, weights, values):
+        return self.kernels.dense_apply(weights, values)
+
+
+class _NumbaBackend:
+    """numba kernels on the CPU; geometry as given, (N, D) rows."""
+
+    def __init__(self):
+        from . import _cpu_kernels
+
+        if not _cpu_kernels.available():
+            raise ImportError("numba is not installed")
+        self.kernels = _cpu_kernels
+
+    @staticmethod
+    def layout(points: Tensor) -> Tensor:
+        return points.contiguous()
+
+    def nearest(self, targets, controls):
+        tiny = torch.finfo(targets.dtype).tiny
+        return self.kernels.nearest_squared(targets, controls).clamp_min(tiny)
+
+    def apply(self, targets, controls, values, power, radius2, nearest2):
+        return self.kernels.apply(targets, controls, values, power, radius2, nearest2)
+
+    def apply_transposed(self, targets, controls, grad, power, radius2, nearest2, sums):
+        return self.kernels.apply_transposed(targets, controls, grad, power, radius2, nearest2,
+                                             sums)
+
+    def weights(self, targets, controls, power, radius2, out=None):
+        return self.kernels.weights(targets, controls, power, radius2, out=out)
+
+    def dense_columns(self) -> int:
+        return 3 if hasattr(self.kernels, "dense_apply") else 0
+
+    def position_gradients_for(self, dim: int, columns: int) -> bool:
+        return False
+
+    def dense_apply(self, weights, values):
+        return self.kernels.dense_apply(weights, values)
+
+
+_BACKENDS = {"cuda": _TritonBackend, "cpu": _NumbaBackend}
+_LOADED: dict[str, object] = {}
+
+
+def _backend(device: torch.device):
+    """The fused backend for ``device``, or None where there is none (or it cannot load)."""
+    kind = device.type
+    if kind not in _LOADED:
+        factory = _BACKENDS.get(kind)
+        try:
+            _LOADED[kind] = factory() if factory is not None else None
+        except ImportError:
+            _LOADED[kind] = None
+    return _LOADED[kind]
+
+
+def fused_available(device: torch.device | str = "cpu") -> bool:
+    """Whether fused kernels run on ``device`` (Triton on CUDA, numba on the CPU)."""
+    return _backend(torch.device(device)) is not None
+
+
+def _check_implementation(implementation: str) -> str:
+    if implementation not in IMPLEMENTATIONS:
+        raise ValueError(f"implementation must be 'auto', 'fused' or 'torch', "
+                         f"got {implementation!r}")
+    return implementation
+
+
+def _fused_for(implementation: str, *tensors: Tensor, positions_grad: bool = False,
+               shape: tuple[int, int] = (3, 3)):
+    """The fused backend to use for ``tensors``, or None for the torch implementation.
+
+    ``positions_grad``: gradients to the points are wanted, for points of dimension
+    ``shape[0]`` and ``shape[1]`` value columns. ``implementation="fused"`` raises where
+    the kernels cannot run, saying why.
+    """
+    implementation = _check_implementation(implementation)
+    if implementation == "torch":
+        return None
+    reason = None
+    reference = tensors[0]
+    if any(is_traced(t) for t in tensors):
+        reason = "the call is traced (torch.compile or torch.func): use the torch implementation"
+    elif reference.dtype not in (torch.float32, torch.float64):
+        reason = f"dtype {reference.dtype} (the kernels take float32 and float64)"
+    elif _backend(reference.device) is None:
+        reason = (f"no fused kernels on device {reference.device} (Triton on CUDA; numba on "
+                  f"the CPU, installed with torchmorph)")
+    elif positions_grad and not _backend(reference.device).position_gradients_for(*shape):
+        reason = (f"gradients to point positions are fused on CUDA for D <= 3 and at most "
+                  f"{_POSITION_GRAD_COLUMNS} value columns, here {reference.device}, D = "
+                  f"{shape[0]}, {shape[1]} columns: the torch implementation computes them")
+    if reason is None:
+        return _backend(reference.device)
+    if implementation == "fused":
+        raise ValueError(f"implementation='fused' cannot run here: {reason}")
+    return None
+
+
+_POSITION_GRAD_COLUMNS = 24
+
+
+class _FusedApply(torch.autograd.Function):
+    """``W @ values`` by a fused backend (points in the backend's layout). The backward
+    pass is fused too: Wᵀ applied to the incoming gradient for the values, and two
+    passes (one over targets, one over controls) for the point positions."""
+
+    @staticmethod
+    def forward(ctx, targets, controls, values, backend, power, radius2, nearest2):
+        if nearest2 is None:
+            nearest2 = backend.nearest(targets.detach(), controls.detach())
+        values = values.contiguous()
+        out, sums = backend.apply(targets.detach(), controls.detach(), values.detach(), power,
+                                  radius2, nearest2)
+        ctx.save_for_backward(targets.detach(), controls.detach(), values.detach(), out,
+                              nearest2, sums)
+        ctx.settings = (backend, power, radius2)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        targets, controls, values, out, nearest2, sums = ctx.saved_tensors
+        backend, power, radius2 = ctx.settings
+        grad = grad.contiguous()
+        grad_targets = grad_controls = grad_values = None
+        if ctx.needs_input_grad[2]:
+            grad_values = backend.apply_transposed(targets, controls, grad, power, radius2,
+                                                   nearest2, sums)
+        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+            grad_targets, grad_controls = backend.position_gradients(
+                targets, controls, values, grad, out, nearest2, sums, power, radius2,
+                ctx.needs_input_grad[0], ctx.needs_input_grad[1])
+        return grad_targets, grad_controls, grad_values, None, None, None, None
+
+
+class _FusedDenseApply(torch.autograd.Function):
+    """``W @ values`` for a stored W by a fused kernel that reads W once; backward Wᵀ g."""
+
+    @staticmethod
+    def forward(ctx, weights, values, backend):
+        ctx.save_for_backward(weights)
+        return backend.dense_apply(weights, values.contiguous())
+
+    @staticmethod
+    def backward(ctx, grad):
+        (weights,) = ctx.saved_tensors
+        return None, weights.mT @ grad, None
