@@ -13,6 +13,8 @@ against a baseline measured in the same run):
    ``max |d|`` against a float64 brute force on a sample of targets;
 2. dense assembly: the fused ``weights`` against ``torchmorph.idw.idw_weights``,
    GB/s of W written;
+   and the dense apply of one field: torch's ``W @ d`` against the fused ``dense_apply``,
+   GB/s of W read;
 3. shared cores, two threads: each path timed quiet and with a competing busy
    process (a Python subprocess spinning, started before and killed after each
    timed block, bounded in time); the busy / quiet ratio.
@@ -180,24 +182,32 @@ def matrix_free_table(sizes, repeats) -> None:
 
 
 def dense_table(sizes, repeats) -> None:
-    print("\n## Dense assembly of W, p = 4\n")
-    print("| N_t × N_c | dtype | threads | path | time | GB/s written | vs idw_weights |")
+    print("\n## Dense W, p = 4: assembly (GB/s written) and apply of one field (GB/s read)\n")
+    print("| N_t × N_c | dtype | threads | path | time | GB/s | vs torch |")
     print("|---|---|---|---|---|---|---|")
     for size in sizes:
         for dtype in (torch.float32, torch.float64):
-            targets, controls, _ = problem(size, dtype)
-            written = size[0] * size[1] * targets.element_size() / 1e9
+            targets, controls, values = problem(size, dtype)
+            size_gb = size[0] * size[1] * targets.element_size() / 1e9
             out = torch.empty(size, dtype=dtype)
+            dense = kernels.weights(targets, controls, POWER, 0.0)
             for count in (1, 2):
                 with threads(count):
-                    reference = median_time(lambda: idw_weights(targets, controls, power=POWER),
-                                            max(1, repeats // 2))
-                    fused = median_time(
-                        lambda: kernels.weights(targets, controls, POWER, 0.0, out=out), repeats)
-                    for name, elapsed in (("torch idw_weights", reference),
-                                          ("fused weights (into out)", fused)):
+                    build = median_time(lambda: idw_weights(targets, controls, power=POWER),
+                                        max(1, repeats // 2))
+                    apply = median_time(lambda: dense @ values, repeats)
+                    rows = (
+                        ("build, torch idw_weights", build, build),
+                        ("build, fused weights (into out)", median_time(
+                            lambda: kernels.weights(targets, controls, POWER, 0.0, out=out),
+                            repeats), build),
+                        ("apply, torch W @ d", apply, apply),
+                        ("apply, fused dense_apply", median_time(
+                            lambda: kernels.dense_apply(dense, values), repeats), apply),
+                    )
+                    for name, elapsed, reference in rows:
                         print(f"| {size[0]:,} × {size[1]:,} | {str(dtype)[6:]} | {count} | "
-                              f"{name} | {seconds(elapsed)} | {written / elapsed:.1f} | "
+                              f"{name} | {seconds(elapsed)} | {size_gb / elapsed:.1f} | "
                               f"{reference / elapsed:.2f}× |", flush=True)
 
 
@@ -220,6 +230,7 @@ def shared_table(size, repeats) -> None:
             "dense build, torch idw_weights": lambda: idw_weights(targets, controls,
                                                                   power=POWER),
             "dense apply, torch W @ d": lambda: dense @ values,
+            "dense apply, fused dense_apply": lambda: kernels.dense_apply(dense, values),
             "matrix-free, fused nearest + apply": lambda: kernels.apply(
                 targets, controls, values, POWER, 0.0, kernels.nearest_squared(targets, controls)),
             "matrix-free, fused apply_transposed": lambda: kernels.apply_transposed(
@@ -247,6 +258,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if not kernels.available():
         sys.exit("numba is not installed: pip install numba")
+    kernels.nearest_squared(torch.zeros(1, 3), torch.zeros(1, 3))  # starts numba's threads
     print(f"# Fused CPU IDW kernels: {platform.processor() or platform.machine()}, "
           f"torch {torch.__version__}, numba {numba.__version__} "
           f"(threading layer {numba.threading_layer()}),"

@@ -314,3 +314,22 @@ def test_without_numba_the_module_imports_and_is_unavailable():
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     subprocess.run([sys.executable, "-c", code], check=True, cwd=root)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("columns", [1, 3, 48])
+def test_dense_apply_matches_torch(dtype, columns):
+    targets, controls = cloud(kernels.ROWS + 9, kernels.CHUNK * 2 + 3, 3, dtype)
+    dense = kernels.weights(targets, controls, 4.0, RADIUS2)
+    values = random_values(controls.shape[0], columns, dtype)
+    result = kernels.dense_apply(dense, values)
+    assert result.shape == (targets.shape[0], columns) and result.dtype == dtype
+    torch.testing.assert_close(result.double(), dense.double() @ values.double(),
+                               rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-14)
+
+
+def test_dense_apply_messages():
+    with pytest.raises(ValueError, match=r"values must have shape \(4, K\): one row per column"):
+        kernels.dense_apply(torch.rand(3, 4), torch.rand(3, 2))
+    with pytest.raises(ValueError, match="weights must be contiguous"):
+        kernels.dense_apply(torch.rand(4, 3).T, torch.rand(4, 2))

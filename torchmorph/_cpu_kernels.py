@@ -103,26 +103,15 @@ except ImportError:  # pragma: no cover - exercised where numba is absent
         return lambda function: function
 
 
-_working: bool | None = None
 
 
 def available() -> bool:
-    """Whether numba is importable and its kernels compile and run here.
+    """Whether the kernels can run compiled: numba imports and its JIT is not disabled.
 
-    The first call compiles (or loads from numba's cache) the smallest kernel on a
-    tiny problem; the answer is remembered.
+    Cheap (nothing is compiled): each kernel compiles on its first call for a dtype, or
+    loads from numba's on-disk cache.
     """
-    global _working
-    if _working is None:
-        if numba is None:
-            _working = False
-        else:
-            try:
-                points = torch.zeros(1, 1, dtype=torch.float64)
-                _working = bool(nearest_squared(points, points)[0] == 0)
-            except Exception:  # noqa: BLE001 - any failure means "use the torch path"
-                _working = False
-    return _working
+    return numba is not None and not numba.config.DISABLE_JIT
 
 
 # --------------------------------------------------------------------------- #
@@ -333,6 +322,27 @@ def _weights_kernel(targets, controls_t, params, mode, largest, out):
                 values[k] = values[k] * scale
 
 
+@njit(parallel=True, **_OPTIONS)
+def _dense_apply_kernel(weights, values_t, zero, out):
+    """out = weights @ values, reading each row of W once (K dot products per chunk)."""
+    n_rows, n_columns = weights.shape[0], weights.shape[1]
+    columns = values_t.shape[0]
+    blocks = (n_rows + ROWS - 1) // ROWS
+    for block in prange(blocks):
+        first = block * ROWS
+        last = min(first + ROWS, n_rows)
+        accumulated = np.zeros(columns, np.float64)
+        for row in range(first, last):
+            accumulated[:] = 0.0
+            for start in range(0, n_columns, CHUNK):
+                stop = min(start + CHUNK, n_columns)
+                chunk = weights[row, start:stop]
+                for column in range(columns):
+                    accumulated[column] += _dot(chunk, values_t[column, start:stop], zero[0])
+            for column in range(columns):
+                out[row, column] = accumulated[column]
+
+
 def _require_numba() -> None:
     if numba is None:
         raise RuntimeError("the fused CPU kernels need numba: pip install numba")
@@ -346,13 +356,16 @@ def _largest_integer(dtype: np.dtype) -> np.ndarray:
 
 @contextlib.contextmanager
 def _threads():
-    """numba's thread count set to torch's (capped by numba's pool) for one call."""
-    previous = numba.get_num_threads()
-    wanted = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-    numba.set_num_threads(wanted)
+    """numba's thread count set to torch's (capped by numba's pool) for one call, and its
+    blocks handed out one at a time (``set_parallel_chunksize(1)``): a thread slowed by a
+    competing process then takes fewer blocks instead of holding up the others."""
+    previous, previous_chunk = numba.get_num_threads(), numba.get_parallel_chunksize()
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    numba.set_parallel_chunksize(1)
     try:
         yield
     finally:
+        numba.set_parallel_chunksize(previous_chunk)
         numba.set_num_threads(previous)
 
 
@@ -554,5 +567,34 @@ def weights(targets: Tensor, controls: Tensor, power: float, radius2: float,
 
 
 def dense_apply(weights: Tensor, values: Tensor) -> Tensor:
-    """``weights @ values`` (placeholder, see below)."""
-    raise NotImplementedError
+    """``weights @ values`` for a dense W, reading W once, one parallel region.
+
+    Parameters
+    ----------
+    weights : Tensor, shape (N_t, N_c)
+        Row-major W (e.g. from :func:`weights`).
+    values : Tensor, shape (N_c, K)
+        Same dtype.
+
+    Returns
+    -------
+    Tensor, shape (N_t, K)
+
+    Notes
+    -----
+    Memory-bound like torch's GEMM for small K; it exists for shared cores, where one
+    parallel region with blocks handed out one at a time degrades less than a BLAS call
+    (see ``benchmarks/idw_cpu.py``). For large K prefer torch's GEMM.
+    """
+    weight_array = _array(weights, "weights", 2)
+    if not weights.is_contiguous():
+        raise ValueError("weights must be contiguous (row-major)")
+    value_array = _matrix(values, "values", weight_array.shape[1], "column of weights",
+                          weights.dtype)
+    out = torch.empty(weight_array.shape[0], value_array.shape[1], dtype=weights.dtype)
+    if weight_array.shape[0]:
+        _require_numba()
+        with _threads():
+            _dense_apply_kernel(weight_array, np.ascontiguousarray(value_array.T),
+                                np.zeros(1, weight_array.dtype), out.numpy())
+    return out
