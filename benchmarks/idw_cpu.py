@@ -9,7 +9,7 @@ against a baseline measured in the same run):
    two-pass numba loop written below (nearest pass, then ratio weights against
    ``[d, 1]``; p = 4 written as a square) — the baseline, (c) today's torch
    matrix-free path ``torchmorph.idw.idw_apply``; plus the fused ``apply_transposed``
-   (``Wᵀ g``) and ``nearest_squared``; and the float32 error of (a) in units of
+   (``Wᵀ g``) and ``nearest_squared`` beside scipy's KD-tree; and the float32 error of (a) in units of
    ``max |d|`` against a float64 brute force on a sample of targets;
 2. dense assembly: the fused ``weights`` against ``torchmorph.idw.idw_weights``,
    GB/s of W written;
@@ -70,6 +70,14 @@ def two_pass_loop(targets, controls, values, out):
             sum_y += ratio * values[k, 1]
             sum_z += ratio * values[k, 2]
         out[i, 0], out[i, 1], out[i, 2] = sum_x / total, sum_y / total, sum_z / total
+
+
+def kdtree_nearest(targets, controls, workers):
+    """The alternative for the nearest pass: scipy's KD-tree, then d² recomputed."""
+    from scipy.spatial import cKDTree
+
+    _, nearest = cKDTree(controls.numpy()).query(targets.numpy(), k=1, workers=workers)
+    return (targets - controls[torch.from_numpy(nearest)]).square().sum(1)
 
 
 def point_clouds(n_targets: int, n_controls: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -164,6 +172,8 @@ def matrix_free_table(sizes, repeats) -> None:
                         "two-pass numba loop": None,
                         "fused nearest_squared": lambda: kernels.nearest_squared(
                             targets, controls),
+                        "KD-tree nearest (scipy, workers=threads)": lambda: kdtree_nearest(
+                            targets, controls, count),
                         "fused apply_transposed": lambda: kernels.apply_transposed(
                             targets, controls, grad, POWER, radius2, nearest2, sums),
                         "torch idw_apply": lambda: idw_apply(targets, controls, values,

@@ -27,7 +27,9 @@ once per block and reused by every row of the block from the L1 cache; inside a
 chunk each step (squared distances axis by axis, the ratio power, the products
 with each value column) is a separate unit-stride loop over the chunk, which LLVM
 vectorises. Coordinates and values are passed transposed, (D, N) and (K, N), so
-that those loops read contiguous memory.
+that those loops read contiguous memory. The nearest distance is a minimum over
+the integer bit patterns of the squared distances (ordered like the values, as
+they are >= +0), which vectorises where a float minimum does not.
 
 - :func:`nearest_squared`: ``min_k d²_ik`` (one pass).
 - :func:`apply`: ``W @ values`` and the row sums ``s_i`` (the caller gives ``m_i``);
@@ -37,29 +39,34 @@ that those loops read contiguous memory.
 - :func:`weights`: the dense ``W``, written row block by row block in one fused
   pass (nearest distance, then the unnormalised weights, then the scaling by
   ``1/s_i`` while the block is still in cache).
+- :func:`dense_apply`: ``W @ values`` for a stored W, one parallel region.
 
 Precision: distances, ratios and products are computed in the input dtype; partial
 sums over one chunk (``CHUNK`` terms spread over the SIMD lanes) are added into
-float64 accumulators. In float32 this keeps the summation error of ``W @ d`` far
-below the 1e-6 relative error of the ratios themselves at the paper's sizes
-(14,126 controls × 21,910 targets: ~1e-7 of |d|), at no measurable cost.
+float64 accumulators. In float32 this keeps the summation error of ``W @ d`` below
+the rounding of the ratios themselves: 5e-8 of ``max |d|`` against a float64
+reference at the paper's case-B counts (14,126 controls × 21,910 targets), at no
+measurable cost.
 
-Threads follow ``torch.get_num_threads()`` (capped by numba's own pool size),
-set per call and restored after it. There is one parallel region per call, so a
-process competing for the cores costs at most the share of the cores it takes,
-not a spin-wait per block.
+Threads follow ``torch.get_num_threads()`` (capped by numba's pool,
+``NUMBA_NUM_THREADS``), set per call and restored after it, and blocks are handed
+out one at a time (``numba.set_parallel_chunksize(1)`` for the call). With one
+parallel region per call and no spin-wait per block, a process competing for the
+cores slows a call by about the share of the cores it takes.
 
 Dependency
 ----------
-numba (``pip install numba``: numba 0.68 and llvmlite 0.50 wheels, about 60 MB
-download, ~210 MB installed; no change to numpy, scipy or torch) buys kernels of
-the same class as the GPU ones on the CPU: a few Gpair/s per core instead of the
-0.1–0.2 Gpair/s of the tiled torch path, and a steady speed when the cores are
-shared. Compilation is lazy, per dtype and per kernel (about 1–2 s for the first
-call of a kernel in a fresh environment) and cached on disk by numba
-(``cache=True``, in ``__pycache__`` beside this file or under ``NUMBA_CACHE_DIR``),
-so later processes load the machine code in tens of milliseconds. Without numba
-:func:`available` returns False and torchmorph uses its torch path.
+numba (``pip install numba``: numba 0.68.1 and llvmlite 0.50 wheels, 64 MB download,
+210 MB installed, no change to numpy, scipy or torch) buys kernels of the same class
+as the GPU ones: on one core of the 2-core development machine, ``apply`` runs at
+1–1.4 Gpair/s in float32 (0.4 in float64), 5–14× a plain two-pass numba loop and
+about 6× torchmorph's tiled torch path, and it slows by at most ~2× beside a busy
+process where the torch path slows 4–16× (``benchmarks/idw_cpu.py``). The price is
+compilation: lazy, once per kernel and dtype, 2–3 s each on first use (about 12 s
+for all five kernels in one dtype), then cached on disk by numba (``cache=True``: in
+``__pycache__`` beside this file, or under ``NUMBA_CACHE_DIR``), so that later
+processes load the machine code in well under a second. Without numba
+:func:`available` is False and torchmorph uses its torch path.
 """
 
 from __future__ import annotations
@@ -442,6 +449,13 @@ def nearest_squared(targets: Tensor, controls: Tensor) -> Tensor:
     -------
     Tensor, shape (N_t,)
         ``min_k |t_i - c_k|²`` by direct coordinate differences.
+
+    Notes
+    -----
+    A brute-force pass, O(N_t N_c), for any D. For 3-D clouds scipy's KD-tree
+    (then ``d²`` recomputed with the same arithmetic) was measured as fast in float32
+    and about 2× faster in float64 at 5,000 × 10,000, and it scales as
+    O(N log N): prefer it for large clouds.
     """
     target_array, control_array = _points(targets, controls)
     out = torch.empty(target_array.shape[0], dtype=targets.dtype)
