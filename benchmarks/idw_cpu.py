@@ -34,6 +34,7 @@ import platform
 import subprocess
 import sys
 import time
+from functools import partial
 
 import numba
 import numpy as np
@@ -70,6 +71,12 @@ def two_pass_loop(targets, controls, values, out):
             sum_y += ratio * values[k, 1]
             sum_z += ratio * values[k, 2]
         out[i, 0], out[i, 1], out[i, 2] = sum_x / total, sum_y / total, sum_z / total
+
+
+def nearest_then_apply(targets, controls, values):
+    """The fused matrix-free path as a caller runs it: nearest pass, then apply."""
+    return kernels.apply(targets, controls, values, POWER, 0.0,
+                         kernels.nearest_squared(targets, controls))
 
 
 def kdtree_nearest(targets, controls, workers):
@@ -161,23 +168,23 @@ def matrix_free_table(sizes, repeats) -> None:
             for count in (1, 2):
                 with threads(count):
                     numba.set_num_threads(count)
-                    baseline = median_time(lambda: two_pass_loop(t_np, c_np, v_np, o_np),
+                    baseline = median_time(partial(two_pass_loop, t_np, c_np, v_np, o_np),
                                            repeats)
                     paths = {
-                        "fused apply (nearest given)": lambda: kernels.apply(
-                            targets, controls, values, POWER, radius2, nearest2),
-                        "fused nearest + apply": lambda: kernels.apply(
-                            targets, controls, values, POWER, radius2,
-                            kernels.nearest_squared(targets, controls)),
+                        "fused apply (nearest given)": partial(
+                            kernels.apply, targets, controls, values, POWER, radius2, nearest2),
+                        "fused nearest + apply": partial(nearest_then_apply, targets, controls,
+                                                         values),
                         "two-pass numba loop": None,
-                        "fused nearest_squared": lambda: kernels.nearest_squared(
-                            targets, controls),
-                        "KD-tree nearest (scipy, workers=threads)": lambda: kdtree_nearest(
-                            targets, controls, count),
-                        "fused apply_transposed": lambda: kernels.apply_transposed(
-                            targets, controls, grad, POWER, radius2, nearest2, sums),
-                        "torch idw_apply": lambda: idw_apply(targets, controls, values,
-                                                             power=POWER),
+                        "fused nearest_squared": partial(kernels.nearest_squared, targets,
+                                                         controls),
+                        "KD-tree nearest (scipy, workers=threads)": partial(
+                            kdtree_nearest, targets, controls, count),
+                        "fused apply_transposed": partial(
+                            kernels.apply_transposed, targets, controls, grad, POWER, radius2,
+                            nearest2, sums),
+                        "torch idw_apply": partial(idw_apply, targets, controls, values,
+                                                   power=POWER),
                     }
                     for name, function in paths.items():
                         elapsed = baseline if function is None else median_time(
@@ -203,17 +210,17 @@ def dense_table(sizes, repeats) -> None:
             dense = kernels.weights(targets, controls, POWER, 0.0)
             for count in (1, 2):
                 with threads(count):
-                    build = median_time(lambda: idw_weights(targets, controls, power=POWER),
+                    build = median_time(partial(idw_weights, targets, controls, power=POWER),
                                         max(1, repeats // 2))
-                    apply = median_time(lambda: dense @ values, repeats)
+                    apply = median_time(partial(torch.matmul, dense, values), repeats)
                     rows = (
                         ("build, torch idw_weights", build, build),
                         ("build, fused weights (into out)", median_time(
-                            lambda: kernels.weights(targets, controls, POWER, 0.0, out=out),
+                            partial(kernels.weights, targets, controls, POWER, 0.0, out=out),
                             repeats), build),
                         ("apply, torch W @ d", apply, apply),
                         ("apply, fused dense_apply", median_time(
-                            lambda: kernels.dense_apply(dense, values), repeats), apply),
+                            partial(kernels.dense_apply, dense, values), repeats), apply),
                     )
                     for name, elapsed, reference in rows:
                         print(f"| {size[0]:,} × {size[1]:,} | {str(dtype)[6:]} | {count} | "
@@ -235,18 +242,18 @@ def shared_table(size, repeats) -> None:
         grad = torch.randn(targets.shape[0], 3, dtype=dtype,
                            generator=torch.Generator().manual_seed(2))
         paths = {
-            "dense build, fused weights": lambda: kernels.weights(targets, controls, POWER, 0.0,
-                                                                  out=out),
-            "dense build, torch idw_weights": lambda: idw_weights(targets, controls,
-                                                                  power=POWER),
-            "dense apply, torch W @ d": lambda: dense @ values,
-            "dense apply, fused dense_apply": lambda: kernels.dense_apply(dense, values),
-            "matrix-free, fused nearest + apply": lambda: kernels.apply(
-                targets, controls, values, POWER, 0.0, kernels.nearest_squared(targets, controls)),
-            "matrix-free, fused apply_transposed": lambda: kernels.apply_transposed(
-                targets, controls, grad, POWER, 0.0, nearest2, sums),
-            "matrix-free, torch idw_apply": lambda: idw_apply(targets, controls, values,
-                                                              power=POWER),
+            "dense build, fused weights": partial(kernels.weights, targets, controls, POWER,
+                                                  0.0, out=out),
+            "dense build, torch idw_weights": partial(idw_weights, targets, controls,
+                                                      power=POWER),
+            "dense apply, torch W @ d": partial(torch.matmul, dense, values),
+            "dense apply, fused dense_apply": partial(kernels.dense_apply, dense, values),
+            "matrix-free, fused nearest + apply": partial(nearest_then_apply, targets, controls,
+                                                          values),
+            "matrix-free, fused apply_transposed": partial(
+                kernels.apply_transposed, targets, controls, grad, POWER, 0.0, nearest2, sums),
+            "matrix-free, torch idw_apply": partial(idw_apply, targets, controls, values,
+                                                    power=POWER),
         }
         with threads(2):
             for name, function in paths.items():

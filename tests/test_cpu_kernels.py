@@ -16,7 +16,7 @@ import torch
 
 pytest.importorskip("numba")
 
-from torchmorph import _cpu_kernels as kernels  # noqa: E402
+from torchmorph import _cpu_kernels as kernels
 
 POWERS = [0.5, 1.0, 2.0, 3.0, 4.0, 7.5]
 DTYPES = [torch.float32, torch.float64]

@@ -37,8 +37,9 @@ they are >= +0), which vectorises where a float minimum does not.
 - :func:`apply_transposed`: ``Wᵀ @ grad`` (the backward pass to the values),
   parallel over controls, recomputing ``r_ik`` and dividing by the saved ``s_i``.
 - :func:`weights`: the dense ``W``, written row block by row block in one fused
-  pass (nearest distance, then the unnormalised weights, then the scaling by
-  ``1/s_i`` while the block is still in cache).
+  pass: squared distances into the block's rows of W and the nearest distance, then
+  the unnormalised weights in place, then the scaling by ``1/s_i``, while the block
+  is still in cache.
 - :func:`dense_apply`: ``W @ values`` for a stored W, one parallel region.
 
 Precision: distances, ratios and products are computed in the input dtype; partial
@@ -110,8 +111,6 @@ except ImportError:  # pragma: no cover - exercised where numba is absent
         return lambda function: function
 
 
-
-
 def available() -> bool:
     """Whether the kernels can run compiled: numba imports and its JIT is not disabled.
 
@@ -125,12 +124,13 @@ def available() -> bool:
 # the kernels (plain numba; compiled lazily, once per dtype, cached on disk)
 # --------------------------------------------------------------------------- #
 WEIGHT_ROWS = 4
-"""Rows per block of :func:`weights`: the block's rows of W (written twice, then
-scaled) stay in the L2 cache at the paper's sizes."""
+"""Rows per block of :func:`weights`: the block's rows of W (distances, then weights in
+place, then scaled) stay in the L2 cache at the paper's sizes."""
 
 
 _FASTMATH = {"nsz", "reassoc", "contract"}  # vectorised sums and mins; no unsafe maths
 _OPTIONS = {"cache": True, "nogil": True, "fastmath": _FASTMATH, "error_model": "numpy"}
+
 
 @njit(**_OPTIONS)
 def _squared_distances(point, points_t, start, stop, out):
@@ -157,7 +157,7 @@ def _smallest(squared, best):
     """
     for k in range(squared.shape[0]):
         value = squared[k]
-        best = value if value < best else best
+        best = min(best, value)
     return best
 
 
@@ -298,31 +298,32 @@ def _transposed_kernel(controls, targets_t, scaled_t, nearest2, params, mode, ou
 
 @njit(parallel=True, **_OPTIONS)
 def _weights_kernel(targets, controls_t, params, mode, largest, out):
-    """Dense W, one fused pass per block: nearest, unnormalised r, then r / s."""
+    """Dense W, one fused pass per block of rows (kept in cache): d² and the nearest
+    distance, then r_ik in place and s_i, then r_ik / s_i."""
     tiny, zero = params[0], params[3]
     n_targets, n_controls = targets.shape[0], controls_t.shape[1]
     blocks = (n_targets + WEIGHT_ROWS - 1) // WEIGHT_ROWS
     for block in prange(blocks):
         first = block * WEIGHT_ROWS
         last = min(first + WEIGHT_ROWS, n_targets)
-        bits = np.empty(CHUNK, largest.dtype)
-        buffer = bits.view(targets.dtype)
         best = np.full(WEIGHT_ROWS, largest[0])
         total = np.zeros(WEIGHT_ROWS, np.float64)
-        for start in range(0, n_controls, CHUNK):  # pass 1: nearest
-            stop = min(start + CHUNK, n_controls)
-            for row in range(first, last):
-                _squared_distances(targets[row], controls_t, start, stop, buffer)
-                best[row - first] = _smallest(bits[: stop - start], best[row - first])
-        found = best.view(targets.dtype)
-        for start in range(0, n_controls, CHUNK):  # pass 2: r_ik and s_i, into W's rows
+        for start in range(0, n_controls, CHUNK):  # d² into W's rows, and the nearest
             stop = min(start + CHUNK, n_controls)
             for row in range(first, last):
                 chunk = out[row, start:stop]
                 _squared_distances(targets[row], controls_t, start, stop, chunk)
-                _ratio_powers(max(found[row - first], tiny), chunk, stop - start, mode, params)
+                best[row - first] = _smallest(chunk.view(largest.dtype), best[row - first])
+        found = best.view(targets.dtype)
+        for row in range(first, last):  # r_ik in place and s_i
+            values = out[row]
+            nearest = max(found[row - first], tiny)
+            for start in range(0, n_controls, CHUNK):
+                stop = min(start + CHUNK, n_controls)
+                chunk = values[start:stop]
+                _ratio_powers(nearest, chunk, stop - start, mode, params)
                 total[row - first] += _sum(chunk, zero)
-        for row in range(first, last):  # pass 3: normalise, the block still in cache
+        for row in range(first, last):  # normalise
             scale = 1.0 / total[row - first]
             values = out[row]
             for k in range(n_controls):
