@@ -59,14 +59,15 @@ Dependency
 ----------
 numba (``pip install numba``: numba 0.68.1 and llvmlite 0.50 wheels, 64 MB download,
 210 MB installed, no change to numpy, scipy or torch) buys kernels of the same class
-as the GPU ones: on one core of the 2-core development machine, ``apply`` runs at
-1–1.4 Gpair/s in float32 (0.4 in float64), 5–14× a plain two-pass numba loop and
-about 6× torchmorph's tiled torch path, and it slows by at most ~2× beside a busy
-process where the torch path slows 4–16× (``benchmarks/idw_cpu.py``). The price is
-compilation: lazy, once per kernel and dtype, 2–3 s each on first use (about 12 s
-for all five kernels in one dtype), then cached on disk by numba (``cache=True``: in
-``__pycache__`` beside this file, or under ``NUMBA_CACHE_DIR``), so that later
-processes load the machine code in well under a second. Without numba
+as the GPU ones. Measured on one core of the shared 2-core development machine
+(``benchmarks/idw_cpu.py``, p = 4, one field): ``apply`` runs at 1.3–1.5 Gpair/s in
+float32 and 0.4–0.5 Gpair/s in float64, 6–7× (float32) and 2.4–2.7× (float64) a plain
+two-pass numba loop and 4–7× torchmorph's tiled torch path; beside a busy process
+the fused paths take 1.4–1.8× their quiet time where the torch path takes 3.6–12×.
+The price is compilation: lazy, once per kernel and dtype, 2–3 s each on first use
+(about 13 s for all five kernels in one dtype), then cached on disk by numba
+(``cache=True``: in ``__pycache__`` beside this file, or under ``NUMBA_CACHE_DIR``),
+so that later processes load the machine code in well under a second. Without numba
 :func:`available` is False and torchmorph uses its torch path.
 """
 
