@@ -53,7 +53,11 @@ Threads follow ``torch.get_num_threads()`` (capped by numba's pool,
 ``NUMBA_NUM_THREADS``), set per call and restored after it, and blocks are handed
 out one at a time (``numba.set_parallel_chunksize(1)`` for the call). With one
 parallel region per call and no spin-wait per block, a process competing for the
-cores slows a call by about the share of the cores it takes.
+cores slows a call by about the share of the cores it takes. The kernels run on
+numba's threading layer (``omp`` where GNU OpenMP is found, as here): numba documents
+that layer as unsafe to use in a process forked after it started, so forked workers
+(a ``fork`` start method, e.g. data-loader workers) should not call the kernels
+unless ``NUMBA_THREADING_LAYER=workqueue`` (or ``tbb``) is set.
 
 Dependency
 ----------
