@@ -96,10 +96,18 @@ def copy_bandwidth(device: torch.device) -> float:
     return 2 * source.numel() * 4 / elapsed
 
 
+#: Matrix-free floors (target-control pairs per second): a pair costs ~15 operations.
+#: CUDA (H100): ~1e12 in float32, half in float64. CPU: ~1 pair per cycle and core in
+#: float32 (two 8-lane FMA units), half in float64, at ~2.5 GHz.
+PAIR_FLOORS = {"cuda": {torch.float32: 1e12, torch.float64: 0.5e12},
+               "cpu": {torch.float32: 2.5e9, torch.float64: 1.25e9}}
+
+
 def idw_table(device: torch.device, repeats: int, large: bool,
               counts: tuple[int, int] = PAPER_COUNTS) -> tuple[list[tuple], float]:
     """Rows (path, dtype, seconds, rate, floor fraction, error) and the copy bandwidth."""
     n_controls, n_targets = counts
+    threads = torch.get_num_threads() if device.type == "cpu" else 1
     fused_kind = "fused" if fused_available(device) else "auto"  # a CPU smoke test without numba
     pairs = n_controls * n_targets
     bandwidth = copy_bandwidth(device)
@@ -107,12 +115,12 @@ def idw_table(device: torch.device, repeats: int, large: bool,
     rows = []
     for dtype in (torch.float32, torch.float64):
         name = str(dtype)[6:]
+        floor = PAIR_FLOORS.get(device.type, PAIR_FLOORS["cpu"])[dtype] * threads
         controls, targets = sphere_cloud(n_controls, n_targets, dtype, device)
         generator = torch.Generator().manual_seed(1)
         one = torch.randn(n_controls, 3, generator=generator, dtype=torch.float64)
         sixteen = torch.randn(16, n_controls, 3, generator=generator, dtype=torch.float64)
-        reference = idw_apply(targets.double(), controls.double(), one.to(device),
-                              implementation="torch")
+        reference = idw_apply(controls=controls.double(), targets=targets.double(), displacements=one.to(device), implementation="torch")
         scale = reference.norm()
         sixteen[0] = one  # the batch rows' error is that of its first entry
         one, sixteen = one.to(device, dtype), sixteen.to(device, dtype)
@@ -126,7 +134,7 @@ def idw_table(device: torch.device, repeats: int, large: bool,
             for label, run in (
                     ("matrix-free, one displacement (module)", lambda: fused(one)),
                     ("matrix-free, one displacement (idw_apply)",
-                     lambda: idw_apply(targets, controls, one, implementation=fused_kind)),
+                     lambda: idw_apply(controls=controls, targets=targets, displacements=one, implementation=fused_kind)),
                     ("matrix-free, batch of 16 (module)", lambda: fused(sixteen)),
                     ("matrix-free, one displacement, torch implementation", lambda: plain(one)),
                     ("matrix-free, one displacement, naive cdist code",
@@ -134,8 +142,8 @@ def idw_table(device: torch.device, repeats: int, large: bool,
                 seconds_ = timed(run, repeats if "torch" not in label else 3)
                 result = run()
                 count = pairs  # geometry pairs, whatever the batch
-                rows.append((label, name, seconds_, f"{count / seconds_ / 1e9:,.0f} Gpair/s",
-                             f"{count / seconds_ / 1e12:.2f}",
+                rows.append((label, name, seconds_, f"{count / seconds_ / 1e9:,.2f} Gpair/s",
+                             f"{count / seconds_ / floor:.2f}",
                              error(result[0] if result.ndim == 3 else result)))
         probe = one.clone().requires_grad_(True)
 
@@ -144,8 +152,8 @@ def idw_table(device: torch.device, repeats: int, large: bool,
 
         seconds_ = timed(backward, repeats)
         rows.append(("matrix-free, forward + backward to d (module)", name, seconds_,
-                     f"{2 * pairs / seconds_ / 1e9:,.0f} Gpair/s",
-                     f"{2 * pairs / seconds_ / 1e12:.2f}", float("nan")))
+                     f"{2 * pairs / seconds_ / 1e9:,.2f} Gpair/s",
+                     f"{2 * pairs / seconds_ / floor:.2f}", float("nan")))
         moving_targets = targets.clone().requires_grad_(True)
         moving_controls = controls.clone().requires_grad_(True)
         for label, implementation in (
@@ -153,18 +161,16 @@ def idw_table(device: torch.device, repeats: int, large: bool,
                 ("matrix-free, forward + backward to d and positions, torch implementation",
                  "torch")):
             def position_backward():
-                idw_apply(moving_targets, moving_controls, probe,
-                          implementation=implementation).sum().backward()
+                idw_apply(controls=moving_controls, targets=moving_targets, displacements=probe, implementation=implementation).sum().backward()
 
             seconds_ = timed(position_backward, repeats if implementation != "torch" else 3)
-            rows.append((label, name, seconds_, f"{4 * pairs / seconds_ / 1e9:,.0f} Gpair/s",
-                         f"{4 * pairs / seconds_ / 1e12:.2f}", float("nan")))
+            rows.append((label, name, seconds_, f"{4 * pairs / seconds_ / 1e9:,.2f} Gpair/s",
+                         f"{4 * pairs / seconds_ / floor:.2f}", float("nan")))
         with torch.no_grad():
             w_bytes = pairs * controls.element_size()
             for label, implementation in (("dense: assemble W", fused_kind),
                                           ("dense: assemble W, torch implementation", "torch")):
-                seconds_ = timed(lambda: idw_weights(targets, controls,
-                                                     implementation=implementation), 3,
+                seconds_ = timed(lambda: idw_weights(controls=controls, targets=targets, implementation=implementation), 3,
                                  warmup=1)
                 rows.append((label, name, seconds_, f"{w_bytes / seconds_ / 1e9:,.0f} GB/s",
                              f"{w_bytes / seconds_ / bandwidth:.2f}", float("nan")))
@@ -181,17 +187,26 @@ def idw_table(device: torch.device, repeats: int, large: bool,
             dense = None  # free W before the next dtype
         if device.type == "cuda":
             torch.cuda.empty_cache()
-    if large:
+    if large and device.type == "cuda":
         controls, targets = sphere_cloud(100_000, 1_000_000, torch.float32, device)
         one = torch.randn(100_000, 3, dtype=torch.float32, device=device)
         with torch.no_grad():
-            seconds_ = timed(lambda: idw_apply(targets, controls, one, implementation=fused_kind), 3,
+            seconds_ = timed(lambda: idw_apply(controls=controls, targets=targets, displacements=one, implementation=fused_kind), 3,
                              warmup=1)
         count = 100_000 * 1_000_000
         rows.append(("matrix-free, 1e5 controls x 1e6 targets (idw_apply)", "float32", seconds_,
-                     f"{count / seconds_ / 1e9:,.0f} Gpair/s", f"{count / seconds_ / 1e12:.2f}",
+                     f"{count / seconds_ / 1e9:,.0f} Gpair/s",
+                     f"{count / seconds_ / PAIR_FLOORS['cuda'][torch.float32]:.2f}",
                      float("nan")))
     return rows, bandwidth
+
+
+def print_idw_table(rows: list[tuple]) -> None:
+    print("| path | dtype | time | rate | fraction of floor | error |")
+    print("|---|---|---|---|---|---|")
+    for label, dtype_name, value, rate, fraction, err in rows:
+        shown = "–" if err != err else f"{err:.1e}"
+        print(f"| {label} | {dtype_name} | {seconds(value)} | {rate} | {fraction} | {shown} |")
 
 
 def main() -> int:
@@ -220,14 +235,11 @@ def main() -> int:
     rows, bandwidth = idw_table(device, args.repeats, not args.no_large, tuple(args.counts))
     print(f"IDW kernels ({args.counts[0]:,} controls on a sphere x "
           f"{args.counts[1]:,} targets inside); error = ‖result − float64 reference‖ / "
-          f"‖reference‖; floor: 1 Tpair/s for matrix-free rows, the measured copy bandwidth "
+          f"‖reference‖; floor: {PAIR_FLOORS['cuda'][torch.float32] / 1e12:g} Tpair/s (float32) "
+          f"and half that (float64) for matrix-free rows, the measured copy bandwidth "
           f"({bandwidth / 1e12:.2f} TB/s) for dense rows")
     print()
-    print("| path | dtype | time | rate | fraction of floor | error |")
-    print("|---|---|---|---|---|---|")
-    for label, dtype_name, value, rate, fraction, err in rows:
-        shown = "–" if err != err else f"{err:.1e}"
-        print(f"| {label} | {dtype_name} | {seconds(value)} | {rate} | {fraction} | {shown} |")
+    print_idw_table(rows)
     if args.idw_only:
         return 0
     print()

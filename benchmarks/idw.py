@@ -17,6 +17,14 @@ on the surface of an ellipsoid inside a box, targets in the volume between,
 sized like the paper's meshes.
 
 Usage: ``python benchmarks/idw.py [--sizes 0 1 2] [--repeats 5] [--batches 1 10 100]``
+
+``--kernels`` prints instead the kernel table of ``benchmarks/gpu.py`` on the CPU: at
+case-B counts (controls on a sphere, targets inside), float32 and float64, the fused
+(numba) paths beside the torch implementation and the naive ``torch.cdist`` code, with
+Gpair/s or GB/s, the fraction of the CPU's floor and the error against a float64
+reference, in one run (``--threads`` sets torch's thread count; default 1).
+``benchmarks/idw_cpu.py`` compares the fused CPU kernels with a plain two-pass numba
+loop and measures them beside a competing busy process.
 """
 
 from __future__ import annotations
@@ -95,7 +103,7 @@ def run_config(args) -> dict:
     with torch.no_grad():
         if mode == "matrix_free":  # first, so the process's peak is this apply's
             before = peak_rss_mb()
-            idw_apply(targets, controls, single, block_bytes=block_bytes)
+            idw_apply(controls=controls, targets=targets, displacements=single, block_bytes=block_bytes)
             result["apply MB"] = peak_rss_mb() - before
 
         def build_and_morph():
@@ -122,7 +130,22 @@ def main(argv=None) -> None:
     parser.add_argument("--batches", type=int, nargs="*", default=[1, 10, 100])
     parser.add_argument("--dtypes", nargs="*", default=["float32", "float64"])
     parser.add_argument("--block-bytes", type=int, default=4 * 2**20)
+    parser.add_argument("--kernels", action="store_true",
+                        help="the kernel table (fused / torch / naive cdist) on the CPU")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads for --kernels")
     args = parser.parse_args(argv)
+    if args.kernels:
+        from gpu import idw_table, print_idw_table
+
+        torch.set_num_threads(args.threads)
+        rows, bandwidth = idw_table(torch.device("cpu"), args.repeats, False)
+        print(f"# IDW kernels on the CPU: {platform.processor() or platform.machine()}, "
+              f"{args.threads} thread(s), torch {torch.__version__}; 14,126 controls on a "
+              f"sphere x 21,910 targets inside; floor: ~2.5 Gpair/s per thread (float32), "
+              f"half in float64, for matrix-free rows, the copy bandwidth "
+              f"({bandwidth / 1e9:.1f} GB/s) for dense rows\n")
+        print_idw_table(rows)
+        return
 
     print(f"# IDW benchmark: {platform.processor() or platform.machine()}, "
           f"{torch.get_num_threads()} threads, torch {torch.__version__}, numpy {np.__version__}")

@@ -183,8 +183,8 @@ def matrix_free_table(sizes, repeats) -> None:
                         "fused apply_transposed": partial(
                             kernels.apply_transposed, targets, controls, grad, POWER, radius2,
                             nearest2, sums),
-                        "torch idw_apply": partial(idw_apply, targets, controls, values,
-                                                   power=POWER),
+                        "torch idw_apply": partial(idw_apply, controls=controls, targets=targets, displacements=values,
+                power=POWER, implementation="torch"),
                     }
                     for name, function in paths.items():
                         elapsed = baseline if function is None else median_time(
@@ -210,7 +210,8 @@ def dense_table(sizes, repeats) -> None:
             dense = kernels.weights(targets, controls, POWER, 0.0)
             for count in (1, 2):
                 with threads(count):
-                    build = median_time(partial(idw_weights, targets, controls, power=POWER),
+                    build = median_time(partial(idw_weights, controls=controls, targets=targets, power=POWER,
+                implementation="torch"),
                                         max(1, repeats // 2))
                     apply = median_time(partial(torch.matmul, dense, values), repeats)
                     rows = (
@@ -244,16 +245,16 @@ def shared_table(size, repeats) -> None:
         paths = {
             "dense build, fused weights": partial(kernels.weights, targets, controls, POWER,
                                                   0.0, out=out),
-            "dense build, torch idw_weights": partial(idw_weights, targets, controls,
-                                                      power=POWER),
+            "dense build, torch idw_weights": partial(idw_weights, controls=controls, targets=targets, power=POWER,
+                implementation="torch"),
             "dense apply, torch W @ d": partial(torch.matmul, dense, values),
             "dense apply, fused dense_apply": partial(kernels.dense_apply, dense, values),
             "matrix-free, fused nearest + apply": partial(nearest_then_apply, targets, controls,
                                                           values),
             "matrix-free, fused apply_transposed": partial(
                 kernels.apply_transposed, targets, controls, grad, POWER, 0.0, nearest2, sums),
-            "matrix-free, torch idw_apply": partial(idw_apply, targets, controls, values,
-                                                    power=POWER),
+            "matrix-free, torch idw_apply": partial(idw_apply, controls=controls, targets=targets, displacements=values,
+                power=POWER, implementation="torch"),
         }
         with threads(2):
             for name, function in paths.items():

@@ -1,9 +1,10 @@
 """Shared fixtures: small analytic tetrahedral meshes, one torch thread, and a temporary home.
 
-The tests never write into the user's home: before anything is collected, ``HOME``, the
-mesh cache (``TORCHMORPH_CACHE``), numba's cache and matplotlib's configuration point
-into one temporary directory (gmsh writes ``~/.fltk`` and ``~/.gmsh-options``
-there); it is removed at the end of the session.
+The tests never write into the user's home: before anything is collected, ``HOME`` and
+matplotlib's configuration point into one temporary directory (gmsh writes ``~/.fltk``
+and ``~/.gmsh-options`` there), removed at the end of the session; the mesh cache
+(``TORCHMORPH_CACHE``) and numba's cache live in the repository's ignored
+``.cache/tests``, so that meshes and kernels are built once, not on every run.
 """
 
 from __future__ import annotations
@@ -27,20 +28,25 @@ from torchmorph import TetMesh  # noqa: E402
 from torchmorph.mesh import box_mesh  # noqa: E402
 
 #: Environment variables pointed into the session's temporary directory (name -> subfolder).
-ISOLATED = {"HOME": "home", "TORCHMORPH_CACHE": "cache/meshes", "NUMBA_CACHE_DIR": "cache/numba",
-            "MPLCONFIGDIR": "config/matplotlib", "XDG_CACHE_HOME": "cache",
+ISOLATED = {"HOME": "home", "MPLCONFIGDIR": "config/matplotlib", "XDG_CACHE_HOME": "cache",
             "XDG_CONFIG_HOME": "config"}
+#: Caches kept between sessions, in the repository's ignored ``.cache/tests`` (name ->
+#: subfolder): generated meshes and numba's compiled kernels are built once, not per run.
+PERSISTENT = {"TORCHMORPH_CACHE": "meshes", "NUMBA_CACHE_DIR": "numba"}
+PERSISTENT_ROOT = Path(__file__).resolve().parents[1] / ".cache" / "tests"
 _saved: dict[str, str | None] = {}
 _root: Path | None = None
+_paths: dict[str, Path] = {}
 
 
 def pytest_configure(config):
     """Point home, caches and configuration into a temporary directory (before collection)."""
     global _root
     _root = Path(tempfile.mkdtemp(prefix="torchmorph-tests-"))
-    for name, folder in ISOLATED.items():
+    _paths.update({name: _root / folder for name, folder in ISOLATED.items()})
+    _paths.update({name: PERSISTENT_ROOT / folder for name, folder in PERSISTENT.items()})
+    for name, path in _paths.items():
         _saved[name] = os.environ.get(name)
-        path = _root / folder
         path.mkdir(parents=True, exist_ok=True)
         os.environ[name] = str(path)
 
@@ -59,8 +65,8 @@ def pytest_unconfigure(config):
 def temporary_home() -> Path:
     """The session's temporary directory holding HOME and the caches (see the module doc)."""
     assert _root is not None
-    for name, folder in ISOLATED.items():
-        assert os.environ[name] == str(_root / folder), f"{name} was changed during the session"
+    for name, path in _paths.items():
+        assert os.environ[name] == str(path), f"{name} was changed during the session"
     return _root
 
 

@@ -474,16 +474,17 @@ def test_reproduce_wing_small(tmp_path, capsys):
 # --------------------------------------------------------------------------- environment
 
 
-def test_tests_run_with_a_temporary_home_and_cache(temporary_home):
+def test_tests_run_with_a_temporary_home_and_a_repository_cache(temporary_home):
     import os
     from pathlib import Path
 
     home = Path(os.environ["HOME"])
     assert home == temporary_home / "home" and home.is_dir()
-    assert Path(os.environ["TORCHMORPH_CACHE"]).is_relative_to(temporary_home)
     assert Path(os.environ["MPLCONFIGDIR"]).is_relative_to(temporary_home)
-    assert Path(os.environ["NUMBA_CACHE_DIR"]).is_relative_to(temporary_home)
     assert Path("~").expanduser() == home
+    repository_cache = Path(__file__).resolve().parents[1] / ".cache" / "tests"
+    assert Path(os.environ["TORCHMORPH_CACHE"]).is_relative_to(repository_cache)
+    assert Path(os.environ["NUMBA_CACHE_DIR"]).is_relative_to(repository_cache)
 
 
 

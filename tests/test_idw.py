@@ -55,7 +55,7 @@ def graded_cloud(dtype=F64):
 @pytest.mark.parametrize("power", [1.0, 2.0, 3.5, 4.0, 6.0])
 def test_weights_match_brute_force(power):
     targets, controls, _ = cloud()
-    weights = idw_weights(targets, controls, power=power)
+    weights = idw_weights(controls=controls, targets=targets, power=power)
     reference = brute_force_weights(targets.numpy(), controls.numpy(), power)
     torch.testing.assert_close(weights, torch.from_numpy(reference), rtol=1e-12, atol=1e-14)
 
@@ -65,7 +65,7 @@ def test_targets_on_and_next_to_controls_get_that_row():
     targets[0] = controls[3]
     targets[1] = controls[7] + 1e-12
     targets[2] = controls[9] - torch.tensor([0.0, 1e-12, 0.0], dtype=F64)
-    weights = idw_weights(targets, controls)
+    weights = idw_weights(controls=controls, targets=targets)
     for row, control in ((0, 3), (1, 7), (2, 9)):
         expected = torch.zeros(controls.shape[0], dtype=F64)
         expected[control] = 1.0
@@ -77,7 +77,7 @@ def test_targets_on_and_next_to_controls_get_that_row():
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_rows_sum_to_one_and_lie_in_unit_interval(dtype):
     targets, controls = graded_cloud(dtype)
-    weights = idw_weights(targets, controls)
+    weights = idw_weights(controls=controls, targets=targets)
     assert torch.isfinite(weights).all()
     assert (weights >= 0).all() and (weights <= 1).all()
     tolerance = 1e-6 if dtype == torch.float32 else 1e-14
@@ -89,7 +89,7 @@ def test_float32_weights_do_not_overflow_far_or_near():
     # |x - c|^-4 alone overflows float32 below 1e-10 and underflows above 1e10
     controls = torch.tensor([[0.0, 0, 0], [1e-11, 0, 0], [3e10, 0, 0]], dtype=torch.float32)
     targets = torch.tensor([[5e-12, 1e-12, 0.0], [1e10, 0, 0]], dtype=torch.float32)
-    weights = idw_weights(targets, controls, coincidence_tolerance=0.0)
+    weights = idw_weights(controls=controls, targets=targets, coincidence_tolerance=0.0)
     assert torch.isfinite(weights).all()
     reference = brute_force_weights(targets.double().numpy(), controls.double().numpy())
     torch.testing.assert_close(weights.double(), torch.from_numpy(reference), rtol=1e-5, atol=1e-6)
@@ -109,7 +109,7 @@ def test_weights_of_a_2d_cloud():
     controls = torch.rand(10, 2, generator=generator, dtype=F64)
     targets = torch.rand(6, 2, generator=generator, dtype=F64)
     reference = brute_force_weights(targets.numpy(), controls.numpy())
-    torch.testing.assert_close(idw_weights(targets, controls), torch.from_numpy(reference))
+    torch.testing.assert_close(idw_weights(controls=controls, targets=targets), torch.from_numpy(reference))
 
 
 # --------------------------------------------------------------------------- #
@@ -141,7 +141,7 @@ def test_matrix_free_equals_dense_in_float64():
     displacements = torch.randn(4, controls.shape[0], 3, generator=generator, dtype=F64)
     dense = IDW(controls, targets, mode="dense")(displacements)
     for block_bytes in (512, 4096, 10**6):  # tiles of a few rows/columns up to one tile
-        free = idw_apply(targets, controls, displacements, block_bytes=block_bytes)
+        free = idw_apply(controls=controls, targets=targets, displacements=displacements, block_bytes=block_bytes)
         torch.testing.assert_close(free, dense, rtol=0, atol=1e-12)
 
 
@@ -188,8 +188,8 @@ def test_gradcheck_positions_functional():
     targets.requires_grad_(True)
     controls.requires_grad_(True)
     displacements = torch.randn(8, 3, generator=generator, dtype=F64, requires_grad=True)
-    assert gradcheck(lambda t, c, d: idw_weights(t, c) @ d, (targets, controls, displacements))
-    assert gradcheck(lambda t, c, d: idw_apply(t, c, d, block_bytes=300),
+    assert gradcheck(lambda t, c, d: idw_weights(controls=c, targets=t) @ d, (targets, controls, displacements))
+    assert gradcheck(lambda t, c, d: idw_apply(controls=c, targets=t, displacements=d, block_bytes=300),
                      (targets, controls, displacements))
 
 
@@ -308,7 +308,7 @@ def test_errors_name_the_argument():
     with pytest.raises(ValueError, match="controls is empty"):
         IDW(controls[:0], targets)
     with pytest.raises(ValueError, match="targets must have shape"):
-        idw_weights(targets[:, :2], controls)
+        idw_weights(controls=controls, targets=targets[:, :2])
     bad = controls.clone()
     bad[2, 1] = float("nan")
     with pytest.raises(ValueError, match="controls holds 1 NaN or infinite"):
@@ -316,7 +316,7 @@ def test_errors_name_the_argument():
     bad = targets.clone()
     bad[0, 0] = float("inf")
     with pytest.raises(ValueError, match="targets holds 1 NaN or infinite"):
-        idw_weights(bad, controls)
+        idw_weights(controls=controls, targets=bad)
     for power in (0.0, -2.0, float("nan")):
         with pytest.raises(ValueError, match="power must be a finite number > 0"):
             IDW(controls, targets, power=power)
@@ -341,7 +341,7 @@ def test_forward_errors_name_the_argument():
         with pytest.raises(ValueError, match="displacements is on device"):
             morph(torch.zeros(25, 3, dtype=F64, device="cuda"))
     with pytest.raises(ValueError, match="displacements must have shape"):
-        idw_apply(targets, controls, torch.zeros(2, 2, 25, 3, dtype=F64))
+        idw_apply(controls=controls, targets=targets, displacements=torch.zeros(2, 2, 25, 3, dtype=F64))
 
 
 # --------------------------------------------------------------------------- #
@@ -351,8 +351,8 @@ def test_forward_errors_name_the_argument():
                                               (F64, 1e-170), (F64, 1e155), (F64, 1e300)])
 def test_weights_do_not_depend_on_the_units(dtype, scale):
     targets, controls, _ = cloud()
-    expected = idw_weights(targets, controls)
-    got = idw_weights((targets * scale).to(dtype), (controls * scale).to(dtype))
+    expected = idw_weights(controls=controls, targets=targets)
+    got = idw_weights(controls=(controls * scale).to(dtype), targets=(targets * scale).to(dtype))
     assert torch.isfinite(got).all()
     tolerance = dict(rtol=1e-5, atol=1e-6) if dtype == torch.float32 else {}
     torch.testing.assert_close(got.double(), expected, **tolerance)
@@ -382,8 +382,8 @@ def test_position_gradients_are_finite_on_coincident_rows(power):
     targets.requires_grad_(True)
     controls.requires_grad_(True)
     displacements = torch.randn(25, 3, dtype=F64)
-    for function in (lambda: idw_weights(targets, controls, power=power) @ displacements,
-                     lambda: idw_apply(targets, controls, displacements, power=power)):
+    for function in (lambda: idw_weights(controls=controls, targets=targets, power=power) @ displacements,
+                     lambda: idw_apply(controls=controls, targets=targets, displacements=displacements, power=power)):
         gradients = torch.autograd.grad(function().square().sum(), (targets, controls))
         assert all(torch.isfinite(g).all() for g in gradients)
 
@@ -410,9 +410,9 @@ def test_implementation_is_checked_and_forced_fused_explains_why_not():
     if not fused_available("cpu"):
         with pytest.raises(ValueError, match="implementation='fused' cannot run here: no fused "
                                              "kernels on device cpu"):
-            idw_apply(targets, controls, displacements, implementation="fused")
+            idw_apply(controls=controls, targets=targets, displacements=displacements, implementation="fused")
     torch.testing.assert_close(
-        idw_apply(targets, controls, displacements + 1.0, implementation="torch"),
+        idw_apply(controls=controls, targets=targets, displacements=displacements + 1.0, implementation="torch"),
         torch.ones(40, 3, dtype=F64))
 
 
@@ -428,3 +428,21 @@ def test_cpu_fused_matches_torch(mode):
         plain = IDW(controls, targets, mode=mode, implementation="torch")
     torch.testing.assert_close(fused(displacements), plain(displacements))
     assert gradcheck(fused, (displacements[:1].detach().requires_grad_(True),))
+
+
+def test_points_are_keywords_and_the_old_positional_order_is_deprecated():
+    targets, controls, generator = cloud()
+    displacements = torch.randn(25, 3, generator=generator, dtype=F64)
+    expected = idw_apply(controls=controls, targets=targets, displacements=displacements)
+    with pytest.warns(DeprecationWarning, match=r"idw_apply\(targets, controls, \.\.\.\) with "
+                                                "positional points is deprecated"):
+        old = idw_apply(targets, controls, displacements)
+    torch.testing.assert_close(old, expected, rtol=0, atol=0)
+    with pytest.warns(DeprecationWarning, match=r"idw_weights\(targets, controls"):
+        weights = idw_weights(targets, controls)
+    torch.testing.assert_close(weights @ displacements, expected)
+    with pytest.raises(TypeError, match=r"idw_weights\(\) takes its points as keywords: "
+                                        r"idw_weights\(controls=\.\.\., targets=\.\.\.\)"):
+        idw_weights(targets, controls=controls)
+    with pytest.raises(TypeError, match=r"idw_apply\(\) needs displacements="):
+        idw_apply(controls=controls, targets=targets)

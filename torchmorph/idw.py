@@ -161,10 +161,28 @@ def _assemble_weights(
 # --------------------------------------------------------------------------- #
 # functional API
 # --------------------------------------------------------------------------- #
+def _points_arguments(function: str, positional: tuple, controls, targets, count: int = 2):
+    """``(controls, targets[, displacements])`` from keywords, or from the deprecated
+    positional order ``(targets, controls[, displacements])`` with a warning."""
+    if positional:
+        if len(positional) != count or controls is not None or targets is not None:
+            names = "controls=..., targets=..." + (", displacements=..." if count == 3 else "")
+            raise TypeError(f"{function}() takes its points as keywords: {function}({names})")
+        warnings.warn(
+            f"{function}(targets, controls, ...) with positional points is deprecated and will "
+            f"be removed: pass controls=... and targets=... as keywords (the order of IDW)",
+            DeprecationWarning, stacklevel=3)
+        targets, controls = positional[:2]
+        return (controls, targets, *positional[2:])
+    if controls is None or targets is None:
+        raise TypeError(f"{function}() needs controls= and targets=")
+    return controls, targets
+
+
 def idw_weights(
-    targets: Tensor,
-    controls: Tensor,
-    *,
+    *points: Tensor,
+    controls: Tensor | None = None,
+    targets: Tensor | None = None,
     power: float = 4.0,
     coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
     block_bytes: int | None = None,
@@ -174,10 +192,10 @@ def idw_weights(
 
     Parameters
     ----------
-    targets : Tensor, shape (N_t, D)
-        Points to interpolate to (the interior nodes).
-    controls : Tensor, shape (N_c, D)
+    controls : Tensor, shape (N_c, D), keyword
         Control points with known displacements.
+    targets : Tensor, shape (N_t, D), keyword
+        Points to interpolate to (the interior nodes).
     power : float
         The exponent p > 0 (the paper's p = 4).
     coincidence_tolerance : float
@@ -202,7 +220,14 @@ def idw_weights(
     ValueError
         For wrong shapes, empty controls, NaN/inf, power <= 0, mismatched
         dtype or device, or an implementation that cannot run.
+
+    Notes
+    -----
+    The points are keywords, in the order of :class:`IDW` (controls, then targets).
+    The former positional call ``idw_weights(targets, controls)`` still works, with a
+    ``DeprecationWarning``.
     """
+    controls, targets = _points_arguments("idw_weights", points, controls, targets)
     targets, controls, power, radius2 = _prepare(targets, controls, power, coincidence_tolerance)
     if not _functional(targets, controls):
         return _assemble_weights(targets, controls, power, radius2, block_bytes, implementation)
@@ -234,10 +259,10 @@ def _dim_of(points) -> int:
 
 
 def idw_apply(
-    targets: Tensor,
-    controls: Tensor,
-    displacements: Tensor,
-    *,
+    *points: Tensor,
+    controls: Tensor | None = None,
+    targets: Tensor | None = None,
+    displacements: Tensor | None = None,
     power: float = 4.0,
     coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
     block_bytes: int | None = None,
@@ -247,9 +272,9 @@ def idw_apply(
 
     Parameters
     ----------
-    targets : Tensor, shape (N_t, D)
-    controls : Tensor, shape (N_c, D)
-    displacements : Tensor, shape (N_c, 3) or (B, N_c, 3)
+    controls : Tensor, shape (N_c, D), keyword
+    targets : Tensor, shape (N_t, D), keyword
+    displacements : Tensor, shape (N_c, 3) or (B, N_c, 3), keyword
     power, coincidence_tolerance
         As in :func:`idw_weights`.
     block_bytes : int, optional
@@ -262,11 +287,13 @@ def idw_apply(
     Returns
     -------
     Tensor, shape (N_t, 3) or (B, N_t, 3)
-        Same values as ``idw_weights(targets, controls) @ displacements``.
+        Same values as ``idw_weights(controls=..., targets=...) @ displacements``.
 
     Notes
     -----
-    The fused kernels (two passes over the controls: the nearest distance, then
+    The points and displacements are keywords (the former positional call
+    ``idw_apply(targets, controls, displacements)`` still works, with a
+    ``DeprecationWarning``). The fused kernels (two passes over the controls: the nearest distance, then
     the ratio weights against ``[d, 1]``, divided at the end) serve the forward
     pass and the backward pass: the gradient to the displacements is a second
     fused pass applying Wᵀ to the incoming gradient, and on CUDA the gradients to
@@ -282,6 +309,13 @@ def idw_apply(
     matrix-free mode is not traceable by ``torch.compile`` without graph breaks
     (use dense mode there).
     """
+    if points:
+        controls, targets, displacements = _points_arguments("idw_apply", points, controls,
+                                                             targets, count=3)
+    else:
+        controls, targets = _points_arguments("idw_apply", points, controls, targets)
+        if displacements is None:
+            raise TypeError("idw_apply() needs displacements=")
     targets, controls, power, radius2 = _prepare(targets, controls, power, coincidence_tolerance)
     batched = check_vectors(displacements, "displacements", controls.shape[0],
                             what="control points")
@@ -615,9 +649,10 @@ class IDW(nn.Module):
                 backend = _fused_for(self.implementation, self.controls, displacements)
                 if backend is not None and self.num_targets:
                     return self._fused_matrix_free(backend, displacements)
-            return idw_apply(targets, controls, displacements, **options)
+            return idw_apply(controls=controls, targets=targets, displacements=displacements,
+                             **options)
         if rebuild:
-            return idw_weights(targets, controls, **options) @ displacements
+            return idw_weights(controls=controls, targets=targets, **options) @ displacements
         return _dense_apply(self.weights, displacements, self.implementation)
 
     def _fused_matrix_free(self, backend, displacements: Tensor) -> Tensor:
