@@ -157,7 +157,7 @@ def idw_table(device: torch.device, repeats: int, large: bool,
         moving_targets = targets.clone().requires_grad_(True)
         moving_controls = controls.clone().requires_grad_(True)
         for label, implementation in (
-                ("matrix-free, forward + backward to d and positions (idw_apply)", fused_kind),
+                ("matrix-free, forward + backward to d and positions (idw_apply)", "auto"),
                 ("matrix-free, forward + backward to d and positions, torch implementation",
                  "torch")):
             def position_backward():

@@ -82,7 +82,7 @@ def sweep(kernel: str, run, candidates, label: str) -> tuple[tuple[int, int, int
             kernels._OVERRIDE[kernel] = candidate
         try:
             seconds, error = run()
-        except Exception as failure:  # a shape the compiler rejects (registers, shared memory)
+        except Exception as failure:  # noqa: BLE001 (a shape the compiler rejects: registers, shared memory)
             print(f"| {label} | {candidate} | failed: {type(failure).__name__} | |")
             continue
         print(f"| {label} | {candidate} | {seconds * 1e3:.3f} ms | {error:.1e} |")

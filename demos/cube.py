@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> dict:
     results = {}
     plans = {
         "IDW": None,
-        "SIDW": SelectionPlan({face: 0.2 for face in ("x0", "x1", "y0", "y1", "z0", "z1")}),
+        "SIDW": SelectionPlan(dict.fromkeys(("x0", "x1", "y0", "y1", "z0", "z1"), 0.2)),
     }
     reference = None
     for label, plan in plans.items():

@@ -52,7 +52,7 @@ def build(kind: str, *, idw_seed: int, num_controls: int, num_targets: int):
         return IDW(controls, targets, mode=mode, block_bytes=2000), controls, targets
     cube = box_mesh(3)
     if kind == "morph-selective":
-        morph = MeshMorph(cube, SelectionPlan({face: 0.5 for face in FACES}),
+        morph = MeshMorph(cube, SelectionPlan(dict.fromkeys(FACES, 0.5)),
                           generator=torch.Generator().manual_seed(0))
     else:
         morph = MeshMorph(cube, mode="matrix_free" if kind == "morph-matrix-free" else "dense")

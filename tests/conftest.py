@@ -22,10 +22,10 @@ import torch
 if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
-import pytest  # noqa: E402
+import pytest
 
-from torchmorph import TetMesh  # noqa: E402
-from torchmorph.mesh import box_mesh  # noqa: E402
+from torchmorph import TetMesh
+from torchmorph.mesh import box_mesh
 
 #: Environment variables pointed into the session's temporary directory (name -> subfolder).
 ISOLATED = {"HOME": "home", "MPLCONFIGDIR": "config/matplotlib", "XDG_CACHE_HOME": "cache",

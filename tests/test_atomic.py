@@ -25,9 +25,13 @@ def test_writes_the_target_on_success(tmp_path):
 def test_failure_keeps_the_old_file_and_removes_the_temporary(tmp_path):
     target = tmp_path / "out.txt"
     target.write_text("old")
-    with pytest.raises(RuntimeError, match="writer failed"), atomic_output(target) as temporary:
-        temporary.write_text("half")
-        raise RuntimeError("writer failed")
+    def write_half_then_fail():
+        with atomic_output(target) as temporary:
+            temporary.write_text("half")
+            raise RuntimeError("writer failed")
+
+    with pytest.raises(RuntimeError, match="writer failed"):
+        write_half_then_fail()
     assert target.read_text() == "old"
     assert [item.name for item in tmp_path.iterdir()] == ["out.txt"]
 

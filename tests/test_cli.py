@@ -543,8 +543,8 @@ def test_mesh_without_pytetwild_names_the_tetwild_extra(tmp_path, monkeypatch, c
     monkeypatch.setitem(sys.modules, "pytetwild", None)  # import pytetwild -> ImportError
     assert main(["mesh", str(source), "-o", str(tmp_path / "ball.vtu")]) == EXIT_ERROR
     err = _error(capsys)
-    assert "tetrahedralising needs pytetwild (which imports pyvista): pip install " \
-           "'torchmorph[tetwild]'" in err
+    assert ("tetrahedralising needs pytetwild (which imports pyvista): pip install "
+            "'torchmorph[tetwild]'") in err
     assert "torchmorph[mesh]" not in err
     assert not (tmp_path / "ball.vtu").exists()
 

@@ -250,7 +250,7 @@ def test_one_and_two_threads_agree(dtype):
         back = kernels.apply_transposed(targets, controls, grad, 4.0, RADIUS2, nearest2, sums)
         results.append((nearest2, out, sums, back, kernels.weights(targets, controls, 4.0,
                                                                    RADIUS2)))
-    for one, two in zip(*results):
+    for one, two in zip(*results, strict=True):
         assert torch.equal(one, two)
     import numba
 

@@ -80,7 +80,7 @@ def test_fused_gradient_to_positions_gradcheck():
                                 (targets, controls))
     plain = torch.autograd.grad(idw_apply(controls=controls, targets=targets, displacements=displacements[0], implementation="torch").square().sum(),
                                 (targets, controls))
-    for got, expected in zip(fused, plain):
+    for got, expected in zip(fused, plain, strict=True):
         torch.testing.assert_close(got, expected)
 
 

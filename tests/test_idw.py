@@ -331,9 +331,9 @@ def test_forward_errors_name_the_argument():
         morph(torch.zeros(24, 3, dtype=F64))
     with pytest.raises(ValueError, match="displacements has dtype torch.float32"):
         morph(torch.zeros(25, 3))
+    bad = torch.zeros(25, 3, dtype=F64)
+    bad[0, 0] = float("nan")
     with pytest.raises(ValueError, match="displacements holds 1 NaN"):
-        bad = torch.zeros(25, 3, dtype=F64)
-        bad[0, 0] = float("nan")
         morph(bad)
     with pytest.raises(ValueError, match="controls must have shape"):
         morph(torch.zeros(25, 3, dtype=F64), controls=controls[:3])
@@ -369,7 +369,7 @@ def test_duplicate_controls_give_the_mean_whatever_their_order():
     moved = morph(displacements)
     torch.testing.assert_close(moved[0], (displacements[4] + displacements[11]) / 2)
     order = torch.randperm(25, generator=generator)
-    with pytest.warns(UserWarning):
+    with pytest.warns(UserWarning, match="controls: 2 control points"):
         permuted = IDW(controls[order], targets, mode="matrix_free")
     torch.testing.assert_close(permuted(displacements[order]), moved)
 
@@ -423,8 +423,9 @@ def test_cpu_fused_matches_torch(mode):
     controls[7] = controls[6]
     targets[0] = controls[6]
     displacements = torch.randn(4, 200, 3, generator=generator, dtype=F64)
-    with pytest.warns(UserWarning):
+    with pytest.warns(UserWarning, match="controls: 2 control points"):
         fused = IDW(controls, targets, mode=mode, implementation="fused")
+    with pytest.warns(UserWarning, match="controls: 2 control points"):
         plain = IDW(controls, targets, mode=mode, implementation="torch")
     torch.testing.assert_close(fused(displacements), plain(displacements))
     assert gradcheck(fused, (displacements[:1].detach().requires_grad_(True),))

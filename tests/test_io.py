@@ -234,7 +234,7 @@ def test_field_names_validated_per_format(tmp_path, cube, extension):
         with pytest.raises(ValueError, match=r"cell_data\[.*cannot hold the character"):
             write_mesh(path, cube, cell_data={name: np.ones(cube.num_tets)})
         assert list(tmp_path.iterdir()) == []  # nothing written, no temporary left
-    write_mesh(path, cube, point_data={name: values for name in kept})
+    write_mesh(path, cube, point_data=dict.fromkeys(kept, values))
     _, point_data, _ = read_mesh(path, return_data=True)
     assert sorted(point_data) == sorted(kept)
     for name in kept:

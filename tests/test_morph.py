@@ -48,7 +48,7 @@ def test_boundary_is_exact_and_interior_is_plain_idw(cube):
 
 def test_selecting_everything_equals_plain_idw(cube):
     spacing = 0.25
-    plan = SelectionPlan({face: spacing / 10 for face in FACES})
+    plan = SelectionPlan(dict.fromkeys(FACES, spacing / 10))
     selective = MeshMorph(cube, plan)
     plain = MeshMorph(cube)
     assert torch.equal(selective.control_nodes, plain.control_nodes)
@@ -57,7 +57,7 @@ def test_selecting_everything_equals_plain_idw(cube):
 
 
 def test_selection_uses_fewer_controls_and_keeps_the_boundary_exact(cube):
-    plan = SelectionPlan({face: 0.6 for face in FACES}, enrich=["z1"])
+    plan = SelectionPlan(dict.fromkeys(FACES, 0.6), enrich=["z1"])
     morph = MeshMorph(cube, plan, generator=torch.Generator().manual_seed(3))
     top = set(cube.node_set("z1").tolist())
     assert top <= set(morph.control_nodes.tolist())
@@ -87,7 +87,7 @@ def test_matrix_free_equals_dense(cube):
 
 
 def test_state_dict_round_trip(cube):
-    plan = SelectionPlan({face: 0.6 for face in FACES})
+    plan = SelectionPlan(dict.fromkeys(FACES, 0.6))
     morph = MeshMorph(cube, plan, generator=torch.Generator().manual_seed(1))
     other = MeshMorph(cube, plan, generator=torch.Generator().manual_seed(2))
     if torch.equal(other.control_nodes, morph.control_nodes):
@@ -98,7 +98,7 @@ def test_state_dict_round_trip(cube):
 
 
 def test_gradcheck_through_the_morph(cube):
-    morph = MeshMorph(cube, SelectionPlan({face: 0.6 for face in FACES}))
+    morph = MeshMorph(cube, SelectionPlan(dict.fromkeys(FACES, 0.6)))
     boundary = morph.boundary_displacement("z1", bend_top).requires_grad_(True)
     assert gradcheck(morph, (boundary,))
 
@@ -157,7 +157,7 @@ def test_state_dict_keeps_node_sets_and_loads_into_another_mesh(cube):
     from conftest import structured_cube
 
     small = structured_cube(2)
-    source = MeshMorph(cube, SelectionPlan({face: 0.6 for face in FACES}),
+    source = MeshMorph(cube, SelectionPlan(dict.fromkeys(FACES, 0.6)),
                        generator=torch.Generator().manual_seed(1))
     target = MeshMorph(TetMesh(small.points, small.tets, {"other": [0, 1]}))
     target.load_state_dict(saved(source))
@@ -194,7 +194,7 @@ def test_node_sets_are_copies_of_the_mesh_sets(cube):
 ])
 def test_a_tampered_state_fails_to_load_and_leaves_the_module_intact(cube, key, change,
                                                                      message):
-    morph = MeshMorph(cube, SelectionPlan({face: 0.6 for face in FACES}))
+    morph = MeshMorph(cube, SelectionPlan(dict.fromkeys(FACES, 0.6)))
     state = saved(morph)
     state[key] = change(state[key])
     before = {name: getattr(morph, name).clone() for name in MeshMorph._STATE_BUFFERS}

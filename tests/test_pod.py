@@ -392,7 +392,7 @@ def bumps(mesh_morph: MeshMorph):
 @pytest.mark.parametrize("online", ONLINE)
 @pytest.mark.parametrize("selective", [False, True])
 def test_mesh_morph_boundary_exact_interior_round_off(cube, online, selective):
-    plan = SelectionPlan({face: 0.6 for face in ("x0", "x1", "y0", "y1", "z0", "z1")},
+    plan = SelectionPlan(dict.fromkeys(("x0", "x1", "y0", "y1", "z0", "z1"), 0.6),
                          enrich=["z1"]) if selective else None
     morph = MeshMorph(cube, plan, generator=torch.Generator().manual_seed(30))
     family = bumps(morph)
@@ -686,7 +686,7 @@ def test_any_linear_map_without_type_dispatch(rank_two, cloud):
 
 @pytest.mark.parametrize("mode", ["dense", "matrix_free"])
 def test_mesh_morph_adjoint_is_the_transpose(cube, mode):
-    morph = MeshMorph(cube, SelectionPlan({face: 0.6 for face in FACES_OF_CUBE}),
+    morph = MeshMorph(cube, SelectionPlan(dict.fromkeys(FACES_OF_CUBE, 0.6)),
                       mode=mode, generator=torch.Generator().manual_seed(53))
     generator = torch.Generator().manual_seed(54)
     d = torch.randn(2, morph.num_boundary, 3, generator=generator, dtype=F64)

@@ -37,14 +37,14 @@ def readme_commands() -> list[str]:
 def test_python_examples_run_as_written(capsys):
     blocks = code_blocks("python")
     assert len(blocks) >= 2
-    exec(compile(blocks[0], "README.md", "exec"), {"__name__": "readme"})  # noqa: S102
+    exec(compile(blocks[0], "README.md", "exec"), {"__name__": "readme"})
     first = capsys.readouterr().out
     match = re.fullmatch(r"W \(2000, 500\): 2000 targets from 500 controls; largest interpolated "
                          r"move (\S+) \(controls: (\S+)\); batch \(3, 2000, 3\)\n", first)
     assert match, first
     assert 0 < float(match[1]) <= float(match[2])  # IDW is a convex combination
     for block in blocks[1:]:
-        exec(compile(block, "README.md", "exec"), {"__name__": "readme"})  # noqa: S102
+        exec(compile(block, "README.md", "exec"), {"__name__": "readme"})
     printed = capsys.readouterr().out
     controls, _, total, _, _, error = printed.split()[:6]
     assert int(controls) < int(total) == 386

@@ -64,8 +64,8 @@ def reference_sidw(points, radius, a, b, start, strategy, generator):
         while len(beta):
             c = select_control_point(beta, selected)
             selected.append(c)
-            for l in range(m, n + 1):
-                alpha[l - 1] = alpha[l - 1][distance(alpha[l - 1], c) >= radius]
+            for level in range(m, n + 1):
+                alpha[level - 1] = alpha[level - 1][distance(alpha[level - 1], c) >= radius]
             beta = shell(alpha[m - 1], c, radius, b * radius)
         if len(alpha[m - 1]) == 0:
             m += 1
@@ -363,7 +363,7 @@ def test_plan_dict_shorthand_and_enrichment(cube8):
     assert set(cube8.node_set("edge").tolist()) <= selected
     assert set(cube8.node_set("x1").tolist()) <= selected
     # enrichment adds nodes: the plan without it selects fewer
-    plain = SelectionPlan({name: 0.4 for name in FACES})
+    plain = SelectionPlan(dict.fromkeys(FACES, 0.4))
     assert len(plain.select(cube8)) < len(selected)
 
 
@@ -378,7 +378,7 @@ def test_plan_selects_like_select_control_points(cube8):
 
 
 def test_plan_is_deterministic(cube8):
-    plan = SelectionPlan({name: 0.3 for name in FACES})
+    plan = SelectionPlan(dict.fromkeys(FACES, 0.3))
     assert torch.equal(plan.select(cube8), plan.select(cube8))
     first = plan.select(cube8, generator=torch.Generator().manual_seed(1))
     again = plan.select(cube8, generator=torch.Generator().manual_seed(1))
@@ -410,7 +410,7 @@ def test_overlap_first_and_share(cube8):
 
 def test_equal_parameters_may_overlap(cube8):
     # faces share their edges; with equal parameters a shared node goes to the first
-    nodes = SelectionPlan({name: 0.3 for name in FACES}).region_nodes(cube8)
+    nodes = SelectionPlan(dict.fromkeys(FACES, 0.3)).region_nodes(cube8)
     union = np.concatenate([ids.numpy() for ids in nodes])
     assert len(union) == len(np.unique(union)) == cube8.boundary_nodes.numel()
 
@@ -422,7 +422,7 @@ def test_uncovered_nodes(cube8):
     allowed = set(cube8.node_set("x0").tolist()) | set(cube8.node_set("y0").tolist())
     assert set(selected.tolist()) <= allowed
     # enrichment counts as covered
-    SelectionPlan({name: 0.3 for name in FACES[1:]}, enrich=["x0"]).select(cube8)
+    SelectionPlan(dict.fromkeys(FACES[1:], 0.3), enrich=["x0"]).select(cube8)
 
 
 def test_candidates_override(cube8):
@@ -437,15 +437,15 @@ def test_plan_errors(cube8):
     with pytest.raises(ValueError, match="unknown node set 'wing'; known: "):
         SelectionPlan({"wing": 0.3}).select(cube8)
     with pytest.raises(ValueError, match="unknown node set 'tip'"):
-        SelectionPlan({name: 0.3 for name in FACES}, enrich=["tip"]).select(cube8)
+        SelectionPlan(dict.fromkeys(FACES, 0.3), enrich=["tip"]).select(cube8)
     with pytest.raises(ValueError, match="region node set 'core' holds 1 node.* not boundary"):
         SelectionPlan({"core": 0.3}, uncovered="ignore").select(cube8)
     with pytest.raises(ValueError, match="enrichment node set 'core' holds 1 node"):
-        SelectionPlan({name: 0.3 for name in FACES}, enrich=["core"]).select(cube8)
+        SelectionPlan(dict.fromkeys(FACES, 0.3), enrich=["core"]).select(cube8)
     with pytest.raises(ValueError, match="candidates holds indices outside"):
         SelectionPlan({"x0": 0.3}).select(cube8, candidates=[10**6])
     with pytest.raises(TypeError, match="generator must be a torch.Generator"):
-        SelectionPlan({name: 0.3 for name in FACES}).select(cube8, generator=1)
+        SelectionPlan(dict.fromkeys(FACES, 0.3)).select(cube8, generator=1)
 
 
 @pytest.mark.parametrize(

@@ -144,5 +144,5 @@ def test_position_gradients_match_autograd(kernels, dtype, power, columns):
                                      nearest2, sums, power, radius2)
     tolerance = dict(rtol=1e-4, atol=1e-4) if dtype == torch.float32 else dict(rtol=1e-9,
                                                                                atol=1e-9)
-    for value, reference in zip(got, expected):
+    for value, reference in zip(got, expected, strict=True):
         torch.testing.assert_close(value.T.double(), reference, **tolerance)

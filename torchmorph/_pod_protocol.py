@@ -106,9 +106,9 @@ def training_data(displacements: Any, family: Family | None, parameters: Any,
     if displacements is not None:
         raise ValueError("pass either displacements or family= with parameters=, not both")
     if not callable(family):
-        raise ValueError(f"family must be callable, got {type(family).__name__}")  # noqa: TRY004
+        raise ValueError(f"family must be callable, got {type(family).__name__}")
     if not isinstance(batched, bool):
-        raise ValueError(f"batched must be True or False, got {batched!r}")  # noqa: TRY004
+        raise ValueError(f"batched must be True or False, got {batched!r}")
     parameters = as_parameters(parameters)
     inputs = training_inputs(evaluate_family(family, parameters, None, batched),
                              "family(parameters)")

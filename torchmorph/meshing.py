@@ -460,7 +460,7 @@ def mesh_surfaces(
     group_owner: dict[str, str] = {}
     for surface in all_surfaces:
         node_sets[surface.name] = on(surface.vertices, surface.faces)
-        for group, ids in surface.groups.items():
+        for group in surface.groups:
             group_owner.setdefault(group, surface.name)
     for surface in all_surfaces:
         for group, ids in surface.groups.items():

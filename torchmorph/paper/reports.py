@@ -220,11 +220,11 @@ def _format_table(header: Sequence[str], rows: Sequence[Sequence[str]], *,
         lines = ["| " + " | ".join(header) + " |",
                  "|" + "|".join("---" if i == 0 else "---:" for i in range(len(header))) + "|"]
         return lines + ["| " + " | ".join(row) + " |" for row in rows]
-    widths = [max(len(str(cell)) for cell in column) for column in zip(header, *rows)]
+    widths = [max(len(str(cell)) for cell in column) for column in zip(header, *rows, strict=True)]
 
     def line(cells: Sequence[str]) -> str:
         first = f"{cells[0]:<{widths[0]}}"
-        return "  ".join([first, *(f"{c:>{w}}" for c, w in zip(cells[1:], widths[1:]))])
+        return "  ".join([first, *(f"{c:>{w}}" for c, w in zip(cells[1:], widths[1:], strict=True))])
 
     return [line(header), "  ".join("-" * w for w in widths), *(line(row) for row in rows)]
 
