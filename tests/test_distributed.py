@@ -113,9 +113,14 @@ def test_sharded_mesh_morph_equals_single_process(ranks, layout, mode):
     count = mesh.points.shape[0]
     owned = [results[r][f"mesh/{layout}/{mode}/owned"] for r in range(2)]
     assert torch.equal(torch.cat(owned).sort().values, torch.arange(count))
-    if layout == "default":
-        assert torch.equal(owned[0], torch.arange(count)[shard_rows(count, rank=0,
-                                                                    world_size=2)])
+    if layout == "default":  # half of the boundary and half of the interior nodes each
+        for rank in range(2):
+            expected = torch.cat([
+                mesh.boundary_nodes[shard_rows(len(mesh.boundary_nodes), rank=rank,
+                                               world_size=2)],
+                mesh.interior_nodes[shard_rows(len(mesh.interior_nodes), rank=rank,
+                                               world_size=2)]]).sort().values
+            assert torch.equal(owned[rank], expected)
     if layout == "empty":
         assert owned[1].numel() == 0
         assert results[1][f"mesh/{layout}/{mode}/forward"].shape == (0, 3)

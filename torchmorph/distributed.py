@@ -530,8 +530,9 @@ class ShardedMeshMorph(nn.Module):
         Control-point selection (SIDW/ESIDW); None: every boundary node.
     owned_nodes : Tensor, shape (n_owned,), optional
         Global ids of the nodes this rank owns (its partition); together the
-        ranks' sets must partition the mesh nodes. Default: contiguous slices of
-        the node ids (:func:`shard_rows`).
+        ranks' sets must partition the mesh nodes. Default: an even share of the
+        interior nodes (where the work is) and of the boundary nodes, each a
+        contiguous slice (:func:`shard_rows`) of the sorted ids.
     power, mode, generator, block_bytes, dense_bytes, coincidence_tolerance, implementation
         As in :class:`~torchmorph.morph.MeshMorph` and :class:`~torchmorph.idw.IDW`
         (``generator`` is used on rank 0 only).
@@ -597,8 +598,9 @@ class ShardedMeshMorph(nn.Module):
                 boundary[selected.clamp_max(boundary.numel() - 1)], control_nodes):
             raise ValueError("plan selected nodes that are not boundary nodes")
 
-        if owned_nodes is None:
-            owned = torch.arange(num_nodes)[shard_rows(num_nodes, group=group)]
+        if owned_nodes is None:  # an even share of the interior (the work) and of the boundary
+            owned = torch.cat([boundary[shard_rows(boundary.numel(), group=group)],
+                               interior[shard_rows(interior.numel(), group=group)]]).sort().values
         else:
             owned = torch.as_tensor(owned_nodes).detach().cpu()
             if owned.ndim != 1 or (owned.numel() and owned.is_floating_point()):
