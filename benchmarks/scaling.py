@@ -21,7 +21,8 @@ For each configuration the script fits the growth exponent k of t ∝ N^k (least
 squares in log-log over the sizes measured), measures memory (the CPU's peak
 resident set above the level before the configuration, by resetting the kernel's
 high-water mark; on CUDA torch's peak allocation) and extrapolates the largest N
-that fits 24 GB of RAM, or the GPU's memory, from a power law fitted to it.
+that fits 24 GB of RAM, or the GPU's memory, from a power law fitted to it
+(exponent at least 1, anchored at the largest size measured).
 It prints a Markdown table and writes a log-log plot with O(N_t·N_c) and
 O(N log N) guide lines (docs/scaling_<device>.png).
 
@@ -292,14 +293,17 @@ def power_fit(sizes: list[float], values: list[float]) -> tuple[float, float]:
 
 
 def largest_nodes(sizes, memory, budget):
-    """N at which the fitted power law of the memory reaches ``budget``."""
+    """N at which the memory reaches ``budget``: the power law fitted to the measured
+    peaks, anchored at the largest size and with an exponent of at least 1 (the points
+    themselves take O(N), however small the sizes' peaks look)."""
     points = [(s, m) for s, m in zip(sizes, memory, strict=True) if m > 0]
-    if len(points) < 2:
+    if not points:
         return float("nan")
-    k, a = power_fit([p[0] for p in points], [p[1] for p in points])
-    if not (k > 0 and a > 0):
-        return float("nan")
-    return (budget / a) ** (1.0 / k)
+    k, _ = power_fit([p[0] for p in points], [p[1] for p in points]) if len(points) > 1 \
+        else (1.0, None)
+    k = max(k, 1.0) if math.isfinite(k) else 1.0
+    size, peak = points[-1]
+    return size * (budget / peak) ** (1.0 / k)
 
 
 def summarise(rows: list[dict], sharded: dict, device: torch.device) -> tuple[str, dict]:

@@ -27,6 +27,10 @@ What the ranks exchange
   all-reduce of the online matrix; its online phase is local.
 * :func:`gather_rows` / :func:`save_partitioned`: only when asked.
 
+Boundary data known only on the ranks that own the boundary nodes is replicated
+with ``gather_rows(values, rows, N_b, dst=None)`` (an all-gather; not
+differentiable) before the forward pass.
+
 Autograd
 --------
 Replicated inputs pass through :func:`replicate`, a custom autograd function that
@@ -98,11 +102,12 @@ def _group_info(group) -> tuple[int, int]:
 
 
 def _comm_device(group, like: Tensor) -> torch.device:
-    """The device collectives run on: the current CUDA device for NCCL, else ``like``'s
-    device (gloo: the CPU)."""
+    """The device collectives run on: the current CUDA device for NCCL, else the CPU
+    (gloo, whatever device ``like`` lives on)."""
+    del like
     if dist.get_backend(group) == "nccl":
         return torch.device("cuda", torch.cuda.current_device())
-    return torch.device("cpu") if like.device.type != "cuda" else like.device
+    return torch.device("cpu")
 
 
 def shard_rows(count: int, *, rank: int | None = None, world_size: int | None = None,
