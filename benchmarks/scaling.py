@@ -451,8 +451,12 @@ def main(argv: list[str] | None = None) -> int:
                                         indent=1))
     if not args.no_plot:
         path = args.png or ROOT / "docs" / f"scaling_{device.type}.png"
-        plot(rows, sharded, fits, path, device, args.dtype)
-        print(f"plot: {path}")
+        try:
+            plot(rows, sharded, fits, path, device, args.dtype)
+        except ImportError as error:  # the table above is the result; the plot is extra
+            print(f"no plot ({error}); pip install matplotlib, or pass --no-plot")
+        else:
+            print(f"plot: {path}")
     return 0
 
 
