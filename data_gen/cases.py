@@ -1,4 +1,4 @@
-"""Builders of the paper's three test meshes (SPEC.md §6).
+"""Builders of the paper's three test meshes (the paper's Section 2.3).
 
 ``build(case, size, mesher)`` makes (or loads from the cache) one of
 
@@ -473,7 +473,7 @@ def build(
     Parameters
     ----------
     case : {"wing", "fluid_wing", "hull"} or {"A", "B", "C"}
-        The test case (SPEC.md §6).
+        The test case (the paper's Sections 2.3.1–2.3.3).
     size : {"small", "paper", "large"}
         ``"small"``: a coarse mesh for tests, built in seconds. ``"paper"``:
         node counts near the paper's (:data:`PAPER_MESHES`). ``"large"``: about
