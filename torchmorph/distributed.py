@@ -19,8 +19,9 @@ What the ranks exchange
 -----------------------
 * Building a module: the global bounding box of the targets (two all-reduces of
   three numbers; it sets the coincidence radius exactly as the single-process
-  module does), the selected control points (a broadcast from rank 0) and, for a
-  mesh, one check that the owned nodes partition the mesh.
+  module does), the ranks' target counts, the selected control points (a
+  broadcast from rank 0) and, for a mesh, one check that the owned nodes
+  partition the mesh (an all-reduce of N integers).
 * Backward: one all-reduce of the gradients to the replicated inputs
   (displacements, moved control or mesh positions).
 * :class:`ShardedPOD` fit: one all-gather of an n × n triangle per rank and one
