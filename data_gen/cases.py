@@ -263,7 +263,7 @@ PARAMETERS: dict[str, dict[str, dict[str, dict]]] = {
 
 #: The ``"large"`` size (about 10^6 nodes, for scaling studies; gmsh only): the
 #: ``"paper"`` presets with every mesh size divided by about 3.3 (fluid wing) and
-#: 5.2 (hull, whose paper mesh is 5x smaller), gmsh's Delaunay and no optimiser
+#: 6.7 (hull, whose paper mesh is 5x smaller), gmsh's Delaunay and no optimiser
 #: pass (Netgen's takes longer than the meshing itself at this size). Merged into
 #: :data:`PARAMETERS` below. Never built by the test suite.
 LARGE_PARAMETERS: dict[str, dict] = {
@@ -279,12 +279,12 @@ LARGE_PARAMETERS: dict[str, dict] = {
         "optimize": "",
     },
     "hull": {
-        "h_body": 0.0054,
-        "h_wall": 0.33,
-        "h_far": 0.96,
+        "h_body": 0.0042,
+        "h_wall": 0.26,
+        "h_far": 0.75,
         "grading_body": 10.0,
         "grading_wall": 3.0,
-        "h_min": 0.001,
+        "h_min": 0.0008,
         "algorithm": 1,
         "optimize": "",
     },
