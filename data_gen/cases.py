@@ -60,6 +60,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CASES",
     "CASE_ALIASES",
+    "LARGE_PARAMETERS",
     "MESHERS",
     "PAPER_MESHES",
     "PARAMETERS",
@@ -75,7 +76,7 @@ __all__ = [
 ]
 
 CASES = ("wing", "fluid_wing", "hull")
-SIZES = ("small", "paper")
+SIZES = ("small", "paper", "large")
 MESHERS = ("gmsh", "pytetwild")
 #: Every accepted spelling of a case name (after lower-casing and stripping):
 #: the letters of the paper's sections, and hyphens for underscores.
@@ -277,6 +278,38 @@ PARAMETERS: dict[str, dict[str, dict[str, dict]]] = {
 }
 
 
+#: The ``"large"`` size (about 10^6 nodes, for scaling studies; gmsh only): the
+#: ``"paper"`` presets with every mesh size divided by about 3.3 (fluid wing) and
+#: 6.7 (hull, whose paper mesh is 5x smaller), gmsh's Delaunay and no optimiser
+#: pass (Netgen's takes longer than the meshing itself at this size). Merged into
+#: :data:`PARAMETERS` below. Never built by the test suite.
+LARGE_PARAMETERS: dict[str, dict] = {
+    "fluid_wing": {
+        "profile_points": 241,
+        "h_body": 0.0127,
+        "h_wall": 0.09,
+        "h_far": 0.18,
+        "grading_body": 2.5,
+        "grading_wall": 2.0,
+        "h_min": 0.0045,
+        "algorithm": 1,
+        "optimize": "",
+    },
+    "hull": {
+        "h_body": 0.0042,
+        "h_wall": 0.26,
+        "h_far": 0.75,
+        "grading_body": 10.0,
+        "grading_wall": 3.0,
+        "h_min": 0.0008,
+        "algorithm": 1,
+        "optimize": "",
+    },
+}
+for _case, _large in LARGE_PARAMETERS.items():
+    PARAMETERS[_case]["gmsh"]["large"] = _large
+
+
 def canonical_case(case: str) -> str:
     """``"wing"``, ``"fluid_wing"`` or ``"hull"`` for any spelling of a case.
 
@@ -301,6 +334,10 @@ def _resolve(case: str, size: str, mesher: str, mesh_scale: float, seed: int) ->
         raise ValueError(f"mesher must be one of {', '.join(MESHERS)}, got {mesher!r}")
     if not (isinstance(mesh_scale, (int, float)) and mesh_scale > 0 and np.isfinite(mesh_scale)):
         raise ValueError(f"mesh_scale must be a positive number, got {mesh_scale!r}")
+    if size not in PARAMETERS[case][mesher]:
+        sizes = ", ".join(PARAMETERS[case][mesher])
+        raise ValueError(f"size {size!r} is not defined for case {case!r} with mesher "
+                         f"{mesher!r}; its sizes: {sizes}")
     params = copy.deepcopy(PARAMETERS[case][mesher][size])
     for key in params:
         if key.startswith("h_"):
@@ -459,9 +496,11 @@ def build(
     ----------
     case : {"wing", "fluid_wing", "hull"} or {"A", "B", "C"}
         The test case (Ballarin et al. 2017, Section 2.3; Tables 1–3).
-    size : {"small", "paper"}
+    size : {"small", "paper", "large"}
         ``"small"``: a coarse mesh for tests, built in seconds. ``"paper"``:
-        node counts near the paper's (:data:`PAPER_MESHES`).
+        node counts near the paper's (:data:`PAPER_MESHES`). ``"large"``: about
+        10^6 nodes, for scaling studies (fluid wing and hull with gmsh only; see
+        :data:`LARGE_PARAMETERS`).
     mesher : {"gmsh", "pytetwild"}
         ``"gmsh"`` (default): OpenCASCADE geometry, deterministic.
         ``"pytetwild"``: fTetWild on a triangulated surface; not reproducible
