@@ -447,3 +447,16 @@ def test_points_are_keywords_and_the_old_positional_order_is_deprecated():
         idw_weights(targets, controls=controls)
     with pytest.raises(TypeError, match=r"idw_apply\(\) needs displacements="):
         idw_apply(controls=controls, targets=targets)
+
+
+def test_no_targets_with_gradients_gives_an_empty_result():
+    _, controls, generator = cloud()
+    controls.requires_grad_(True)
+    targets = torch.zeros(0, 3, dtype=F64, requires_grad=True)
+    displacements = torch.randn(25, 3, generator=generator, dtype=F64, requires_grad=True)
+    for mode in ("dense", "matrix_free"):
+        module = IDW(controls, targets, mode=mode)
+        moved = module(displacements, targets=targets)
+        assert moved.shape == (0, 3)
+        moved.sum().backward()
+    assert torch.equal(displacements.grad, torch.zeros_like(displacements))

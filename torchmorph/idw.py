@@ -234,6 +234,8 @@ def idw_weights(
     if _check_implementation(implementation) == "fused":
         raise ValueError("implementation='fused' cannot run here: a W that carries gradients to "
                          "the points (or is traced) is built by the torch implementation")
+    if targets.shape[0] == 0:  # an empty W that still carries the inputs' graph
+        return (targets.sum() + controls.sum()) * 0 + controls.new_zeros(0, controls.shape[0])
     rows = _rows_per_block(controls.shape[0], controls.element_size(),
                            _block_bytes(block_bytes, controls.device), copies=4)
     return torch.cat([_weights_block(targets[s : s + rows], controls, power, radius2)
