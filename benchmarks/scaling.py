@@ -167,6 +167,20 @@ def timed(function, device, repeats):
     return times[len(times) // 2], result
 
 
+def warm_up(device: torch.device, dtype: torch.dtype) -> None:
+    """Compile the device's kernels (Triton's first launch of each takes seconds) on a small
+    cloud, so that no timed row includes a one-time compilation."""
+    from torchmorph import IDW
+
+    boundary, interior = grid_cloud(8, dtype, device)
+    displacement = smooth_displacement(boundary)
+    for mode in ("dense", "matrix_free"):
+        idw = IDW(boundary, interior, mode=mode)
+        idw(displacement)
+        idw(torch.stack([displacement, displacement]))
+    synchronise(device)
+
+
 def measure_size(side: int, args, skip: set[str]) -> dict:
     from torchmorph import IDW
     from torchmorph.pod import PODReducer
@@ -422,6 +436,7 @@ def main(argv: list[str] | None = None) -> int:
         sides = [22, 46, 68] if args.quick else [22, 32, 46, 68, 100]
     rows: list[dict] = []
     skip: set[str] = set()
+    warm_up(torch.device(args.device), getattr(torch, args.dtype))
     for side in sides:
         start = time.perf_counter()
         row = measure_size(side, args, skip)

@@ -172,19 +172,19 @@ def _apply_kernel(targets_t, controls_t, values, nearest2_in, out, sums_out,
                               KIND, FAST, True)
         sums += weight
         if K > 0:
-            acc0 += weight * tl.load(values + cols * stride_v, mask=col_ok, other=0.0)[None, :]
+            acc0 += weight * tl.load(values + cols.to(tl.int64) * stride_v, mask=col_ok, other=0.0)[None, :]
         if K > 1:
-            acc1 += weight * tl.load(values + cols * stride_v + 1, mask=col_ok, other=0.0)[None, :]
+            acc1 += weight * tl.load(values + cols.to(tl.int64) * stride_v + 1, mask=col_ok, other=0.0)[None, :]
         if K > 2:
-            acc2 += weight * tl.load(values + cols * stride_v + 2, mask=col_ok, other=0.0)[None, :]
+            acc2 += weight * tl.load(values + cols.to(tl.int64) * stride_v + 2, mask=col_ok, other=0.0)[None, :]
     total = tl.sum(sums, axis=1)
     tl.store(sums_out + rows, total, mask=row_ok)
     if K > 0:
-        tl.store(out + rows * stride_o, tl.sum(acc0, axis=1) / total, mask=row_ok)
+        tl.store(out + rows.to(tl.int64) * stride_o, tl.sum(acc0, axis=1) / total, mask=row_ok)
     if K > 1:
-        tl.store(out + rows * stride_o + 1, tl.sum(acc1, axis=1) / total, mask=row_ok)
+        tl.store(out + rows.to(tl.int64) * stride_o + 1, tl.sum(acc1, axis=1) / total, mask=row_ok)
     if K > 2:
-        tl.store(out + rows * stride_o + 2, tl.sum(acc2, axis=1) / total, mask=row_ok)
+        tl.store(out + rows.to(tl.int64) * stride_o + 2, tl.sum(acc2, axis=1) / total, mask=row_ok)
 
 
 @triton.jit
@@ -211,7 +211,7 @@ def _apply_dot_kernel(targets_t, controls_t, values, nearest2_in, out, sums_out,
                                    tiny, D, BLOCK_T, BLOCK_C)
         weight = _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_power,
                               KIND, FAST, True)
-        v = tl.load(values + cols[:, None] * stride_v + k_idx[None, :],
+        v = tl.load(values + cols.to(tl.int64)[:, None] * stride_v + k_idx[None, :],
                     mask=col_ok[:, None] & (k_idx[None, :] < K), other=0.0)
         v = tl.where((k_idx[None, :] == K) & col_ok[:, None], 1.0, v).to(dtype)
         if PRECISION == 1:
@@ -222,7 +222,7 @@ def _apply_dot_kernel(targets_t, controls_t, values, nearest2_in, out, sums_out,
             acc += tl.dot(weight, v)
     total = tl.sum(tl.where(k_idx[None, :] == K, acc, 0.0), axis=1)
     tl.store(sums_out + rows, total, mask=row_ok)
-    tl.store(out + rows[:, None] * stride_o + k_idx[None, :], acc / total[:, None],
+    tl.store(out + rows.to(tl.int64)[:, None] * stride_o + k_idx[None, :], acc / total[:, None],
              mask=row_ok[:, None] & (k_idx[None, :] < K))
 
 
@@ -249,16 +249,16 @@ def _transposed_kernel(controls_t, targets_t, nearest2_in, grad, out,
         any_coincident = tl.max(coincident.to(tl.int32), axis=0) > 0
         weight = _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_power,
                               KIND, FAST, False)
-        acc0 += weight * tl.load(grad + cols * stride_g, mask=col_ok, other=0.0)[None, :]
+        acc0 += weight * tl.load(grad + cols.to(tl.int64) * stride_g, mask=col_ok, other=0.0)[None, :]
         if K > 1:
-            acc1 += weight * tl.load(grad + cols * stride_g + 1, mask=col_ok, other=0.0)[None, :]
+            acc1 += weight * tl.load(grad + cols.to(tl.int64) * stride_g + 1, mask=col_ok, other=0.0)[None, :]
         if K > 2:
-            acc2 += weight * tl.load(grad + cols * stride_g + 2, mask=col_ok, other=0.0)[None, :]
-    tl.store(out + rows * stride_o, tl.sum(acc0, axis=1), mask=row_ok)
+            acc2 += weight * tl.load(grad + cols.to(tl.int64) * stride_g + 2, mask=col_ok, other=0.0)[None, :]
+    tl.store(out + rows.to(tl.int64) * stride_o, tl.sum(acc0, axis=1), mask=row_ok)
     if K > 1:
-        tl.store(out + rows * stride_o + 1, tl.sum(acc1, axis=1), mask=row_ok)
+        tl.store(out + rows.to(tl.int64) * stride_o + 1, tl.sum(acc1, axis=1), mask=row_ok)
     if K > 2:
-        tl.store(out + rows * stride_o + 2, tl.sum(acc2, axis=1), mask=row_ok)
+        tl.store(out + rows.to(tl.int64) * stride_o + 2, tl.sum(acc2, axis=1), mask=row_ok)
 
 
 @triton.jit
@@ -284,7 +284,7 @@ def _transposed_dot_kernel(controls_t, targets_t, nearest2_in, grad, out,
         any_coincident = tl.max(coincident.to(tl.int32), axis=0) > 0
         weight = _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_power,
                               KIND, FAST, False)
-        g = tl.load(grad + cols[:, None] * stride_g + k_idx[None, :],
+        g = tl.load(grad + cols.to(tl.int64)[:, None] * stride_g + k_idx[None, :],
                     mask=col_ok[:, None] & (k_idx[None, :] < K), other=0.0)
         if PRECISION == 1:
             acc += tl.dot(weight, g, input_precision="tf32x3")
@@ -292,7 +292,7 @@ def _transposed_dot_kernel(controls_t, targets_t, nearest2_in, grad, out,
             acc += tl.dot(weight, g, input_precision="ieee")
         else:
             acc += tl.dot(weight, g)
-    tl.store(out + rows[:, None] * stride_o + k_idx[None, :], acc,
+    tl.store(out + rows.to(tl.int64)[:, None] * stride_o + k_idx[None, :], acc,
              mask=row_ok[:, None] & (k_idx[None, :] < K))
 
 
@@ -324,8 +324,8 @@ def _position_grad_kernel(rows_t, cols_t, rows_values, cols_values, rows_extra, 
                                    tiny, D, BLOCK_R, BLOCK_C)
         products = tl.zeros((BLOCK_R, BLOCK_C), dtype=dtype)
         for j in tl.static_range(K):
-            left = tl.load(rows_values + rows * stride_rv + j, mask=row_ok, other=0.0)
-            right = tl.load(cols_values + cols * stride_cv + j, mask=col_ok, other=0.0)
+            left = tl.load(rows_values + rows.to(tl.int64) * stride_rv + j, mask=row_ok, other=0.0)
+            right = tl.load(cols_values + cols.to(tl.int64) * stride_cv + j, mask=col_ok, other=0.0)
             products += left[:, None] * right[None, :]
         if TARGET_ROWS:
             ratio = _ratio_power(nearest2_rows[:, None], dist2, half_power, KIND, FAST)
@@ -375,7 +375,8 @@ def _weights_kernel(targets_t, controls_t, nearest2_in, sums_in, out, n_t, n_c, 
     any_coincident = tl.max(coincident.to(tl.int32), axis=0) > 0
     weight = _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_power,
                           KIND, FAST, True)
-    tl.store(out + rows[:, None] * stride_o + cols[None, :], weight / sums[:, None],
+    # 64-bit offsets: W may hold more than 2**31 entries
+    tl.store(out + rows.to(tl.int64)[:, None] * stride_o + cols[None, :], weight / sums[:, None],
              mask=row_ok[:, None] & col_ok[None, :])
 
 
@@ -393,18 +394,18 @@ def _dense_apply_kernel(weights, values, out, n_t, n_c, stride_w, stride_v, stri
     for start in range(0, n_c, BLOCK_C):
         cols = start + cols0
         col_ok = cols < n_c
-        w = tl.load(weights + rows[:, None] * stride_w + cols[None, :],
+        w = tl.load(weights + rows.to(tl.int64)[:, None] * stride_w + cols[None, :],
                     mask=row_ok[:, None] & col_ok[None, :], other=0.0)
-        acc0 += w * tl.load(values + cols * stride_v, mask=col_ok, other=0.0)[None, :]
+        acc0 += w * tl.load(values + cols.to(tl.int64) * stride_v, mask=col_ok, other=0.0)[None, :]
         if K > 1:
-            acc1 += w * tl.load(values + cols * stride_v + 1, mask=col_ok, other=0.0)[None, :]
+            acc1 += w * tl.load(values + cols.to(tl.int64) * stride_v + 1, mask=col_ok, other=0.0)[None, :]
         if K > 2:
-            acc2 += w * tl.load(values + cols * stride_v + 2, mask=col_ok, other=0.0)[None, :]
-    tl.store(out + rows * stride_o, tl.sum(acc0, axis=1), mask=row_ok)
+            acc2 += w * tl.load(values + cols.to(tl.int64) * stride_v + 2, mask=col_ok, other=0.0)[None, :]
+    tl.store(out + rows.to(tl.int64) * stride_o, tl.sum(acc0, axis=1), mask=row_ok)
     if K > 1:
-        tl.store(out + rows * stride_o + 1, tl.sum(acc1, axis=1), mask=row_ok)
+        tl.store(out + rows.to(tl.int64) * stride_o + 1, tl.sum(acc1, axis=1), mask=row_ok)
     if K > 2:
-        tl.store(out + rows * stride_o + 2, tl.sum(acc2, axis=1), mask=row_ok)
+        tl.store(out + rows.to(tl.int64) * stride_o + 2, tl.sum(acc2, axis=1), mask=row_ok)
 
 
 # --------------------------------------------------------------------------- #
