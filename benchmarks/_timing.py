@@ -12,8 +12,9 @@ from torchmorph._timing import median_time, synchronise, wall_times
 __all__ = ["median_and_min", "median_time", "seconds", "synchronise", "wall_times"]
 
 
-def median_and_min(function: Callable[[], object], repeats: int, *,
-                   warmup: int = 1) -> tuple[float, float]:
+def median_and_min(
+    function: Callable[[], object], repeats: int, *, warmup: int = 1
+) -> tuple[float, float]:
     """(median, minimum) wall time of ``repeats`` calls after ``warmup`` calls."""
     times = wall_times(function, repeats, warmup=warmup)
     return statistics.median(times), min(times)

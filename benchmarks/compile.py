@@ -56,8 +56,12 @@ def compare(module: torch.nn.Module, argument: torch.Tensor, repeats: int) -> di
         fast = median_time(lambda: compiled(argument), repeats, warmup=0)
     difference = float((compiled_result - eager_result).abs().max())
     scale = float(eager_result.abs().max())
-    return {"eager": eager, "compiled": fast, "compile": compile_time,
-            "difference": difference / scale if scale else difference}
+    return {
+        "eager": eager,
+        "compiled": fast,
+        "compile": compile_time,
+        "difference": difference / scale if scale else difference,
+    }
 
 
 def main() -> None:
@@ -83,29 +87,50 @@ def main() -> None:
         idw = morph.idw
         family = spec.family(morph)
         mus = spec.domain[0] + (spec.domain[1] - spec.domain[0]) * torch.rand(
-            max(args.batch, args.idw_batch), generator=generator, dtype=dtype)
+            max(args.batch, args.idw_batch), generator=generator, dtype=dtype
+        )
         label = f"case {letter}: {idw.num_controls} controls x {idw.num_targets} targets"
         controls = morph.controls_from_boundary(family(mus[: args.idw_batch]))
-        rows.append((f"IDW dense forward, {label}, one displacement",
-                     compare(idw, controls[0].contiguous(), args.repeats)))
-        rows.append((f"IDW dense forward, {label}, batch of {args.idw_batch}",
-                     compare(idw, controls, max(3, args.repeats // 4))))
+        rows.append(
+            (
+                f"IDW dense forward, {label}, one displacement",
+                compare(idw, controls[0].contiguous(), args.repeats),
+            )
+        )
+        rows.append(
+            (
+                f"IDW dense forward, {label}, batch of {args.idw_batch}",
+                compare(idw, controls, max(3, args.repeats // 4)),
+            )
+        )
         if key == "hull":
             training = spec.training_parameters(0, dtype=dtype)
             reducer = PODReducer().fit(morph, family=family, parameters=training)
             boundary = family(mus[: args.batch])
-            pod_label = (f"POD online forward, case C mesh ({mesh.num_nodes} nodes, "
-                         f"{reducer.num_modes_} modes)")
-            rows.append((f"{pod_label}, one μ",
-                         compare(reducer, boundary[0].contiguous(), args.repeats * 5)))
-            rows.append((f"{pod_label}, batch of {args.batch}",
-                         compare(reducer, boundary, max(3, args.repeats // 4))))
+            pod_label = (
+                f"POD online forward, case C mesh ({mesh.num_nodes} nodes, "
+                f"{reducer.num_modes_} modes)"
+            )
+            rows.append(
+                (
+                    f"{pod_label}, one μ",
+                    compare(reducer, boundary[0].contiguous(), args.repeats * 5),
+                )
+            )
+            rows.append(
+                (
+                    f"{pod_label}, batch of {args.batch}",
+                    compare(reducer, boundary, max(3, args.repeats // 4)),
+                )
+            )
     load_after = os.getloadavg()[0]
 
     print(f"## torch.compile: eager vs inductor (fullgraph=True), {args.size} meshes")
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
-          f"{platform.processor() or platform.machine()}, {args.dtype}, CPU, load average "
-          f"{load_before:.1f} -> {load_after:.1f}; medians of {args.repeats} (batches: fewer)")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
+        f"{platform.processor() or platform.machine()}, {args.dtype}, CPU, load average "
+        f"{load_before:.1f} -> {load_after:.1f}; medians of {args.repeats} (batches: fewer)"
+    )
     print()
     print("| forward | eager | compiled | speed-up | first call (compile) | max rel. difference |")
     print("|---|---|---|---|---|---|")
@@ -113,9 +138,11 @@ def main() -> None:
         if "error" in row:
             print(f"| {name} | {seconds(row['eager'])} | graph break | – | – | {row['error']} |")
             continue
-        print(f"| {name} | {seconds(row['eager'])} | {seconds(row['compiled'])} | "
-              f"{row['eager'] / row['compiled']:.2f}x | {row['compile']:.1f} s | "
-              f"{row['difference']:.1e} |")
+        print(
+            f"| {name} | {seconds(row['eager'])} | {seconds(row['compiled'])} | "
+            f"{row['eager'] / row['compiled']:.2f}x | {row['compile']:.1f} s | "
+            f"{row['difference']:.1e} |"
+        )
 
 
 if __name__ == "__main__":

@@ -21,8 +21,9 @@ from torchmorph import _triton_kernels as kernels
 N_CONTROLS, N_TARGETS = 14126, 21910
 
 
-def graded_cloud(n_controls: int, n_targets: int, dtype: torch.dtype, device: str,
-                 seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+def graded_cloud(
+    n_controls: int, n_targets: int, dtype: torch.dtype, device: str, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Controls on the unit sphere, targets inside it (denser near the surface)."""
     generator = torch.Generator().manual_seed(seed)
     controls = torch.randn(n_controls, 3, generator=generator, dtype=torch.float64)
@@ -37,16 +38,24 @@ def normalise(targets: torch.Tensor, controls: torch.Tensor):
     both = torch.cat([targets, controls])
     low, high = both.amin(0), both.amax(0)
     centre, scale = (low + high) / 2, (high - low).norm()
-    return (((targets - centre) / scale).T.contiguous(), ((controls - centre) / scale).T.contiguous())
+    return (
+        ((targets - centre) / scale).T.contiguous(),
+        ((controls - centre) / scale).T.contiguous(),
+    )
 
 
-def reference_apply(targets: torch.Tensor, controls: torch.Tensor, values: torch.Tensor,
-                    power: float = 4.0, rows: int = 2048) -> torch.Tensor:
+def reference_apply(
+    targets: torch.Tensor,
+    controls: torch.Tensor,
+    values: torch.Tensor,
+    power: float = 4.0,
+    rows: int = 2048,
+) -> torch.Tensor:
     """float64 brute force ``W @ values`` (no coincident points in these clouds)."""
     t, c, v = targets.double(), controls.double(), values.double()
     out = []
     for start in range(0, t.shape[0], rows):
-        d2 = (t[start:start + rows, None, :] - c[None, :, :]).square().sum(-1)
+        d2 = (t[start : start + rows, None, :] - c[None, :, :]).square().sum(-1)
         r = (d2.amin(1, keepdim=True) / d2) ** (power / 2)
         out.append((r @ v) / r.sum(1, keepdim=True))
     return torch.cat(out)
@@ -96,16 +105,28 @@ def sweep(kernel: str, run, candidates, label: str) -> tuple[tuple[int, int, int
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="the current tiles only")
-    parser.add_argument("--dot", action="store_true",
-                        help="only the tl.dot kernels (a batch of 16), both float32 precisions")
+    parser.add_argument(
+        "--dot",
+        action="store_true",
+        help="only the tl.dot kernels (a batch of 16), both float32 precisions",
+    )
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
         print("no CUDA device: nothing to sweep")
         return 0
-    print(f"device: {torch.cuda.get_device_name()}, torch {torch.__version__}, "
-          f"CUDA {torch.version.cuda}")
-    square = [(32, 64, 4), (32, 128, 4), (64, 64, 4), (64, 128, 4), (64, 64, 8), (128, 64, 8),
-              (16, 128, 4)]
+    print(
+        f"device: {torch.cuda.get_device_name()}, torch {torch.__version__}, "
+        f"CUDA {torch.version.cuda}"
+    )
+    square = [
+        (32, 64, 4),
+        (32, 128, 4),
+        (64, 64, 4),
+        (64, 128, 4),
+        (64, 64, 8),
+        (128, 64, 8),
+        (16, 128, 4),
+    ]
     dots = [(32, 32, 4), (64, 32, 4), (64, 64, 4), (128, 32, 8), (64, 64, 8)]
     wide = [(32, 128, 4), (64, 128, 4), (32, 256, 4)]
     rows = [(8, 512, 4), (4, 512, 4), (8, 1024, 4), (4, 1024, 4), (16, 512, 4), (8, 512, 8)]
@@ -120,22 +141,34 @@ def main(argv: list[str] | None = None) -> int:
         nearest = kernels.nearest_squared(targets_t, controls_t)
         values = torch.randn(N_CONTROLS, 48, device="cuda")
         expected = reference_apply(targets, controls, values)
-        candidates = dots + [(128, 64, 8), (64, 128, 8), (128, 16, 4), (64, 16, 4), (32, 16, 4),
-                             (128, 32, 4), (32, 64, 4)]
+        candidates = dots + [
+            (128, 64, 8),
+            (64, 128, 8),
+            (128, 16, 4),
+            (64, 16, 4),
+            (32, 16, 4),
+            (128, 32, 4),
+            (32, 64, 4),
+        ]
         for precision in (1, 2):
             kernels.DOT_PRECISION_FLOAT32 = precision
 
             def run_dot():
                 out = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)[0]
-                return (event_time(lambda: kernels.apply(targets_t, controls_t, values, 4.0,
-                                                         1e-20, nearest)),
-                        relative_error(out, expected))
+                return (
+                    event_time(
+                        lambda: kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)
+                    ),
+                    relative_error(out, expected),
+                )
 
             sweep("apply_dot", run_dot, candidates, f"apply_dot K=48 precision {precision}")
         small = torch.randn(N_CONTROLS, 3, device="cuda")
-        print(f"one displacement (pass 2): "
-              f"{event_time(lambda: kernels.apply(targets_t, controls_t, small, 4.0, 1e-20, nearest)) * 1e3:.3f} ms; "
-              f"nearest pass {event_time(lambda: kernels.nearest_squared(targets_t, controls_t)) * 1e3:.3f} ms")
+        print(
+            f"one displacement (pass 2): "
+            f"{event_time(lambda: kernels.apply(targets_t, controls_t, small, 4.0, 1e-20, nearest)) * 1e3:.3f} ms; "
+            f"nearest pass {event_time(lambda: kernels.nearest_squared(targets_t, controls_t)) * 1e3:.3f} ms"
+        )
         return 0
     for dtype in (torch.float32, torch.float64):
         name = str(dtype)[6:]
@@ -149,23 +182,39 @@ def main(argv: list[str] | None = None) -> int:
 
             def run_apply():
                 out = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)[0]
-                return (event_time(lambda: kernels.apply(targets_t, controls_t, values, 4.0, 1e-20,
-                                                         nearest)),
-                        relative_error(out, expected))
+                return (
+                    event_time(
+                        lambda: kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)
+                    ),
+                    relative_error(out, expected),
+                )
 
-            best[(kernel, name)] = sweep(kernel, run_apply, square if columns <= 3 else dots,
-                                         f"{kernel} (pass 2) {name} K={columns}")
+            best[(kernel, name)] = sweep(
+                kernel,
+                run_apply,
+                square if columns <= 3 else dots,
+                f"{kernel} (pass 2) {name} K={columns}",
+            )
             grad = torch.randn(N_TARGETS, columns, dtype=dtype, device="cuda")
             _, _, sums = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)
             tkernel = "transposed" if columns <= kernels.SMALL_COLUMNS else "transposed_dot"
 
             def run_transposed():
-                return (event_time(lambda: kernels.apply_transposed(
-                    targets_t, controls_t, grad, nearest, sums, 4.0, 1e-20)), 0.0)
+                return (
+                    event_time(
+                        lambda: kernels.apply_transposed(
+                            targets_t, controls_t, grad, nearest, sums, 4.0, 1e-20
+                        )
+                    ),
+                    0.0,
+                )
 
-            best[(tkernel, name)] = sweep(tkernel, run_transposed,
-                                          square if columns <= 3 else dots,
-                                          f"{tkernel} {name} K={columns}")
+            best[(tkernel, name)] = sweep(
+                tkernel,
+                run_transposed,
+                square if columns <= 3 else dots,
+                f"{tkernel} {name} K={columns}",
+            )
 
         def run_nearest():
             return event_time(lambda: kernels.nearest_squared(targets_t, controls_t)), 0.0
@@ -178,8 +227,9 @@ def main(argv: list[str] | None = None) -> int:
         def run_weights():
             kernels.weights(targets_t, controls_t, 4.0, 1e-20, out=out)
             error = relative_error(out @ values, expected)
-            return event_time(lambda: kernels.weights(targets_t, controls_t, 4.0, 1e-20,
-                                                      out=out)), error
+            return event_time(
+                lambda: kernels.weights(targets_t, controls_t, 4.0, 1e-20, out=out)
+            ), error
 
         best[("weights", name)] = sweep("weights", run_weights, wide, f"W assembly {name}")
         gib = out.numel() * out.element_size() / 1e9
@@ -187,13 +237,18 @@ def main(argv: list[str] | None = None) -> int:
 
         def run_dense():
             got = kernels.dense_apply(out, values)
-            return event_time(lambda: kernels.dense_apply(out, values)), relative_error(got, expected)
+            return event_time(lambda: kernels.dense_apply(out, values)), relative_error(
+                got, expected
+            )
 
-        best[("dense_apply", name)] = sweep("dense_apply", run_dense, rows,
-                                            f"dense apply K=3 {name}")
-        print(f"(reads {gib:.2f} GB: {gib / best[('dense_apply', name)][1]:.0f} GB/s; "
-              f"cuBLAS W@d {event_time(lambda: out @ values) * 1e3:.3f} ms, "
-              f"(dT WT)T {event_time(lambda: (values.T.contiguous() @ out.T).T) * 1e3:.3f} ms)")
+        best[("dense_apply", name)] = sweep(
+            "dense_apply", run_dense, rows, f"dense apply K=3 {name}"
+        )
+        print(
+            f"(reads {gib:.2f} GB: {gib / best[('dense_apply', name)][1]:.0f} GB/s; "
+            f"cuBLAS W@d {event_time(lambda: out @ values) * 1e3:.3f} ms, "
+            f"(dT WT)T {event_time(lambda: (values.T.contiguous() @ out.T).T) * 1e3:.3f} ms)"
+        )
         out = None  # free W before the next dtype
     print()
     for key, (candidate, seconds) in best.items():

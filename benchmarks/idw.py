@@ -103,7 +103,9 @@ def run_config(args) -> dict:
     with torch.no_grad():
         if mode == "matrix_free":  # first, so the process's peak is this apply's
             before = peak_rss_mb()
-            idw_apply(controls=controls, targets=targets, displacements=single, block_bytes=block_bytes)
+            idw_apply(
+                controls=controls, targets=targets, displacements=single, block_bytes=block_bytes
+            )
             result["apply MB"] = peak_rss_mb() - before
 
         def build_and_morph():
@@ -124,14 +126,22 @@ def run_config(args) -> dict:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=int, nargs="*", default=[0, 1, 2],
-                        help="indices into SIZES (0: case A, 1: case C, 2: case B)")
+    parser.add_argument(
+        "--sizes",
+        type=int,
+        nargs="*",
+        default=[0, 1, 2],
+        help="indices into SIZES (0: case A, 1: case C, 2: case B)",
+    )
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--batches", type=int, nargs="*", default=[1, 10, 100])
     parser.add_argument("--dtypes", nargs="*", default=["float32", "float64"])
     parser.add_argument("--block-bytes", type=int, default=4 * 2**20)
-    parser.add_argument("--kernels", action="store_true",
-                        help="the kernel table (fused / torch / naive cdist) on the CPU")
+    parser.add_argument(
+        "--kernels",
+        action="store_true",
+        help="the kernel table (fused / torch / naive cdist) on the CPU",
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch threads for --kernels")
     args = parser.parse_args(argv)
     if args.kernels:
@@ -139,44 +149,75 @@ def main(argv=None) -> None:
 
         torch.set_num_threads(args.threads)
         rows, bandwidth = idw_table(torch.device("cpu"), args.repeats, False)
-        print(f"# IDW kernels on the CPU: {platform.processor() or platform.machine()}, "
-              f"{args.threads} thread(s), torch {torch.__version__}; 14,126 controls on a "
-              f"sphere x 21,910 targets inside; floor: ~2.5 Gpair/s per thread (float32), "
-              f"half in float64, for matrix-free rows, the copy bandwidth "
-              f"({bandwidth / 1e9:.1f} GB/s) for dense rows\n")
+        print(
+            f"# IDW kernels on the CPU: {platform.processor() or platform.machine()}, "
+            f"{args.threads} thread(s), torch {torch.__version__}; 14,126 controls on a "
+            f"sphere x 21,910 targets inside; floor: ~2.5 Gpair/s per thread (float32), "
+            f"half in float64, for matrix-free rows, the copy bandwidth "
+            f"({bandwidth / 1e9:.1f} GB/s) for dense rows\n"
+        )
         print_idw_table(rows)
         return
 
-    print(f"# IDW benchmark: {platform.processor() or platform.machine()}, "
-          f"{torch.get_num_threads()} threads, torch {torch.__version__}, numpy {np.__version__}")
-    print(f"median of {args.repeats} repeats after a warm-up; matrix-free tiles of "
-          f"{args.block_bytes / 2**20:g} MiB; peak MB = peak RSS above the process baseline\n")
+    print(
+        f"# IDW benchmark: {platform.processor() or platform.machine()}, "
+        f"{torch.get_num_threads()} threads, torch {torch.__version__}, numpy {np.__version__}"
+    )
+    print(
+        f"median of {args.repeats} repeats after a warm-up; matrix-free tiles of "
+        f"{args.block_bytes / 2**20:g} MiB; peak MB = peak RSS above the process baseline\n"
+    )
     columns = ["build+morph", *[f"morph B={b}" for b in args.batches], "peak MB", "apply MB"]
-    print("| N_t × N_c | dtype | mode | build+morph | "
-          + " | ".join(f"morph B={b}" for b in args.batches)
-          + " | peak MB | B=1 apply MB | NumPy / torch (build+morph) |")
+    print(
+        "| N_t × N_c | dtype | mode | build+morph | "
+        + " | ".join(f"morph B={b}" for b in args.batches)
+        + " | peak MB | B=1 apply MB | NumPy / torch (build+morph) |"
+    )
     print("|---" * (len(columns) + 4) + "|")
     context = mp.get_context("spawn")
     for index in args.sizes:
         size = SIZES[index]
         for dtype_name in args.dtypes:
             with context.Pool(1, maxtasksperchild=1) as pool:
-                numpy_row = pool.apply(run_config, ((size, dtype_name, "numpy", args.batches,
-                                                     max(1, args.repeats // 2),
-                                                     args.block_bytes),))
+                numpy_row = pool.apply(
+                    run_config,
+                    (
+                        (
+                            size,
+                            dtype_name,
+                            "numpy",
+                            args.batches,
+                            max(1, args.repeats // 2),
+                            args.block_bytes,
+                        ),
+                    ),
+                )
             for mode in ("dense", "matrix_free"):
                 with context.Pool(1, maxtasksperchild=1) as pool:
-                    row = pool.apply(run_config, ((size, dtype_name, mode, args.batches,
-                                                   args.repeats, args.block_bytes),))
-                cells = [f"{row[c]:.0f}" if c.endswith("MB") else f"{row[c]:.4f}"
-                         for c in columns if c in row]
+                    row = pool.apply(
+                        run_config,
+                        ((size, dtype_name, mode, args.batches, args.repeats, args.block_bytes),),
+                    )
+                cells = [
+                    f"{row[c]:.0f}" if c.endswith("MB") else f"{row[c]:.4f}"
+                    for c in columns
+                    if c in row
+                ]
                 cells += ["–"] * (len(columns) - len(cells))
                 ratio = numpy_row["build+morph"] / row["build+morph"]
-                print(f"| {size[0]} × {size[1]} | {dtype_name} | {mode} | " + " | ".join(cells)
-                      + f" | {ratio:.1f}× |", flush=True)
-            print(f"| {size[0]} × {size[1]} | {dtype_name} | NumPy dense | "
-                  f"{numpy_row['build+morph']:.4f} | " + " | ".join("–" for _ in args.batches)
-                  + f" | {numpy_row['peak MB']:.0f} | – | 1.0× |", flush=True)
+                print(
+                    f"| {size[0]} × {size[1]} | {dtype_name} | {mode} | "
+                    + " | ".join(cells)
+                    + f" | {ratio:.1f}× |",
+                    flush=True,
+                )
+            print(
+                f"| {size[0]} × {size[1]} | {dtype_name} | NumPy dense | "
+                f"{numpy_row['build+morph']:.4f} | "
+                + " | ".join("–" for _ in args.batches)
+                + f" | {numpy_row['peak MB']:.0f} | – | 1.0× |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

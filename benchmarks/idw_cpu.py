@@ -75,8 +75,9 @@ def two_pass_loop(targets, controls, values, out):
 
 def nearest_then_apply(targets, controls, values):
     """The fused matrix-free path as a caller runs it: nearest pass, then apply."""
-    return kernels.apply(targets, controls, values, POWER, 0.0,
-                         kernels.nearest_squared(targets, controls))
+    return kernels.apply(
+        targets, controls, values, POWER, 0.0, kernels.nearest_squared(targets, controls)
+    )
 
 
 def kdtree_nearest(targets, controls, workers):
@@ -122,8 +123,12 @@ def threads(count: int):
 def busy_process(limit_s: float = 300.0):
     """A competing process spinning in pure Python for the block's duration (at most limit_s)."""
     spinner = subprocess.Popen(
-        [sys.executable, "-c",
-         f"import time\nend = time.time() + {limit_s}\nwhile time.time() < end:\n    pass"])
+        [
+            sys.executable,
+            "-c",
+            f"import time\nend = time.time() + {limit_s}\nwhile time.time() < end:\n    pass",
+        ]
+    )
     time.sleep(0.2)  # let it reach its loop
     try:
         yield
@@ -145,14 +150,19 @@ def reference_error(targets, controls, values, out, sample: int = 256) -> float:
 def problem(size, dtype):
     targets_np, controls_np = point_clouds(*size)
     values_np = np.random.default_rng(1).normal(size=(controls_np.shape[0], 3))
-    return (torch.from_numpy(targets_np).to(dtype), torch.from_numpy(controls_np).to(dtype),
-            torch.from_numpy(values_np).to(dtype))
+    return (
+        torch.from_numpy(targets_np).to(dtype),
+        torch.from_numpy(controls_np).to(dtype),
+        torch.from_numpy(values_np).to(dtype),
+    )
 
 
 def matrix_free_table(sizes, repeats) -> None:
     print("\n## Matrix-free apply, one displacement field (K = 3), p = 4\n")
-    print("| N_t × N_c | dtype | threads | path | time | Gpair/s | vs two-pass loop |"
-          " float32 error / max|d| |")
+    print(
+        "| N_t × N_c | dtype | threads | path | time | Gpair/s | vs two-pass loop |"
+        " float32 error / max|d| |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for size in sizes:
         pairs = size[0] * size[1]
@@ -160,42 +170,67 @@ def matrix_free_table(sizes, repeats) -> None:
             targets, controls, values = problem(size, dtype)
             nearest2 = kernels.nearest_squared(targets, controls)
             radius2 = 0.0
-            grad = torch.randn(targets.shape[0], 3, dtype=dtype,
-                               generator=torch.Generator().manual_seed(2))
+            grad = torch.randn(
+                targets.shape[0], 3, dtype=dtype, generator=torch.Generator().manual_seed(2)
+            )
             out = torch.empty(targets.shape[0], 3, dtype=dtype)
             t_np, c_np, v_np, o_np = targets.numpy(), controls.numpy(), values.numpy(), out.numpy()
             _, sums = kernels.apply(targets, controls, values, POWER, radius2, nearest2)
             for count in (1, 2):
                 with threads(count):
                     numba.set_num_threads(count)
-                    baseline = median_time(partial(two_pass_loop, t_np, c_np, v_np, o_np),
-                                           repeats)
+                    baseline = median_time(partial(two_pass_loop, t_np, c_np, v_np, o_np), repeats)
                     paths = {
                         "fused apply (nearest given)": partial(
-                            kernels.apply, targets, controls, values, POWER, radius2, nearest2),
-                        "fused nearest + apply": partial(nearest_then_apply, targets, controls,
-                                                         values),
+                            kernels.apply, targets, controls, values, POWER, radius2, nearest2
+                        ),
+                        "fused nearest + apply": partial(
+                            nearest_then_apply, targets, controls, values
+                        ),
                         "two-pass numba loop": None,
-                        "fused nearest_squared": partial(kernels.nearest_squared, targets,
-                                                         controls),
+                        "fused nearest_squared": partial(
+                            kernels.nearest_squared, targets, controls
+                        ),
                         "KD-tree nearest (scipy, workers=threads)": partial(
-                            kdtree_nearest, targets, controls, count),
+                            kdtree_nearest, targets, controls, count
+                        ),
                         "fused apply_transposed": partial(
-                            kernels.apply_transposed, targets, controls, grad, POWER, radius2,
-                            nearest2, sums),
-                        "torch idw_apply": partial(idw_apply, controls=controls, targets=targets, displacements=values,
-                power=POWER, implementation="torch"),
+                            kernels.apply_transposed,
+                            targets,
+                            controls,
+                            grad,
+                            POWER,
+                            radius2,
+                            nearest2,
+                            sums,
+                        ),
+                        "torch idw_apply": partial(
+                            idw_apply,
+                            controls=controls,
+                            targets=targets,
+                            displacements=values,
+                            power=POWER,
+                            implementation="torch",
+                        ),
                     }
                     for name, function in paths.items():
-                        elapsed = baseline if function is None else median_time(
-                            function, max(1, repeats // 2) if "torch" in name else repeats)
+                        elapsed = (
+                            baseline
+                            if function is None
+                            else median_time(
+                                function, max(1, repeats // 2) if "torch" in name else repeats
+                            )
+                        )
                         error = ""
                         if dtype == torch.float32 and name == "fused apply (nearest given)":
                             result, _ = function()
                             error = f"{reference_error(targets, controls, values, result):.1e}"
-                        print(f"| {size[0]:,} × {size[1]:,} | {str(dtype)[6:]} | {count} | "
-                              f"{name} | {seconds(elapsed)} | {pairs / elapsed / 1e9:.2f} | "
-                              f"{baseline / elapsed:.2f}× | {error} |", flush=True)
+                        print(
+                            f"| {size[0]:,} × {size[1]:,} | {str(dtype)[6:]} | {count} | "
+                            f"{name} | {seconds(elapsed)} | {pairs / elapsed / 1e9:.2f} | "
+                            f"{baseline / elapsed:.2f}× | {error} |",
+                            flush=True,
+                        )
 
 
 def dense_table(sizes, repeats) -> None:
@@ -210,28 +245,48 @@ def dense_table(sizes, repeats) -> None:
             dense = kernels.weights(targets, controls, POWER, 0.0)
             for count in (1, 2):
                 with threads(count):
-                    build = median_time(partial(idw_weights, controls=controls, targets=targets, power=POWER,
-                implementation="torch"),
-                                        max(1, repeats // 2))
+                    build = median_time(
+                        partial(
+                            idw_weights,
+                            controls=controls,
+                            targets=targets,
+                            power=POWER,
+                            implementation="torch",
+                        ),
+                        max(1, repeats // 2),
+                    )
                     apply = median_time(partial(torch.matmul, dense, values), repeats)
                     rows = (
                         ("build, torch idw_weights", build, build),
-                        ("build, fused weights (into out)", median_time(
-                            partial(kernels.weights, targets, controls, POWER, 0.0, out=out),
-                            repeats), build),
+                        (
+                            "build, fused weights (into out)",
+                            median_time(
+                                partial(kernels.weights, targets, controls, POWER, 0.0, out=out),
+                                repeats,
+                            ),
+                            build,
+                        ),
                         ("apply, torch W @ d", apply, apply),
-                        ("apply, fused dense_apply", median_time(
-                            partial(kernels.dense_apply, dense, values), repeats), apply),
+                        (
+                            "apply, fused dense_apply",
+                            median_time(partial(kernels.dense_apply, dense, values), repeats),
+                            apply,
+                        ),
                     )
                     for name, elapsed, reference in rows:
-                        print(f"| {size[0]:,} × {size[1]:,} | {str(dtype)[6:]} | {count} | "
-                              f"{name} | {seconds(elapsed)} | {size_gb / elapsed:.1f} | "
-                              f"{reference / elapsed:.2f}× |", flush=True)
+                        print(
+                            f"| {size[0]:,} × {size[1]:,} | {str(dtype)[6:]} | {count} | "
+                            f"{name} | {seconds(elapsed)} | {size_gb / elapsed:.1f} | "
+                            f"{reference / elapsed:.2f}× |",
+                            flush=True,
+                        )
 
 
 def shared_table(size, repeats) -> None:
-    print(f"\n## Shared cores: 2 threads, quiet and beside a busy process, "
-          f"{size[0]:,} × {size[1]:,}, p = 4\n")
+    print(
+        f"\n## Shared cores: 2 threads, quiet and beside a busy process, "
+        f"{size[0]:,} × {size[1]:,}, p = 4\n"
+    )
     print("| dtype | path | quiet | busy | busy / quiet |")
     print("|---|---|---|---|---|")
     for dtype in (torch.float32, torch.float64):
@@ -240,21 +295,32 @@ def shared_table(size, repeats) -> None:
         _, sums = kernels.apply(targets, controls, values, POWER, 0.0, nearest2)
         dense = kernels.weights(targets, controls, POWER, 0.0)
         out = torch.empty_like(dense)
-        grad = torch.randn(targets.shape[0], 3, dtype=dtype,
-                           generator=torch.Generator().manual_seed(2))
+        grad = torch.randn(
+            targets.shape[0], 3, dtype=dtype, generator=torch.Generator().manual_seed(2)
+        )
         paths = {
-            "dense build, fused weights": partial(kernels.weights, targets, controls, POWER,
-                                                  0.0, out=out),
-            "dense build, torch idw_weights": partial(idw_weights, controls=controls, targets=targets, power=POWER,
-                implementation="torch"),
+            "dense build, fused weights": partial(
+                kernels.weights, targets, controls, POWER, 0.0, out=out
+            ),
+            "dense build, torch idw_weights": partial(
+                idw_weights, controls=controls, targets=targets, power=POWER, implementation="torch"
+            ),
             "dense apply, torch W @ d": partial(torch.matmul, dense, values),
             "dense apply, fused dense_apply": partial(kernels.dense_apply, dense, values),
-            "matrix-free, fused nearest + apply": partial(nearest_then_apply, targets, controls,
-                                                          values),
+            "matrix-free, fused nearest + apply": partial(
+                nearest_then_apply, targets, controls, values
+            ),
             "matrix-free, fused apply_transposed": partial(
-                kernels.apply_transposed, targets, controls, grad, POWER, 0.0, nearest2, sums),
-            "matrix-free, torch idw_apply": partial(idw_apply, controls=controls, targets=targets, displacements=values,
-                power=POWER, implementation="torch"),
+                kernels.apply_transposed, targets, controls, grad, POWER, 0.0, nearest2, sums
+            ),
+            "matrix-free, torch idw_apply": partial(
+                idw_apply,
+                controls=controls,
+                targets=targets,
+                displacements=values,
+                power=POWER,
+                implementation="torch",
+            ),
         }
         with threads(2):
             for name, function in paths.items():
@@ -262,25 +328,35 @@ def shared_table(size, repeats) -> None:
                 quiet = median_time(function, reps)
                 with busy_process():
                     busy = median_time(function, reps)
-                print(f"| {str(dtype)[6:]} | {name} | {seconds(quiet)} | {seconds(busy)} | "
-                      f"{busy / quiet:.2f}× |", flush=True)
+                print(
+                    f"| {str(dtype)[6:]} | {name} | {seconds(quiet)} | {seconds(busy)} | "
+                    f"{busy / quiet:.2f}× |",
+                    flush=True,
+                )
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--sizes", type=int, nargs="*", default=[0, 1],
-                        help="indices into SIZES (0: case-B counts, 1: 5,000 × 10,000)")
+    parser.add_argument(
+        "--sizes",
+        type=int,
+        nargs="*",
+        default=[0, 1],
+        help="indices into SIZES (0: case-B counts, 1: 5,000 × 10,000)",
+    )
     parser.add_argument("--tables", type=int, nargs="*", default=[1, 2, 3])
     parser.add_argument("--shared-size", type=int, default=1, help="index into SIZES")
     args = parser.parse_args(argv)
     if not kernels.available():
         sys.exit("numba is not installed: pip install numba")
     kernels.nearest_squared(torch.zeros(1, 3), torch.zeros(1, 3))  # starts numba's threads
-    print(f"# Fused CPU IDW kernels: {platform.processor() or platform.machine()}, "
-          f"torch {torch.__version__}, numba {numba.__version__} "
-          f"(threading layer {numba.threading_layer()}),"
-          f" numpy {np.__version__}; median of {args.repeats} repeats after a warm-up")
+    print(
+        f"# Fused CPU IDW kernels: {platform.processor() or platform.machine()}, "
+        f"torch {torch.__version__}, numba {numba.__version__} "
+        f"(threading layer {numba.threading_layer()}),"
+        f" numpy {np.__version__}; median of {args.repeats} repeats after a warm-up"
+    )
     sizes = [SIZES[i] for i in args.sizes]
     if 1 in args.tables:
         matrix_free_table(sizes, args.repeats)

@@ -54,8 +54,11 @@ PAPER = {"offline": 2479.51, "online": 0.55, "idw": 83.09}  # POD-IDW and IDW, c
 
 def naca0012_half_thickness(x: np.ndarray) -> np.ndarray:
     t = np.clip(x / CHORD, 0.0, 1.0)
-    return 0.6 * CHORD * (0.2969 * np.sqrt(t) - 0.1260 * t - 0.3516 * t**2 + 0.2843 * t**3
-                          - 0.1036 * t**4)
+    return (
+        0.6
+        * CHORD
+        * (0.2969 * np.sqrt(t) - 0.1260 * t - 0.3516 * t**2 + 0.2843 * t**3 - 0.1036 * t**4)
+    )
 
 
 def inside_wing(points: np.ndarray) -> np.ndarray:
@@ -75,8 +78,9 @@ def synthetic_case_b(num_controls: int, num_targets: int, seed: int = 0):
     half = naca0012_half_thickness(x)
     xx = np.concatenate([x, x[1:-1]])
     yy = np.concatenate([half, -half[1:-1]])
-    wing = np.stack(np.broadcast_arrays(xx[:, None] + WING_X, yy[:, None] + WING_Y,
-                                        z[None, :]), -1).reshape(-1, 3)
+    wing = np.stack(
+        np.broadcast_arrays(xx[:, None] + WING_X, yy[:, None] + WING_Y, z[None, :]), -1
+    ).reshape(-1, 3)
     # walls: random points in proportion to the wall areas
     count = num_controls - len(wing)
     areas = np.array([np.prod(np.delete(BOX, axis)) for axis in (0, 0, 1, 1, 2, 2)])
@@ -94,9 +98,13 @@ def synthetic_case_b(num_controls: int, num_targets: int, seed: int = 0):
     targets = np.empty((0, 3))
     while len(targets) < num_targets:
         uniform = rng.random((num_targets, 3)) * BOX
-        near = np.column_stack([rng.uniform(WING_X - 0.5, WING_X + CHORD + 1.0, num_targets),
-                                WING_Y + rng.normal(0.0, 0.4, num_targets),
-                                rng.uniform(0.0, SPAN + 0.5, num_targets)])
+        near = np.column_stack(
+            [
+                rng.uniform(WING_X - 0.5, WING_X + CHORD + 1.0, num_targets),
+                WING_Y + rng.normal(0.0, 0.4, num_targets),
+                rng.uniform(0.0, SPAN + 0.5, num_targets),
+            ]
+        )
         fresh = np.concatenate([uniform[: num_targets // 2], near[: num_targets // 2]])
         fresh = fresh[~inside_wing(fresh) & np.all((fresh > 0) & (fresh < BOX), 1)]
         targets = np.concatenate([targets, fresh])
@@ -117,8 +125,10 @@ def build_problem(args, dtype):
         wing = morph.boundary_mask([n for n in mesh.node_sets if "wing" in n] or ["wing"])
         z2 = morph.boundary_points[:, 2].square() * wing
 
-        label = (f"case-B mesh: {mesh.num_nodes} nodes, {morph.num_boundary} boundary "
-                 f"(all controls), {morph.num_interior} interior")
+        label = (
+            f"case-B mesh: {mesh.num_nodes} nodes, {morph.num_boundary} boundary "
+            f"(all controls), {morph.num_interior} interior"
+        )
         sizes = (morph.num_controls, morph.num_interior)
     else:
         controls, is_wing, targets = synthetic_case_b(args.controls, args.targets)
@@ -129,8 +139,10 @@ def build_problem(args, dtype):
         morph = IDW(controls_t, targets_t)
         setup = time.perf_counter() - start
         z2 = controls_t[:, 2].square() * torch.from_numpy(is_wing).to(dtype)
-        label = (f"synthetic case-B cloud: {len(controls)} controls ({int(is_wing.sum())} on "
-                 f"the wing), {len(targets)} targets")
+        label = (
+            f"synthetic case-B cloud: {len(controls)} controls ({int(is_wing.sum())} on "
+            f"the wing), {len(targets)} targets"
+        )
         sizes = (len(controls), len(targets))
 
     def family(mu: torch.Tensor) -> torch.Tensor:
@@ -159,9 +171,11 @@ def pod_versus_ezyrb(snapshots: torch.Tensor, energy_tolerance: float, repeats: 
     contenders = {
         "pod_basis (auto)": lambda: pod_basis(snapshots, energy_tolerance=energy_tolerance),
         "pod_basis (auto), float64 contiguous copy (what EZyRB gets)": lambda: pod_basis(
-            snapshots64, energy_tolerance=energy_tolerance),
-        "pod_basis(method='svd')": lambda: pod_basis(snapshots, method="svd",
-                                                     energy_tolerance=energy_tolerance),
+            snapshots64, energy_tolerance=energy_tolerance
+        ),
+        "pod_basis(method='svd')": lambda: pod_basis(
+            snapshots, method="svd", energy_tolerance=energy_tolerance
+        ),
     }
     try:
         from ezyrb import POD
@@ -170,8 +184,9 @@ def pod_versus_ezyrb(snapshots: torch.Tensor, energy_tolerance: float, repeats: 
     if POD is not None:
         columns = snapshots.double().reshape(snapshots.shape[0], -1).T.contiguous().numpy()
         for method in ("svd", "correlation_matrix"):
-            contenders[f"EZyRB POD('{method}').fit"] = (
-                lambda method=method: POD(method, rank=1.0 - energy_tolerance).fit(columns))
+            contenders[f"EZyRB POD('{method}').fit"] = lambda method=method: POD(
+                method, rank=1.0 - energy_tolerance
+            ).fit(columns)
     times: dict[str, list[float]] = {name: [] for name in contenders}
     for round_ in range(repeats + 1):
         for name, call in contenders.items():
@@ -181,8 +196,11 @@ def pod_versus_ezyrb(snapshots: torch.Tensor, energy_tolerance: float, repeats: 
                 times[name].append(time.perf_counter() - start)
     median = {name: statistics.median(values) for name, values in times.items()}
     if POD is None:
-        return [row("POD basis, pod_basis (auto)", median["pod_basis (auto)"]), "",
-                "EZyRB is not installed (pip install ezyrb): no comparison row."]
+        return [
+            row("POD basis, pod_basis (auto)", median["pod_basis (auto)"]),
+            "",
+            "EZyRB is not installed (pip install ezyrb): no comparison row.",
+        ]
     fastest = min(value for name, value in median.items() if name.startswith("EZyRB"))
     rows = []
     for name, value in median.items():
@@ -231,15 +249,19 @@ def main() -> None:
     for _ in range(max(1, args.repeats // 2)):
         fits.append(PODReducer().fit(morph, family=family, parameters=training))
     reducer = fits[-1]
-    offline = {key: statistics.median(f.offline_time_[key] for f in fits)
-               for key in reducer.offline_time_}
+    offline = {
+        key: statistics.median(f.offline_time_[key] for f in fits) for key in reducer.offline_time_
+    }
     paper_fit = None
     if args.paper:
         paper_fit = PODReducer(online="paper").fit(morph, family=family, parameters=training)
 
     with torch.no_grad():
-        snapshots = morph(family(training)) if not args.mesh else morph.idw(
-            morph.controls_from_boundary(family(training)))
+        snapshots = (
+            morph(family(training))
+            if not args.mesh
+            else morph.idw(morph.controls_from_boundary(family(training)))
+        )
         comparison = pod_versus_ezyrb(snapshots, reducer.energy_tolerance, args.repeats)
         weights = morph.idw.weights_matrix() if args.mesh else morph.weights_matrix()
         modes = reducer.modes_
@@ -271,11 +293,13 @@ def main() -> None:
     # ---------------------------------------------------------------- table
     thp = os.environ.get("THP_MEM_ALLOC_ENABLE", "unset")
     print(f"## POD benchmark: {label}")
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
-          f"{platform.processor() or platform.machine()}, {args.dtype}, "
-          f"THP_MEM_ALLOC_ENABLE={thp}, load average {load_before:.1f} -> {load_after:.1f}; "
-          f"n_train = {args.train}, N = {reducer.num_modes_} mode(s), "
-          f"σ = {', '.join(f'{s:.3g}' for s in reducer.singular_values_[:3].tolist())} ...")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
+        f"{platform.processor() or platform.machine()}, {args.dtype}, "
+        f"THP_MEM_ALLOC_ENABLE={thp}, load average {load_before:.1f} -> {load_after:.1f}; "
+        f"n_train = {args.train}, N = {reducer.num_modes_} mode(s), "
+        f"σ = {', '.join(f'{s:.3g}' for s in reducer.singular_values_[:3].tolist())} ..."
+    )
     print()
     print("| step | ours: median (min) | paper (case B, POD-IDW) | ratio (medians) |")
     print("|---|---|---|---|")
@@ -283,43 +307,90 @@ def main() -> None:
     print(row("offline: snapshots (one batched morph)", offline["snapshots"]))
     print(row("offline: SVD", offline["svd"]))
     print(row("offline: online matrices P = Zᵀ W", offline["online_matrices"]))
-    print(row(f"offline: projection_matrix (one GEMM, {reducer.num_modes_} mode(s), "
-              f"{num_controls} -> {num_targets})", projection))
-    print(row("offline: total fit", offline["total"], f"{PAPER['offline']:,.0f} s",
-              f"{PAPER['offline'] / offline['total']:,.0f}x faster"))
-    print(row("offline: setup + fit", setup + offline["total"], f"{PAPER['offline']:,.0f} s",
-              f"{PAPER['offline'] / (setup + offline['total']):,.0f}x faster"))
+    print(
+        row(
+            f"offline: projection_matrix (one GEMM, {reducer.num_modes_} mode(s), "
+            f"{num_controls} -> {num_targets})",
+            projection,
+        )
+    )
+    print(
+        row(
+            "offline: total fit",
+            offline["total"],
+            f"{PAPER['offline']:,.0f} s",
+            f"{PAPER['offline'] / offline['total']:,.0f}x faster",
+        )
+    )
+    print(
+        row(
+            "offline: setup + fit",
+            setup + offline["total"],
+            f"{PAPER['offline']:,.0f} s",
+            f"{PAPER['offline'] / (setup + offline['total']):,.0f}x faster",
+        )
+    )
     if paper_fit is not None:
-        print(row("offline: total fit, online='paper' (eq. 16)", paper_fit.offline_time_["total"],
-                  f"{PAPER['offline']:,.0f} s"))
-    print(row("online: one μ, reducer(d)", single, f"{PAPER['online']} s",
-              f"{PAPER['online'] / single[0]:,.0f}x faster"))
+        print(
+            row(
+                "offline: total fit, online='paper' (eq. 16)",
+                paper_fit.offline_time_["total"],
+                f"{PAPER['offline']:,.0f} s",
+            )
+        )
+    print(
+        row(
+            "online: one μ, reducer(d)",
+            single,
+            f"{PAPER['online']} s",
+            f"{PAPER['online'] / single[0]:,.0f}x faster",
+        )
+    )
     print(row("online: one μ, morph_parameters(μ) (with family)", single_mu))
     if paper_single is not None:
         print(row("online: one μ, online='paper'", paper_single))
     print(row(f"online: batch of {args.batch} μ, reducer(d)", batch))
     print(row(f"online: batch of {args.batch} μ, reducer(d, out=buffer)", batch_out))
     print(row(f"online: batch of {args.batch} μ, morph_parameters(μ)", batch_mu))
-    print(row("full IDW: one μ", full_single, f"{PAPER['idw']} s",
-              f"POD {full_single[0] / single[0]:,.0f}x faster than full"))
+    print(
+        row(
+            "full IDW: one μ",
+            full_single,
+            f"{PAPER['idw']} s",
+            f"POD {full_single[0] / single[0]:,.0f}x faster than full",
+        )
+    )
     print(row(f"full IDW: batch of {args.full_batch} μ", full_batch))
-    print(row(f"full IDW: batch of {args.batch} μ (extrapolated ×{args.batch / args.full_batch:g})",
-              full_extrapolated, "", f"POD {full_extrapolated / batch[0]:,.0f}x faster"))
+    print(
+        row(
+            f"full IDW: batch of {args.batch} μ (extrapolated ×{args.batch / args.full_batch:g})",
+            full_extrapolated,
+            "",
+            f"POD {full_extrapolated / batch[0]:,.0f}x faster",
+        )
+    )
     print()
     print("| POD basis of the fit's snapshots | median | | ratio |")
     print("|---|---|---|---|")
     for line in comparison:
         print(line)
     print()
-    print(f"relative nodal error of the reduced morph on 20 fresh μ: max {float(error.max()):.2e}"
-          + (f"; paper variant: max {float(paper_error.max()):.2e}" if paper_error is not None
-             else ""))
+    print(
+        f"relative nodal error of the reduced morph on 20 fresh μ: max {float(error.max()):.2e}"
+        + (
+            f"; paper variant: max {float(paper_error.max()):.2e}"
+            if paper_error is not None
+            else ""
+        )
+    )
     verdict = {True: "met", False: "MISSED"}
-    print(f"targets (medians): offline <= 10 s: {verdict[offline['total'] <= 10]} "
-          f"(fit {offline['total']:.2f} s, with W assembly {setup + offline['total']:.2f} s); "
-          f"online <= 1 ms per μ: {verdict[single[0] <= 1e-3]}; "
-          f"<= 0.1 s per {args.batch} μ: {verdict[batch[0] <= 0.1]} (fresh output), "
-          f"{verdict[batch_out[0] <= 0.1]} (out=)")
+    print(
+        f"targets (medians): offline <= 10 s: {verdict[offline['total'] <= 10]} "
+        f"(fit {offline['total']:.2f} s, with W assembly {setup + offline['total']:.2f} s); "
+        f"online <= 1 ms per μ: {verdict[single[0] <= 1e-3]}; "
+        f"<= 0.1 s per {args.batch} μ: {verdict[batch[0] <= 0.1]} (fresh output), "
+        f"{verdict[batch_out[0] <= 0.1]} (out=)"
+    )
     print(f"sizes: {num_controls} controls, {num_targets} targets")
 
 

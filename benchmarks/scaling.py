@@ -90,16 +90,18 @@ def grid_cloud(side: int, dtype: torch.dtype, device: torch.device):
 def smooth_displacement(points: torch.Tensor, phase: float = 0.0) -> torch.Tensor:
     """A smooth boundary displacement (a bump and a twist)."""
     x, y, z = points.unbind(1)
-    return 0.02 * torch.stack([torch.sin(3 * y + phase) * z, torch.cos(2 * x) * (1 - z),
-                               x * y + phase], 1)
+    return 0.02 * torch.stack(
+        [torch.sin(3 * y + phase) * z, torch.cos(2 * x) * (1 - z), x * y + phase], 1
+    )
 
 
 def select(boundary: torch.Tensor, steps: float, side: int) -> torch.Tensor:
     from torchmorph.selection import select_control_points
 
     generator = torch.Generator().manual_seed(0)
-    chosen = select_control_points(boundary.detach().cpu().double(), steps / (side - 1),
-                                   generator=generator)
+    chosen = select_control_points(
+        boundary.detach().cpu().double(), steps / (side - 1), generator=generator
+    )
     return torch.as_tensor(chosen, dtype=torch.long)
 
 
@@ -187,8 +189,14 @@ def measure_size(side: int, args, skip: set[str]) -> dict:
 
     device, dtype = torch.device(args.device), getattr(torch, args.dtype)
     boundary, interior = grid_cloud(side, dtype, device)
-    row = {"side": side, "nodes": side**3, "boundary": boundary.shape[0],
-           "interior": interior.shape[0], "time": {}, "memory": {}}
+    row = {
+        "side": side,
+        "nodes": side**3,
+        "boundary": boundary.shape[0],
+        "interior": interior.shape[0],
+        "time": {},
+        "memory": {},
+    }
     repeats = 3
     with Memory(device) as memory:
         seconds_, selected = timed(lambda: select(boundary, SELECTION_STEPS, side), None, repeats)
@@ -198,8 +206,11 @@ def measure_size(side: int, args, skip: set[str]) -> dict:
     displacement = smooth_displacement(controls)
     itemsize = torch.empty(0, dtype=dtype).element_size()
     w_bytes = interior.shape[0] * controls.shape[0] * itemsize
-    dense_cap = DENSE_CAP_CPU if device.type == "cpu" else (
-        torch.cuda.get_device_properties(device).total_memory // 4)
+    dense_cap = (
+        DENSE_CAP_CPU
+        if device.type == "cpu"
+        else (torch.cuda.get_device_properties(device).total_memory // 4)
+    )
 
     if "dense" not in skip and w_bytes <= dense_cap:
         with Memory(device) as memory:
@@ -222,7 +233,7 @@ def measure_size(side: int, args, skip: set[str]) -> dict:
             idw = IDW(boundary[chosen], interior, mode="matrix_free")
             field = full_boundary.new_empty(boundary.shape[0] + interior.shape[0], 3)
             field[: boundary.shape[0]] = full_boundary
-            field[boundary.shape[0]:] = idw(full_boundary[chosen])
+            field[boundary.shape[0] :] = idw(full_boundary[chosen])
             return field
 
         with Memory(device) as memory:
@@ -232,8 +243,9 @@ def measure_size(side: int, args, skip: set[str]) -> dict:
         coarse = select(boundary, POD_STEPS, side).to(device)
         idw = IDW(boundary[coarse], interior, mode="matrix_free")
         generator = torch.Generator().manual_seed(1)
-        training = torch.randn(8, coarse.numel(), 3, generator=generator,
-                               dtype=torch.float64).to(device, dtype)
+        training = torch.randn(8, coarse.numel(), 3, generator=generator, dtype=torch.float64).to(
+            device, dtype
+        )
         reducer = PODReducer(energy_tolerance=1e-9).fit(idw, training)  # <= 8 modes
         with Memory(device) as memory:
             online, _ = timed(lambda: reducer(training[3]), device, 5)
@@ -251,15 +263,17 @@ def _free_port() -> int:
         return probe.getsockname()[1]
 
 
-def _sharded_rank(rank: int, world: int, port: int, side: int, dtype_name: str,
-                  output: str) -> None:
+def _sharded_rank(
+    rank: int, world: int, port: int, side: int, dtype_name: str, output: str
+) -> None:
     import torch.distributed as dist
 
     from torchmorph.distributed import ShardedIDW, shard_rows
 
     torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank,
-                            world_size=world)
+    dist.init_process_group(
+        "gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world
+    )
     try:
         dtype = getattr(torch, dtype_name)
         boundary, interior = grid_cloud(side, dtype, torch.device("cpu"))
@@ -286,8 +300,12 @@ def measure_sharded(side: int, world: int, dtype_name: str) -> float:
 
     with tempfile.TemporaryDirectory() as folder:
         output = os.path.join(folder, "result.json")
-        mp.spawn(_sharded_rank, args=(world, _free_port(), side, dtype_name, output),
-                 nprocs=world, join=True)
+        mp.spawn(
+            _sharded_rank,
+            args=(world, _free_port(), side, dtype_name, output),
+            nprocs=world,
+            join=True,
+        )
         return json.loads(Path(output).read_text())["seconds"]
 
 
@@ -313,26 +331,41 @@ def largest_nodes(sizes, memory, budget):
     points = [(s, m) for s, m in zip(sizes, memory, strict=True) if m > 0]
     if not points:
         return float("nan")
-    k, _ = power_fit([p[0] for p in points], [p[1] for p in points]) if len(points) > 1 \
+    k, _ = (
+        power_fit([p[0] for p in points], [p[1] for p in points])
+        if len(points) > 1
         else (1.0, None)
+    )
     k = max(k, 1.0) if math.isfinite(k) else 1.0
     size, peak = points[-1]
     return size * (budget / peak) ** (1.0 / k)
 
 
 def summarise(rows: list[dict], sharded: dict, device: torch.device) -> tuple[str, dict]:
-    budget = CPU_MEMORY if device.type == "cpu" else \
-        torch.cuda.get_device_properties(device).total_memory
-    budget_name = "24 GB RAM" if device.type == "cpu" else \
-        f"{budget / 1e9:.0f} GB ({torch.cuda.get_device_name(device)})"
+    budget = (
+        CPU_MEMORY
+        if device.type == "cpu"
+        else torch.cuda.get_device_properties(device).total_memory
+    )
+    budget_name = (
+        "24 GB RAM"
+        if device.type == "cpu"
+        else f"{budget / 1e9:.0f} GB ({torch.cuda.get_device_name(device)})"
+    )
     sizes = [r["nodes"] for r in rows]
-    header = ["configuration", *[f"N={n:,}" for n in sizes], "exponent k", "bytes/node at max N",
-              f"largest N in {budget_name}"]
+    header = [
+        "configuration",
+        *[f"N={n:,}" for n in sizes],
+        "exponent k",
+        "bytes/node at max N",
+        f"largest N in {budget_name}",
+    ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     fits = {}
     for key, label in CONFIGS.items():
-        measured = [(r["nodes"], r["time"][key], r["memory"].get(key, 0)) for r in rows
-                    if key in r["time"]]
+        measured = [
+            (r["nodes"], r["time"][key], r["memory"].get(key, 0)) for r in rows if key in r["time"]
+        ]
         if not measured:
             continue
         k, _ = power_fit([m[0] for m in measured], [m[1] for m in measured])
@@ -340,24 +373,33 @@ def summarise(rows: list[dict], sharded: dict, device: torch.device) -> tuple[st
         fits[key] = k
         cells = [seconds(r["time"][key]) if key in r["time"] else "–" for r in rows]
         per_node = measured[-1][2] / measured[-1][0]
-        lines.append(f"| {label} | " + " | ".join(cells) +
-                     f" | {k:.2f} | {per_node:,.0f} | {biggest:.2g} |")
+        lines.append(
+            f"| {label} | " + " | ".join(cells) + f" | {k:.2f} | {per_node:,.0f} | {biggest:.2g} |"
+        )
     for world, times in sorted(sharded.items()):
         cells = [seconds(times[n]) if n in times else "–" for n in sizes]
         measured = [(n, times[n]) for n in sizes if n in times]
         k, _ = power_fit([m[0] for m in measured], [m[1] for m in measured])
         fits[f"sharded_{world}"] = k
-        lines.append(f"| sharded matrix-free, {world} rank{'s' if world > 1 else ''} | " +
-                     " | ".join(cells) + f" | {k:.2f} | – | – |")
+        lines.append(
+            f"| sharded matrix-free, {world} rank{'s' if world > 1 else ''} | "
+            + " | ".join(cells)
+            + f" | {k:.2f} | – | – |"
+        )
     extra = ["", "| N | boundary | interior | controls N_c |", "|---|---|---|---|"]
-    extra += [f"| {r['nodes']:,} | {r['boundary']:,} | {r['interior']:,} | {r['controls']:,} |"
-              for r in rows]
+    extra += [
+        f"| {r['nodes']:,} | {r['boundary']:,} | {r['interior']:,} | {r['controls']:,} |"
+        for r in rows
+    ]
     if 1 in sharded:
         for world in sorted(sharded):
             if world == 1:
                 continue
-            ratios = [f"N={n:,}: {sharded[1][n] / sharded[world][n]:.2f}x" for n in sizes
-                      if n in sharded[1] and n in sharded[world]]
+            ratios = [
+                f"N={n:,}: {sharded[1][n] / sharded[world][n]:.2f}x"
+                for n in sizes
+                if n in sharded[1] and n in sharded[world]
+            ]
             extra.append(f"\nspeed-up of {world} ranks over 1: " + ", ".join(ratios))
     return "\n".join(lines + extra), fits
 
@@ -378,22 +420,35 @@ def plot(rows, sharded, fits, path: Path, device: torch.device, dtype: str) -> N
         points = sorted(times.items())
         xs, ys = zip(*points, strict=True)
         axes.loglog(xs, ys, "s--", label=f"sharded matrix-free, {world} rank(s)")
-    anchor = [(r["nodes"], r["interior"] * r["controls"], r["time"]["matrix_free"])
-              for r in rows if "matrix_free" in r["time"]]
+    anchor = [
+        (r["nodes"], r["interior"] * r["controls"], r["time"]["matrix_free"])
+        for r in rows
+        if "matrix_free" in r["time"]
+    ]
     if anchor:
         n0, pairs0, t0 = anchor[0]
         xs = [r["nodes"] for r in rows]
-        axes.loglog(xs, [t0 * r["interior"] * r["controls"] / pairs0 for r in rows], "k:",
-                    label="O(N_t·N_c) guide")
+        axes.loglog(
+            xs,
+            [t0 * r["interior"] * r["controls"] / pairs0 for r in rows],
+            "k:",
+            label="O(N_t·N_c) guide",
+        )
     selection = [(r["nodes"], r["time"]["selection"]) for r in rows]
     n0, t0 = selection[0]
     xs = [r["nodes"] for r in rows]
-    axes.loglog(xs, [t0 * n * math.log(n) / (n0 * math.log(n0)) for n in xs], "k-.",
-                label="O(N log N) guide")
+    axes.loglog(
+        xs,
+        [t0 * n * math.log(n) / (n0 * math.log(n0)) for n in xs],
+        "k-.",
+        label="O(N log N) guide",
+    )
     axes.set_xlabel("mesh nodes N")
     axes.set_ylabel("seconds")
-    axes.set_title(f"torchmorph cost growth ({device.type}, {dtype}, one "
-                   f"{'thread' if device.type == 'cpu' else 'device'})")
+    axes.set_title(
+        f"torchmorph cost growth ({device.type}, {dtype}, one "
+        f"{'thread' if device.type == 'cpu' else 'device'})"
+    )
     axes.grid(True, which="both", alpha=0.3)
     axes.legend(fontsize=7)
     figure.tight_layout()
@@ -408,19 +463,27 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     parser.add_argument("--dtype", default="float32", choices=("float32", "float64"))
-    parser.add_argument("--quick", action="store_true",
-                        help="fewer sizes (CPU: up to 3·10^5; CUDA: up to 3·10^6)")
-    parser.add_argument("--sides", type=int, nargs="*",
-                        help="grid sides c (N = c³) instead of the default sweep")
-    parser.add_argument("--max-ranks", type=int, default=2,
-                        help="sharded runs on 1..K gloo ranks (CPU; 0 to skip)")
-    parser.add_argument("--sharded-max-side", type=int, default=68,
-                        help="largest grid side of the sharded runs")
-    parser.add_argument("--budget", type=float, default=120.0,
-                        help="skip a configuration at the next size once it took this many "
-                             "seconds")
-    parser.add_argument("--png", type=Path, default=None,
-                        help="plot path (default docs/scaling_<device>.png)")
+    parser.add_argument(
+        "--quick", action="store_true", help="fewer sizes (CPU: up to 3·10^5; CUDA: up to 3·10^6)"
+    )
+    parser.add_argument(
+        "--sides", type=int, nargs="*", help="grid sides c (N = c³) instead of the default sweep"
+    )
+    parser.add_argument(
+        "--max-ranks", type=int, default=2, help="sharded runs on 1..K gloo ranks (CPU; 0 to skip)"
+    )
+    parser.add_argument(
+        "--sharded-max-side", type=int, default=68, help="largest grid side of the sharded runs"
+    )
+    parser.add_argument(
+        "--budget",
+        type=float,
+        default=120.0,
+        help="skip a configuration at the next size once it took this many seconds",
+    )
+    parser.add_argument(
+        "--png", type=Path, default=None, help="plot path (default docs/scaling_<device>.png)"
+    )
     parser.add_argument("--no-plot", action="store_true")
     parser.add_argument("--json", type=Path, default=None, help="also write the raw results")
     args = parser.parse_args(argv)
@@ -444,9 +507,12 @@ def main(argv: list[str] | None = None) -> int:
         for key, value in row["time"].items():
             if value > args.budget:
                 skip.add("dense" if key.startswith("dense") else key)
-        print(f"[scaling] N={row['nodes']:,} (N_c={row['controls']:,}) in "
-              f"{time.perf_counter() - start:.1f} s: " +
-              ", ".join(f"{k} {seconds(v)}" for k, v in row["time"].items()), flush=True)
+        print(
+            f"[scaling] N={row['nodes']:,} (N_c={row['controls']:,}) in "
+            f"{time.perf_counter() - start:.1f} s: "
+            + ", ".join(f"{k} {seconds(v)}" for k, v in row["time"].items()),
+            flush=True,
+        )
     sharded: dict[int, dict[int, float]] = {}
     if device.type == "cpu" and args.max_ranks > 0:
         for world in range(1, args.max_ranks + 1):
@@ -455,15 +521,20 @@ def main(argv: list[str] | None = None) -> int:
                 if side > args.sharded_max_side:
                     continue
                 sharded[world][side**3] = measure_sharded(side, world, args.dtype)
-                print(f"[scaling] sharded, {world} rank(s), N={side**3:,}: "
-                      f"{seconds(sharded[world][side**3])}", flush=True)
+                print(
+                    f"[scaling] sharded, {world} rank(s), N={side**3:,}: "
+                    f"{seconds(sharded[world][side**3])}",
+                    flush=True,
+                )
     table, fits = summarise(rows, sharded, device)
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else \
-        f"CPU, {os.cpu_count()} cores, 1 thread per process"
+    name = (
+        torch.cuda.get_device_name(device)
+        if device.type == "cuda"
+        else f"CPU, {os.cpu_count()} cores, 1 thread per process"
+    )
     print(f"\n## Scaling ({name}, {args.dtype})\n\n{table}\n")
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows, "sharded": sharded, "fits": fits},
-                                        indent=1))
+        args.json.write_text(json.dumps({"rows": rows, "sharded": sharded, "fits": fits}, indent=1))
     if not args.no_plot:
         path = args.png or ROOT / "docs" / f"scaling_{device.type}.png"
         try:

@@ -60,8 +60,10 @@ def sphere_points(count: int, seed: int = 0) -> np.ndarray:
 
 def selection_scaling(sizes, fraction: float, repeats: int, max_reference: int) -> list[str]:
     rows = [
-        ("| candidates | R | selected (random) | random [s] | centroid [s] | farthest [s] "
-         "| plain reference, random [s] | speed-up |"),
+        (
+            "| candidates | R | selected (random) | random [s] | centroid [s] | farthest [s] "
+            "| plain reference, random [s] | speed-up |"
+        ),
         "|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     print("\n".join(rows), flush=True)
@@ -84,7 +86,8 @@ def selection_scaling(sizes, fraction: float, repeats: int, max_reference: int) 
             start = int(selected[0])
             reference_time, expected = median_time(
                 lambda points=points, radius=radius, start=start, count=count: reference_sidw(
-                    points, radius, 0.8, 1.3, start, "random", _generator_after_start(count)),
+                    points, radius, 0.8, 1.3, start, "random", _generator_after_start(count)
+                ),
                 max(1, reps // 2),
             )
             assert expected == selected.tolist(), "fast and plain selections differ"
@@ -118,14 +121,21 @@ WING_X, WING_Y = 3.0, 2.5  # leading edge position in the tunnel
 
 def naca0012_half_thickness(x: np.ndarray) -> np.ndarray:
     t = np.clip(x / CHORD, 0.0, 1.0)
-    return 0.6 * CHORD * (0.2969 * np.sqrt(t) - 0.1260 * t - 0.3516 * t**2
-                          + 0.2843 * t**3 - 0.1036 * t**4)  # closed trailing edge
+    return (
+        0.6
+        * CHORD
+        * (0.2969 * np.sqrt(t) - 0.1260 * t - 0.3516 * t**2 + 0.2843 * t**3 - 0.1036 * t**4)
+    )  # closed trailing edge
 
 
 def inside_wing(points: np.ndarray) -> np.ndarray:
     x = points[:, 0] - WING_X
-    return ((x >= 0) & (x <= CHORD) & (points[:, 2] <= SPAN)
-            & (np.abs(points[:, 1] - WING_Y) < naca0012_half_thickness(x)))
+    return (
+        (x >= 0)
+        & (x <= CHORD)
+        & (points[:, 2] <= SPAN)
+        & (np.abs(points[:, 1] - WING_Y) < naca0012_half_thickness(x))
+    )
 
 
 class PointCloud:
@@ -142,8 +152,9 @@ class PointCloud:
         return self.sets[name]
 
 
-def case_b_cloud(wall_count: int, wing_stations: tuple[int, int], interior_count: int,
-                 seed: int = 0) -> tuple[PointCloud, np.ndarray]:
+def case_b_cloud(
+    wall_count: int, wing_stations: tuple[int, int], interior_count: int, seed: int = 0
+) -> tuple[PointCloud, np.ndarray]:
     """Tunnel walls (random points), wing surface (structured), interior targets."""
     rng = np.random.default_rng(seed)
     blocks, sets = [], {}
@@ -154,8 +165,14 @@ def case_b_cloud(wall_count: int, wing_stations: tuple[int, int], interior_count
         sets[name] = np.arange(offset, offset + len(block))
 
     # walls, points in proportion to their area
-    walls = {"bottom": (1, 0.0), "top": (1, BOX[1]), "front": (0, 0.0), "rear": (0, BOX[0]),
-             "root_wall": (2, 0.0), "far_wall": (2, BOX[2])}
+    walls = {
+        "bottom": (1, 0.0),
+        "top": (1, BOX[1]),
+        "front": (0, 0.0),
+        "rear": (0, BOX[0]),
+        "root_wall": (2, 0.0),
+        "far_wall": (2, BOX[2]),
+    }
     areas = {name: np.prod(np.delete(BOX, axis)) for name, (axis, _) in walls.items()}
     total_area = sum(areas.values())
     for name, (axis, value) in walls.items():
@@ -171,26 +188,39 @@ def case_b_cloud(wall_count: int, wing_stations: tuple[int, int], interior_count
     x = t * CHORD
     z = np.linspace(0.0, SPAN, spanwise)
     half = naca0012_half_thickness(x)
-    for name, sign, columns in (("upper", 1.0, slice(1, -1)), ("lower", -1.0, slice(1, -1)),
-                                ("leading_edge", 0.0, slice(0, 1)),
-                                ("trailing_edge", 0.0, slice(-1, None))):
+    for name, sign, columns in (
+        ("upper", 1.0, slice(1, -1)),
+        ("lower", -1.0, slice(1, -1)),
+        ("leading_edge", 0.0, slice(0, 1)),
+        ("trailing_edge", 0.0, slice(-1, None)),
+    ):
         xx, zz = np.meshgrid(x[columns], z[1:], indexing="ij")
         yy = sign * np.repeat(half[columns, None], len(z) - 1, axis=1)
         add(name, np.stack([xx.ravel() + WING_X, yy.ravel() + WING_Y, zz.ravel()], 1))
     section = np.concatenate([np.stack([x, half], 1), np.stack([x[1:-1], -half[1:-1]], 1)])
-    add("root_profile", np.column_stack([section[:, 0] + WING_X, section[:, 1] + WING_Y,
-                                         np.zeros(len(section))]))
+    add(
+        "root_profile",
+        np.column_stack([section[:, 0] + WING_X, section[:, 1] + WING_Y, np.zeros(len(section))]),
+    )
     # tip cap: the section shrunk towards its camber line
-    cap = [np.column_stack([section[:, 0] + WING_X, s * section[:, 1] + WING_Y,
-                            np.full(len(section), SPAN)]) for s in np.linspace(1, 0, 6)[:-1]]
+    cap = [
+        np.column_stack(
+            [section[:, 0] + WING_X, s * section[:, 1] + WING_Y, np.full(len(section), SPAN)]
+        )
+        for s in np.linspace(1, 0, 6)[:-1]
+    ]
     add("tip", np.concatenate(cap))
 
     boundary = np.concatenate(blocks)
     # interior: half uniform in the tunnel, half clustered around the wing
     uniform = rng.random((interior_count, 3)) * BOX
-    near = np.column_stack([rng.uniform(WING_X - 0.5, WING_X + CHORD + 1.0, interior_count),
-                            WING_Y + rng.normal(0.0, 0.4, interior_count),
-                            rng.uniform(0.0, SPAN + 0.5, interior_count)])
+    near = np.column_stack(
+        [
+            rng.uniform(WING_X - 0.5, WING_X + CHORD + 1.0, interior_count),
+            WING_Y + rng.normal(0.0, 0.4, interior_count),
+            rng.uniform(0.0, SPAN + 0.5, interior_count),
+        ]
+    )
     interior = np.concatenate([uniform[: interior_count // 2], near])
     interior = interior[~inside_wing(interior) & np.all((interior > 0) & (interior < BOX), 1)]
     interior = interior[:interior_count]
@@ -202,10 +232,13 @@ def case_b_cloud(wall_count: int, wing_stations: tuple[int, int], interior_count
 def case_b_plan(enrich: bool = True) -> SelectionPlan:
     """The paper's case-B selection: box R 0.5 / 0.25, wing R 0.05, ESIDW enrichment."""
     return SelectionPlan(
-        [Region(("top", "bottom", "front", "rear"), 0.5),
-         Region(("root_wall", "far_wall"), 0.25),
-         Region(("upper", "lower", "leading_edge", "trailing_edge", "root_profile", "tip"),
-                0.05)],
+        [
+            Region(("top", "bottom", "front", "rear"), 0.5),
+            Region(("root_wall", "far_wall"), 0.25),
+            Region(
+                ("upper", "lower", "leading_edge", "trailing_edge", "root_profile", "tip"), 0.05
+            ),
+        ],
         enrich=["root_profile", "leading_edge", "trailing_edge"] if enrich else (),
     )
 
@@ -214,18 +247,26 @@ def case_b(wall_count, wing_stations, interior_count, repeats, dtype) -> list[st
     cloud, interior = case_b_cloud(wall_count, wing_stations, interior_count)
     points = cloud.points.to(dtype)
     boundary = cloud.boundary_nodes
-    wing = torch.cat([cloud.node_set(name) for name in
-                      ("upper", "lower", "leading_edge", "trailing_edge", "root_profile", "tip")])
+    wing = torch.cat(
+        [
+            cloud.node_set(name)
+            for name in ("upper", "lower", "leading_edge", "trailing_edge", "root_profile", "tip")
+        ]
+    )
     displacement = torch.zeros_like(points)
     displacement[wing, 1] = 0.01 * points[wing, 2] ** 2  # δy = μ z², μ = 0.01
     targets = points[interior]
 
     rows = [
-        (f"Synthetic case-B-sized cloud: {boundary.numel():,} boundary points "
-         f"({wing.numel():,} on the wing), {interior.size:,} interior targets, {dtype}."),
+        (
+            f"Synthetic case-B-sized cloud: {boundary.numel():,} boundary points "
+            f"({wing.numel():,} on the wing), {interior.size:,} interior targets, {dtype}."
+        ),
         "",
-        ("| method | control points | selection [s] | assembly of W [s] | morph [s] "
-         "| rel. error vs IDW |"),
+        (
+            "| method | control points | selection [s] | assembly of W [s] | morph [s] "
+            "| rel. error vs IDW |"
+        ),
         "|---|---:|---:|---:|---:|---:|",
     ]
     print("\n".join(rows), flush=True)
@@ -233,7 +274,8 @@ def case_b(wall_count, wing_stations, interior_count, repeats, dtype) -> list[st
     for method, plan in (("SIDW", case_b_plan(enrich=False)), ("ESIDW", case_b_plan())):
         seconds, selected = median_time(
             lambda plan=plan: plan.select(cloud, generator=torch.Generator().manual_seed(0)),
-            repeats)
+            repeats,
+        )
         methods.append((method, selected, seconds))
     # methods interleaved within each repeat, so that all see the same background load
     assembly_times = {method: [] for method, _, _ in methods}
@@ -245,13 +287,17 @@ def case_b(wall_count, wing_stations, interior_count, repeats, dtype) -> list[st
             idw = IDW(points[controls], targets, mode="dense")
             assembly_times[method].append(time.perf_counter() - start)
             morph_time, results[method] = median_time(
-                lambda idw=idw, d=displacement[controls]: idw(d), 3)
+                lambda idw=idw, d=displacement[controls]: idw(d), 3
+            )
             morph_times[method].append(morph_time)
             idw = None  # free W before the next assembly
     reference = results["IDW"]
     for method, controls, select_seconds in methods:
-        error = ("–" if method == "IDW" else
-                 f"{float((results[method] - reference).norm() / reference.norm()):.2%}")
+        error = (
+            "–"
+            if method == "IDW"
+            else f"{float((results[method] - reference).norm() / reference.norm()):.2%}"
+        )
         selection = "–" if select_seconds is None else f"{select_seconds:.3f}"
         rows.append(
             f"| {method} | {controls.numel():,} | {selection} "
@@ -276,15 +322,21 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smaller sizes, fewer repeats")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--max-reference", type=int, default=10**5,
-                        help="largest candidate count timed with the plain reference")
+    parser.add_argument(
+        "--max-reference",
+        type=int,
+        default=10**5,
+        help="largest candidate count timed with the plain reference",
+    )
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     args = parser.parse_args()
     sizes = (10**3, 10**4, 10**5) if args.quick else (10**3, 10**4, 10**5, 10**6)
     repeats = 2 if args.quick else args.repeats
-    machine = (f"{cpu_name()}, {os.cpu_count()} cores, {torch.get_num_threads()} torch "
-               f"threads; Python {platform.python_version()}, torch {torch.__version__}, "
-               f"numpy {np.__version__}, scipy {scipy.__version__}")
+    machine = (
+        f"{cpu_name()}, {os.cpu_count()} cores, {torch.get_num_threads()} torch "
+        f"threads; Python {platform.python_version()}, torch {torch.__version__}, "
+        f"numpy {np.__version__}, scipy {scipy.__version__}"
+    )
     print(f"Machine: {machine}")
     print("Load average (1, 5, 15 min) at start: {:.1f}, {:.1f}, {:.1f}\n".format(*os.getloadavg()))
     print("### Selection time against candidate count (unit sphere, ~2.5 % selected)\n")

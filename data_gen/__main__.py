@@ -103,9 +103,11 @@ def _check_arguments(args: argparse.Namespace) -> str:
         if output.is_dir():
             raise _ArgumentError(f"--output: {str(output)!r} is a directory")
         if output.suffix.lower() not in MESH_FORMATS:
-            raise _ArgumentError(f"--output: unsupported mesh file extension "
-                                 f"{output.suffix or '(none)'!r} in {str(output)!r}; supported: "
-                                 f"{', '.join(sorted(MESH_FORMATS))}")
+            raise _ArgumentError(
+                f"--output: unsupported mesh file extension "
+                f"{output.suffix or '(none)'!r} in {str(output)!r}; supported: "
+                f"{', '.join(sorted(MESH_FORMATS))}"
+            )
         parent = output.parent if str(output.parent) else Path(".")
         if not parent.is_dir():
             raise _ArgumentError(f"--output: directory {str(parent)!r} does not exist")
@@ -115,14 +117,17 @@ def _check_arguments(args: argparse.Namespace) -> str:
             try:
                 import h5py  # noqa: F401
             except ImportError:
-                raise _ArgumentError(f"--output: XDMF files ({str(output)!r}) need the h5py "
-                                     "package: pip install h5py") from None
+                raise _ArgumentError(
+                    f"--output: XDMF files ({str(output)!r}) need the h5py "
+                    "package: pip install h5py"
+                ) from None
     if args.cache_dir is not None and args.cache_dir.exists() and not args.cache_dir.is_dir():
         raise _ArgumentError(f"--cache-dir: {str(args.cache_dir)!r} is not a directory")
     module = {"gmsh": "gmsh", "pytetwild": "pytetwild"}[args.mesher]
     if importlib.util.find_spec(module) is None:
-        raise _ArgumentError(f"--mesher {args.mesher}: the {module} package is not installed "
-                             f"(pip install {module})")
+        raise _ArgumentError(
+            f"--mesher {args.mesher}: the {module} package is not installed (pip install {module})"
+        )
     return case
 
 

@@ -63,7 +63,9 @@ def _session(name: str, *, seed: int, verbose: bool) -> Iterator[object]:
 def _profile_splines(occ, num_points: int) -> int:
     """The wing's profile face in the plane z = 0; returns its surface tag."""
     x, y = naca_profile(num_points)
-    upper = [occ.addPoint(float(a), float(b), 0.0) for a, b in zip(x[::-1], y[::-1], strict=True)]  # TE -> LE
+    upper = [
+        occ.addPoint(float(a), float(b), 0.0) for a, b in zip(x[::-1], y[::-1], strict=True)
+    ]  # TE -> LE
     leading, trailing = upper[-1], upper[0]
     lower = [leading]
     lower += [occ.addPoint(float(a), float(-b), 0.0) for a, b in zip(x[1:-1], y[1:-1], strict=True)]

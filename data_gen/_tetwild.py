@@ -336,7 +336,8 @@ def mesh_fluid_wing(params: dict, *, seed: int, verbose: bool):
     wing = _wing_surface(params["profile_points"], params["span_points"], -_ROOT_OVERLAP, SPAN)
     body_bounds = ((0.0, -0.1, 0.0), (CHORD, 0.1, SPAN))
     points, tets, faces, centre, outward, labels = _mesh_body_in_box(
-        TUNNEL_BOUNDS, wing, body_bounds, _wing_distance, params, verbose)
+        TUNNEL_BOUNDS, wing, body_bounds, _wing_distance, params, verbose
+    )
     _wing_labels(centre, -outward, labels, with_root=False)
     names = ("upper", "lower", "tip") + tuple(name for name, _, _ in BOX_WALLS)
     return points, tets, _patches(faces, labels, names)
@@ -355,7 +356,8 @@ def mesh_hull(params: dict, *, seed: int, verbose: bool):
     half = HULL_LENGTH / 2.0
     body_bounds = ((-half, -HULL_DRAFT, -0.2 * HULL_DRAFT), (half, HULL_DRAFT, 0.2 * HULL_DRAFT))
     points, tets, faces, centre, outward, labels = _mesh_body_in_box(
-        HULL_BOX_BOUNDS, body, body_bounds, _hull_distance, params, verbose)
+        HULL_BOX_BOUNDS, body, body_bounds, _hull_distance, params, verbose
+    )
     free = labels == ""
     starboard = np.where(np.abs(centre[:, 2]) > 1e-12, centre[:, 2] > 0, outward[:, 2] < 0)
     labels[free & starboard] = "starboard"

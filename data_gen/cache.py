@@ -63,9 +63,12 @@ def save(path: Path, mesh: MeshArrays) -> bool:
         with atomic_output(path) as temporary, open(temporary, "wb") as stream:
             np.savez_compressed(stream, **arrays)
     except OSError as error:
-        warnings.warn(f"could not write the mesh cache entry {str(path)!r} "
-                      f"({type(error).__name__}: {error}); the mesh is not cached",
-                      RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"could not write the mesh cache entry {str(path)!r} "
+            f"({type(error).__name__}: {error}); the mesh is not cached",
+            RuntimeWarning,
+            stacklevel=2,
+        )
         return False
     return True
 
@@ -93,10 +96,15 @@ def load(path: Path) -> MeshArrays:
                 info=json.loads(str(data["info"])),
             )
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
-        raise ValueError(f"mesh cache entry {str(path)!r} is unreadable "
-                         f"({type(error).__name__}: {error})") from error
-    if mesh.points.ndim != 2 or mesh.points.shape[1:] != (3,) or mesh.tets.ndim != 2 \
-            or mesh.tets.shape[1:] != (4,):
+        raise ValueError(
+            f"mesh cache entry {str(path)!r} is unreadable ({type(error).__name__}: {error})"
+        ) from error
+    if (
+        mesh.points.ndim != 2
+        or mesh.points.shape[1:] != (3,)
+        or mesh.tets.ndim != 2
+        or mesh.tets.shape[1:] != (4,)
+    ):
         raise ValueError(f"mesh cache entry {str(path)!r} holds arrays of the wrong shape")
     return mesh
 

@@ -336,8 +336,10 @@ def _resolve(case: str, size: str, mesher: str, mesh_scale: float, seed: int) ->
         raise ValueError(f"mesh_scale must be a positive number, got {mesh_scale!r}")
     if size not in PARAMETERS[case][mesher]:
         sizes = ", ".join(PARAMETERS[case][mesher])
-        raise ValueError(f"size {size!r} is not defined for case {case!r} with mesher "
-                         f"{mesher!r}; its sizes: {sizes}")
+        raise ValueError(
+            f"size {size!r} is not defined for case {case!r} with mesher "
+            f"{mesher!r}; its sizes: {sizes}"
+        )
     params = copy.deepcopy(PARAMETERS[case][mesher][size])
     for key in params:
         if key.startswith("h_"):

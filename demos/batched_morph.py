@@ -50,8 +50,7 @@ def volume_ratios(mesh: TetMesh, displacement: Tensor, chunk: int = 64) -> Tenso
     smallest = []
     with torch.no_grad():
         for start in range(0, displacement.shape[0], chunk):
-            volumes = signed_volumes(mesh.points + displacement[start : start + chunk],
-                                     mesh.tets)
+            volumes = signed_volumes(mesh.points + displacement[start : start + chunk], mesh.tets)
             smallest.append((volumes / mesh.volumes).amin(-1))
     return torch.cat(smallest)
 
@@ -80,9 +79,15 @@ class InverseDesign(nn.Module):
     of magnitude further in the same number of steps than learning the whole map.
     """
 
-    def __init__(self, morph: nn.Module, family: Callable[[Tensor], Tensor], probe: int,
-                 domain: tuple[float, float], requests: tuple[float, float],
-                 width: int = 32) -> None:
+    def __init__(
+        self,
+        morph: nn.Module,
+        family: Callable[[Tensor], Tensor],
+        probe: int,
+        domain: tuple[float, float],
+        requests: tuple[float, float],
+        width: int = 32,
+    ) -> None:
         super().__init__()
         self.morph = morph
         self.family = family
@@ -91,8 +96,9 @@ class InverseDesign(nn.Module):
         self.half_width = 0.5 * (domain[1] - domain[0])
         self.request_centre = 0.5 * (requests[0] + requests[1])
         self.request_half_width = 0.5 * (requests[1] - requests[0])
-        self.network = nn.Sequential(nn.Linear(1, width), nn.Tanh(), nn.Linear(width, width),
-                                     nn.Tanh(), nn.Linear(width, 1))
+        self.network = nn.Sequential(
+            nn.Linear(1, width), nn.Tanh(), nn.Linear(width, width), nn.Tanh(), nn.Linear(width, 1)
+        )
 
     def angle(self, request: Tensor) -> Tensor:
         """μ (B,) for requested probe displacements (B,)."""
@@ -107,24 +113,42 @@ class InverseDesign(nn.Module):
 
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--size", choices=("small", "paper"), default="paper",
-                        help="mesh size (default: %(default)s)")
-    parser.add_argument("--out", default="out/batched_morph",
-                        help="directory for the PNG (default: %(default)s); '' writes nothing")
+    parser.add_argument(
+        "--size",
+        choices=("small", "paper"),
+        default="paper",
+        help="mesh size (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--out",
+        default="out/batched_morph",
+        help="directory for the PNG (default: %(default)s); '' writes nothing",
+    )
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ... (default cpu)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float64")
-    parser.add_argument("--batch", type=int, default=2000,
-                        help="parameter values in the batched call (default %(default)s)")
-    parser.add_argument("--loop", type=int, default=20,
-                        help="single calls timed in the Python loop (default %(default)s)")
-    parser.add_argument("--repeats", type=int, default=3,
-                        help="timed repeats of each batched call (median)")
-    parser.add_argument("--train-steps", type=int, default=400,
-                        help="training steps of the inverse-design network")
+    parser.add_argument(
+        "--batch",
+        type=int,
+        default=2000,
+        help="parameter values in the batched call (default %(default)s)",
+    )
+    parser.add_argument(
+        "--loop",
+        type=int,
+        default=20,
+        help="single calls timed in the Python loop (default %(default)s)",
+    )
+    parser.add_argument(
+        "--repeats", type=int, default=3, help="timed repeats of each batched call (median)"
+    )
+    parser.add_argument(
+        "--train-steps", type=int, default=400, help="training steps of the inverse-design network"
+    )
     parser.add_argument("--train-batch", type=int, default=128)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch intra-op threads (default: torch's choice)")
+    parser.add_argument(
+        "--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice)"
+    )
     parser.add_argument("--quiet", action="store_true", help="print nothing")
     return parser.parse_args(argv)
 
@@ -151,15 +175,20 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     training = spec.training_parameters(args.seed, dtype=dtype).to(device)
     reducer = PODReducer().fit(idw, family=family, parameters=training)
     setup = time.perf_counter() - start
-    say(f"case C hull ({args.size}): {mesh.num_nodes} nodes, {mesh.num_tets} tets; IDW "
+    say(
+        f"case C hull ({args.size}): {mesh.num_nodes} nodes, {mesh.num_tets} tets; IDW "
         f"{idw.num_controls} controls x {idw.num_interior} interior nodes "
         f"({idw.idw.mode}); POD-IDW {reducer.num_modes_} modes from {len(training)} "
-        f"training angles; set-up {setup:.1f} s on {device}, {args.dtype}")
+        f"training angles; set-up {setup:.1f} s on {device}, {args.dtype}"
+    )
 
     # ------------------------------------------------------------------ the sweep
     mus = torch.linspace(low, high, args.batch, dtype=dtype, device=device)
-    result: dict[str, Any] = {"batch": args.batch, "num_modes": reducer.num_modes_,
-                              "setup_s": setup}
+    result: dict[str, Any] = {
+        "batch": args.batch,
+        "num_modes": reducer.num_modes_,
+        "setup_s": setup,
+    }
     with torch.no_grad():
         boundary = family(mus)  # (B, N_b, 3)
         rates = {}
@@ -168,25 +197,36 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             seconds = median_seconds(lambda morph=morph: morph(boundary), args.repeats, device)
             fields[name] = morph(boundary)
             single = median_seconds(
-                lambda morph=morph: [morph(family(mu)) for mu in mus[: args.loop]], 1, device)
-            rates[name] = {"batched": args.batch / seconds, "looped": args.loop / single,
-                           "batched_s": seconds}
+                lambda morph=morph: [morph(family(mu)) for mu in mus[: args.loop]], 1, device
+            )
+            rates[name] = {
+                "batched": args.batch / seconds,
+                "looped": args.loop / single,
+                "batched_s": seconds,
+            }
         mapped_seconds = median_seconds(
-            lambda: torch.func.vmap(lambda mu: idw(family(mu)))(mus), 1, device)
+            lambda: torch.func.vmap(lambda mu: idw(family(mu)))(mus), 1, device
+        )
         mapped = torch.func.vmap(lambda mu: idw(family(mu)))(mus)
         rates["IDW"]["vmap"] = args.batch / mapped_seconds
         end_to_end = median_seconds(lambda: reducer(family(mus)), args.repeats, device)
         rates["POD-IDW"]["with family"] = args.batch / end_to_end
     result["rates"] = rates
-    say(f"\n{args.batch} angles in [{low:g}°, {high:g}°], morphs per second "
-        f"(output {args.batch} x {mesh.num_nodes} x 3):")
+    say(
+        f"\n{args.batch} angles in [{low:g}°, {high:g}°], morphs per second "
+        f"(output {args.batch} x {mesh.num_nodes} x 3):"
+    )
     say(f"  {'':10s} {'batched call':>14s} {'Python loop':>14s} {'speed-up':>9s}")
     for name, rate in rates.items():
-        say(f"  {name:10s} {rate['batched']:14,.0f} {rate['looped']:14,.0f} "
-            f"{rate['batched'] / rate['looped']:8.0f}x")
-    say(f"  vmap over a per-angle family and IDW: {rates['IDW']['vmap']:,.0f} morphs/s; "
+        say(
+            f"  {name:10s} {rate['batched']:14,.0f} {rate['looped']:14,.0f} "
+            f"{rate['batched'] / rate['looped']:8.0f}x"
+        )
+    say(
+        f"  vmap over a per-angle family and IDW: {rates['IDW']['vmap']:,.0f} morphs/s; "
         f"POD-IDW including the family's evaluation: {rates['POD-IDW']['with family']:,.0f}"
-        f" morphs/s")
+        f" morphs/s"
+    )
 
     # ------------------------------------------------------------------ checks
     with torch.no_grad():
@@ -203,14 +243,22 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         pod_error = pod_error[mus != 0]
         ratios = volume_ratios(mesh, fields["IDW"])
         inverted_angles = int((ratios <= 0).sum())
-    result.update(looped_error=looped_error, vmap_error=vmap_error,
-                  pod_error=float(pod_error.max()), min_volume_ratio=float(ratios.min()),
-                  inverted_angles=inverted_angles)
-    say(f"\nbatched vs single calls, {len(picks)} angles: max |difference| "
+    result.update(
+        looped_error=looped_error,
+        vmap_error=vmap_error,
+        pod_error=float(pod_error.max()),
+        min_volume_ratio=float(ratios.min()),
+        inverted_angles=inverted_angles,
+    )
+    say(
+        f"\nbatched vs single calls, {len(picks)} angles: max |difference| "
         f"{looped_error:.1e} m; vmap vs batched {vmap_error:.1e} m; POD-IDW vs IDW: "
-        f"relative error <= {result['pod_error']:.1e}")
-    say(f"over the sweep: smallest volume ratio {result['min_volume_ratio']:.3f}, angles "
-        f"with inverted tets {inverted_angles} of {args.batch}")
+        f"relative error <= {result['pod_error']:.1e}"
+    )
+    say(
+        f"over the sweep: smallest volume ratio {result['min_volume_ratio']:.3f}, angles "
+        f"with inverted tets {inverted_angles} of {args.batch}"
+    )
 
     # ------------------------------------------------------------------ training
     points = mesh.points
@@ -225,17 +273,19 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     model = InverseDesign(reducer, family, probe, spec.domain, (low_request, high_request))
     model = model.to(device=device, dtype=dtype)
     optimiser = torch.optim.Adam(model.network.parameters(), lr=1e-2)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, args.train_steps,
-                                                          eta_min=1e-4)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, args.train_steps, eta_min=1e-4)
     losses = []
-    say(f"\ntraining an MLP: requested sideways displacement of node {probe} at "
+    say(
+        f"\ntraining an MLP: requested sideways displacement of node {probe} at "
         f"{[round(float(c), 2) for c in points[probe]]} m (reachable "
         f"[{low_request:.4f}, {high_request:.4f}] m) -> hull angle; the loss is measured on "
-        f"the morphed mesh (POD-IDW inside the forward)")
+        f"the morphed mesh (POD-IDW inside the forward)"
+    )
     training_start = time.perf_counter()
     for step in range(args.train_steps):
         request = low_request + (high_request - low_request) * torch.rand(
-            args.train_batch, generator=generator, dtype=dtype).to(device)
+            args.train_batch, generator=generator, dtype=dtype
+        ).to(device)
         _, achieved = model(request)
         loss = ((achieved - request) / span).square().mean()
         optimiser.zero_grad()
@@ -253,11 +303,18 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         checked = idw(family(predicted))[:, probe, 1]
         test_error = float((achieved - test).abs().max() / span)
         idw_error = float((checked - test).abs().max() / span)
-    result.update(losses=losses, training_s=training_s, test_error=test_error,
-                  test_error_idw=idw_error, probe=probe)
-    say(f"trained in {training_s:.1f} s ({args.train_steps} steps of {args.train_batch}); "
+    result.update(
+        losses=losses,
+        training_s=training_s,
+        test_error=test_error,
+        test_error_idw=idw_error,
+        probe=probe,
+    )
+    say(
+        f"trained in {training_s:.1f} s ({args.train_steps} steps of {args.train_batch}); "
         f"on 99 fresh requests the probe lands within {test_error:.1e} (POD-IDW) / "
-        f"{idw_error:.1e} (full IDW) of the request, relative to the reachable range")
+        f"{idw_error:.1e} (full IDW) of the request, relative to the reachable range"
+    )
 
     if args.out:
         out = Path(args.out)
@@ -281,12 +338,18 @@ def plot(mus, reachable, ratios, losses, test, predicted, path: Path) -> None:
     mus, reachable, ratios = (x.detach().cpu() for x in (mus, reachable, ratios))
     axes[0].plot(mus, reachable * 1e3, label="batched sweep (POD-IDW)")
     axes[0].plot(predicted.cpu(), test.cpu() * 1e3, ".", ms=4, label="MLP: request -> angle")
-    axes[0].set(xlabel="hull angle μ [°]", ylabel="probe y-displacement [mm]",
-                title="probe ahead of the bow")
+    axes[0].set(
+        xlabel="hull angle μ [°]",
+        ylabel="probe y-displacement [mm]",
+        title="probe ahead of the bow",
+    )
     axes[1].plot(mus, ratios)
     axes[1].axhline(0.0, color="k", lw=0.8)
-    axes[1].set(xlabel="hull angle μ [°]", ylabel="min V / V0",
-                title=f"smallest volume ratio, {len(mus)} angles in one call")
+    axes[1].set(
+        xlabel="hull angle μ [°]",
+        ylabel="min V / V0",
+        title=f"smallest volume ratio, {len(mus)} angles in one call",
+    )
     axes[2].semilogy(losses)
     axes[2].set(xlabel="training step", ylabel="loss", title="training through the morph")
     for axis in axes:

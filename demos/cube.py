@@ -28,9 +28,11 @@ def main(argv: list[str] | None = None) -> dict:
 
     start = time.perf_counter()
     mesh = box_mesh(args.cells)
-    print(f"mesh: {mesh.num_tets} tets, {mesh.num_nodes} nodes "
-          f"({mesh.interior_nodes.numel()} interior, {mesh.boundary_nodes.numel()} boundary), "
-          f"built in {time.perf_counter() - start:.3f} s")
+    print(
+        f"mesh: {mesh.num_tets} tets, {mesh.num_nodes} nodes "
+        f"({mesh.interior_nodes.numel()} interior, {mesh.boundary_nodes.numel()} boundary), "
+        f"built in {time.perf_counter() - start:.3f} s"
+    )
 
     def bump(points: torch.Tensor) -> torch.Tensor:
         x, y = points[:, 0], points[:, 1]
@@ -54,12 +56,18 @@ def main(argv: list[str] | None = None) -> dict:
         reference = displacement if reference is None else reference
         error = float(relative_l2_error(mesh, displacement, reference))
         summary = quality_summary(mesh, displacement)
-        results[label] = {"controls": morph.num_controls, "error": error,
-                          "morph_s": morphed, **summary}
-        print(f"{label:5s}: {morph.num_controls:5d} control points, selection+assembly "
-              f"{built:.3f} s, morph {morphed * 1e3:.2f} ms, error vs IDW {error:.2e}, "
-              f"max/mean Q {summary['max_edge_ratio']:.2f}/{summary['mean_edge_ratio']:.2f}, "
-              f"inverted tets {summary['num_inverted']}")
+        results[label] = {
+            "controls": morph.num_controls,
+            "error": error,
+            "morph_s": morphed,
+            **summary,
+        }
+        print(
+            f"{label:5s}: {morph.num_controls:5d} control points, selection+assembly "
+            f"{built:.3f} s, morph {morphed * 1e3:.2f} ms, error vs IDW {error:.2e}, "
+            f"max/mean Q {summary['max_edge_ratio']:.2f}/{summary['mean_edge_ratio']:.2f}, "
+            f"inverted tets {summary['num_inverted']}"
+        )
         if args.out is not None:
             args.out.mkdir(parents=True, exist_ok=True)
             path = args.out / f"cube_{label.lower()}.vtu"

@@ -62,15 +62,23 @@ def timed(function, repeats: int, device) -> float:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--size", choices=data_gen.SIZES, default="large",
-                        help="fluid-wing mesh size (default: %(default)s, ~10^6 nodes)")
+    parser.add_argument(
+        "--size",
+        choices=data_gen.SIZES,
+        default="large",
+        help="fluid-wing mesh size (default: %(default)s, ~10^6 nodes)",
+    )
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float64")
     parser.add_argument("--repeats", type=int, default=3, help="timed morphs (median)")
-    parser.add_argument("--sample", type=int, default=2000,
-                        help="nodes checked against the single-process morph")
-    parser.add_argument("--tolerance", type=float, default=None,
-                        help="largest relative difference allowed (default 1e-12 in "
-                             "float64, 1e-5 in float32)")
+    parser.add_argument(
+        "--sample", type=int, default=2000, help="nodes checked against the single-process morph"
+    )
+    parser.add_argument(
+        "--tolerance",
+        type=float,
+        default=None,
+        help="largest relative difference allowed (default 1e-12 in float64, 1e-5 in float32)",
+    )
     args = parser.parse_args(argv)
 
     cuda = torch.cuda.is_available()
@@ -92,17 +100,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         dist.barrier()
         mesh = data_gen.fluid_wing(args.size)
         if mesh.points.device != device or mesh.points.dtype != dtype:
-            mesh = type(mesh)(mesh.points.to(device, dtype), mesh.tets.to(device),
-                              mesh.node_sets)
-        say(f"fluid wing ({args.size}): {mesh.points.shape[0]:,} nodes, "
-            f"{len(mesh.boundary_nodes):,} boundary; {world} ranks on {device.type}")
+            mesh = type(mesh)(mesh.points.to(device, dtype), mesh.tets.to(device), mesh.node_sets)
+        say(
+            f"fluid wing ({args.size}): {mesh.points.shape[0]:,} nodes, "
+            f"{len(mesh.boundary_nodes):,} boundary; {world} ranks on {device.type}"
+        )
 
         start = time.perf_counter()
-        morph = ShardedMeshMorph(mesh, spec.plan(), mode="matrix_free",
-                                 generator=torch.Generator().manual_seed(0))
+        morph = ShardedMeshMorph(
+            mesh, spec.plan(), mode="matrix_free", generator=torch.Generator().manual_seed(0)
+        )
         setup = time.perf_counter() - start
-        say(f"selection (rank 0) and set-up: {setup:.2f} s; {morph.num_controls:,} control "
-            f"points; rank 0 owns {morph.num_owned:,} nodes")
+        say(
+            f"selection (rank 0) and set-up: {setup:.2f} s; {morph.num_controls:,} control "
+            f"points; rank 0 owns {morph.num_owned:,} nodes"
+        )
         d_b = boundary_displacement(mesh, spec, spec.mu_star, device, dtype)
         outputs = [morph(d_b)]  # warm-up
         sharded_seconds = timed(lambda: outputs.append(morph(d_b)), args.repeats, device)
@@ -111,8 +123,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         # the single-process morph on rank 0: every interior node from the same controls
         single_seconds = torch.zeros((), dtype=torch.float64, device=device)
         if rank == 0:
-            idw = IDW(mesh.points[morph.control_nodes], mesh.points[mesh.interior_nodes],
-                      mode="matrix_free")
+            idw = IDW(
+                mesh.points[morph.control_nodes],
+                mesh.points[mesh.interior_nodes],
+                mode="matrix_free",
+            )
             controls = morph.controls_from_boundary(d_b)
             idw(controls)
             times = []
@@ -131,8 +146,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             sample = sample.to(device)
             scale = reference.abs().max()
             error = float((field[sample] - reference[sample]).abs().max() / scale)
-            say(f"check on {sample.numel():,} sampled nodes: max |sharded - single| / max |d| "
-                f"= {error:.2e} (tolerance {tolerance:g})")
+            say(
+                f"check on {sample.numel():,} sampled nodes: max |sharded - single| / max |d| "
+                f"= {error:.2e} (tolerance {tolerance:g})"
+            )
             if not error <= tolerance:
                 raise RuntimeError(f"sharded and single-process morphs differ: {error:.2e}")
         dist.broadcast(single_seconds, src=0)

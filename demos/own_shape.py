@@ -97,8 +97,9 @@ def plot(path: Path, mesh, body: str, displacement: torch.Tensor, controls: torc
     slab = np.abs(points[:, 1] - centre[1]) < 0.03 * (high - low).max() + 1e-12
     moved = points + displacement.numpy()
     shown = slab & (np.abs(moved[:, 0] - centre[0]) < 2 * half) & (moved[:, 2] < high[2] + 2 * half)
-    scatter = right.scatter(moved[shown, 0], moved[shown, 2], c=magnitude[shown], s=6,
-                            cmap="viridis")
+    scatter = right.scatter(
+        moved[shown, 0], moved[shown, 2], c=magnitude[shown], s=6, cmap="viridis"
+    )
     right.set_aspect("equal")
     right.set_xlabel("x")
     right.set_ylabel("z")
@@ -112,20 +113,36 @@ def plot(path: Path, mesh, body: str, displacement: torch.Tensor, controls: torc
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     source = parser.add_mutually_exclusive_group()
-    source.add_argument("--surface", type=Path, help="closed surface file (default: a car-like body)")
+    source.add_argument(
+        "--surface", type=Path, help="closed surface file (default: a car-like body)"
+    )
     source.add_argument("--mesh", type=Path, help="a mesh from 'torchmorph mesh' (skips meshing)")
-    parser.add_argument("--body", default=None,
-                        help="node set of the body (default: the surface file's name)")
-    parser.add_argument("--size", choices=tuple(SIZES), default="fine",
-                        help="mesh size (default fine; small is quicker)")
-    parser.add_argument("--feature-angle", type=float, default=30.0,
-                        help="sharp-edge angle in degrees (default 30)")
+    parser.add_argument(
+        "--body", default=None, help="node set of the body (default: the surface file's name)"
+    )
+    parser.add_argument(
+        "--size",
+        choices=tuple(SIZES),
+        default="fine",
+        help="mesh size (default fine; small is quicker)",
+    )
+    parser.add_argument(
+        "--feature-angle", type=float, default=30.0, help="sharp-edge angle in degrees (default 30)"
+    )
     parser.add_argument("--mu", type=float, default=0.1, help="stretch parameter (default 0.1)")
-    parser.add_argument("--radius", type=float, default=0.05,
-                        help="selection radius R on the body, relative to its extent (default "
-                             "0.05); the walls use 5 R")
-    parser.add_argument("--out", type=Path, default=Path("out/own_shape"),
-                        help="output directory (default %(default)s)")
+    parser.add_argument(
+        "--radius",
+        type=float,
+        default=0.05,
+        help="selection radius R on the body, relative to its extent (default "
+        "0.05); the walls use 5 R",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("out/own_shape"),
+        help="output directory (default %(default)s)",
+    )
     parser.add_argument("--quiet", action="store_true", help="print nothing")
     args = parser.parse_args(argv)
     say = (lambda *a: None) if args.quiet else print
@@ -142,18 +159,28 @@ def main(argv: list[str] | None = None) -> dict:
         surface = load_surface(surface_file, name=body)
         extent = float(np.ptp(surface.bounds, axis=0).max())
         near, far = SIZES[args.size]
-        mesh = mesh_surfaces({body: surface}, box=TUNNEL, body_edge_length=near * extent,
-                             edge_length=far * extent, grading=extent,
-                             feature_angle=args.feature_angle, progress=not args.quiet)
+        mesh = mesh_surfaces(
+            {body: surface},
+            box=TUNNEL,
+            body_edge_length=near * extent,
+            edge_length=far * extent,
+            grading=extent,
+            feature_angle=args.feature_angle,
+            progress=not args.quiet,
+        )
     if body not in mesh.node_sets:
-        sys.exit(f"own_shape: no node set {body!r} in the mesh; pass --body (known: "
-                 f"{', '.join(sorted(mesh.node_sets))})")
+        sys.exit(
+            f"own_shape: no node set {body!r} in the mesh; pass --body (known: "
+            f"{', '.join(sorted(mesh.node_sets))})"
+        )
     meshed = time.perf_counter() - start
     reference_quality = quality_summary(mesh)
-    say(f"mesh: {mesh.num_nodes} nodes ({mesh.boundary_nodes.numel()} boundary), "
+    say(
+        f"mesh: {mesh.num_nodes} nodes ({mesh.boundary_nodes.numel()} boundary), "
         f"{mesh.num_tets} tets in {meshed:.1f} s; Q max {reference_quality['max_edge_ratio']:.3g}"
         f", mean {reference_quality['mean_edge_ratio']:.3g}; node sets "
-        f"{', '.join(f'{k} {v.numel()}' for k, v in mesh.node_sets.items())}")
+        f"{', '.join(f'{k} {v.numel()}' for k, v in mesh.node_sets.items())}"
+    )
 
     body_points = mesh.points[mesh.node_set(body)]
     extent = float((body_points.max(0).values - body_points.min(0).values).max())
@@ -178,20 +205,30 @@ def main(argv: list[str] | None = None) -> dict:
         seconds = time.perf_counter() - begin
         fields[label] = (field, morph.control_nodes)
         summary = quality_summary(mesh, field)
-        results[label] = {"controls": morph.num_controls, "setup_s": built, "morph_s": seconds,
-                          **summary}
+        results[label] = {
+            "controls": morph.num_controls,
+            "setup_s": built,
+            "morph_s": seconds,
+            **summary,
+        }
     for label, row in results.items():
         error = float(relative_l2_error(mesh, fields[label][0], fields["IDW"][0]))
         row["error"] = error
-        say(f"{label:6s} {row['controls']:6d} controls, setup {row['setup_s']:.3f} s, morph "
+        say(
+            f"{label:6s} {row['controls']:6d} controls, setup {row['setup_s']:.3f} s, morph "
             f"{row['morph_s'] * 1e3:.2f} ms, L2 error vs IDW {error:.2e}, Q max "
-            f"{row['max_edge_ratio']:.3g}, inverted {row['num_inverted']}")
+            f"{row['max_edge_ratio']:.3g}, inverted {row['num_inverted']}"
+        )
 
     field, controls = fields["ESIDW"]
     flag = torch.zeros(mesh.num_nodes, dtype=torch.uint8)
     flag[controls] = 1
     args.out.mkdir(parents=True, exist_ok=True)
-    files = [args.out / "reference.vtu", args.out / "deformed_esidw.vtu", args.out / "own_shape.png"]
+    files = [
+        args.out / "reference.vtu",
+        args.out / "deformed_esidw.vtu",
+        args.out / "own_shape.png",
+    ]
     write_mesh(files[0], mesh, point_data={"displacement": field, "control_point": flag})
     write_mesh(files[1], mesh.deformed(field), point_data={"displacement": field})
     plot(files[2], mesh, body, field, controls)

@@ -63,9 +63,21 @@ def _pyplot():
 
 def _series(points: list[SelectionPoint], enrich: bool) -> dict[str, list[float]]:
     chosen = [p for p in points if p.enrich == enrich]
-    return {key: [getattr(p, key) for p in chosen]
-            for key in ("radius", "a", "controls", "assembly_s", "deformation_s", "selection_s",
-                        "error", "max_q", "mean_q", "inverted")}
+    return {
+        key: [getattr(p, key) for p in chosen]
+        for key in (
+            "radius",
+            "a",
+            "controls",
+            "assembly_s",
+            "deformation_s",
+            "selection_s",
+            "error",
+            "max_q",
+            "mean_q",
+            "inverted",
+        )
+    }
 
 
 def plot_radius(context: CaseContext, points: list[SelectionPoint], path: Path) -> None:
@@ -80,27 +92,52 @@ def plot_radius(context: CaseContext, points: list[SelectionPoint], path: Path) 
         r = s["radius"]
         axes[0].plot(r, s["controls"], marker=marker, color=colour, label=label)
         axes[1].plot(r, s["assembly_s"], marker=marker, color=colour, label=f"{label}: assembly")
-        axes[1].plot(r, s["deformation_s"], marker=marker, color=colour, alpha=0.6, ls="--",
-                     label=f"{label}: deformation")
+        axes[1].plot(
+            r,
+            s["deformation_s"],
+            marker=marker,
+            color=colour,
+            alpha=0.6,
+            ls="--",
+            label=f"{label}: deformation",
+        )
         total = [a + d for a, d in zip(s["assembly_s"], s["deformation_s"], strict=True)]
-        axes[1].plot(r, total, marker=marker, color=colour, alpha=0.35, ls=":",
-                     label=f"{label}: total")
+        axes[1].plot(
+            r, total, marker=marker, color=colour, alpha=0.35, ls=":", label=f"{label}: total"
+        )
         axes[2].plot(r, s["error"], marker=marker, color=colour, label=label)
         axes[3].plot(r, s["max_q"], marker=marker, color=colour, label=f"{label}: max Q")
-        axes[3].plot(r, s["mean_q"], marker=marker, color=colour, alpha=0.6, ls="--",
-                     label=f"{label}: mean Q")
+        axes[3].plot(
+            r,
+            s["mean_q"],
+            marker=marker,
+            color=colour,
+            alpha=0.6,
+            ls="--",
+            label=f"{label}: mean Q",
+        )
         for radius, max_q, count in zip(r, s["max_q"], s["inverted"], strict=True):
             if count:  # a mesh with inverted tets: say how many
-                axes[3].annotate(f"{count} inv.", (radius, max_q), textcoords="offset points",
-                                 xytext=(-4, 4), ha="right", fontsize=7, color=colour)
+                axes[3].annotate(
+                    f"{count} inv.",
+                    (radius, max_q),
+                    textcoords="offset points",
+                    xytext=(-4, 4),
+                    ha="right",
+                    fontsize=7,
+                    color=colour,
+                )
     boundary = context.idw.num_controls
     axes[0].axhline(boundary, color="0.5", ls=":", label=f"IDW ({boundary})")
     reference = context.reference_quality
     axes[3].axhline(reference["max_edge_ratio"], color="0.5", ls=":", label="reference max Q")
-    axes[3].axhline(reference["mean_edge_ratio"], color="0.5", ls="-.",
-                    label="reference mean Q")
-    titles = ("control points", "CPU time [s]", "relative error vs IDW (P1 mass norm)",
-              "mesh quality Q (edge ratio); inverted tets")
+    axes[3].axhline(reference["mean_edge_ratio"], color="0.5", ls="-.", label="reference mean Q")
+    titles = (
+        "control points",
+        "CPU time [s]",
+        "relative error vs IDW (P1 mass norm)",
+        "mesh quality Q (edge ratio); inverted tets",
+    )
     for ax, title in zip(axes, titles, strict=True):
         ax.set_xscale("log")
         ax.set_xlabel("R [m]")
@@ -109,9 +146,12 @@ def plot_radius(context: CaseContext, points: list[SelectionPoint], path: Path) 
         ax.legend(fontsize=7)
     for ax in axes[:3]:
         ax.set_yscale("log")
-    figure.suptitle(f"Case {spec.letter}: {spec.title} — sensitivity to R "
-                    f"({spec.sweep_note}; a = {spec.a}, b = {spec.b}; "
-                    f"{context.mesh.num_nodes:,} nodes)", fontsize=10)
+    figure.suptitle(
+        f"Case {spec.letter}: {spec.title} — sensitivity to R "
+        f"({spec.sweep_note}; a = {spec.a}, b = {spec.b}; "
+        f"{context.mesh.num_nodes:,} nodes)",
+        fontsize=10,
+    )
     with atomic_output(path) as temporary:
         figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
@@ -135,8 +175,11 @@ def plot_factor(results: dict[float, list[SelectionPoint]], path: Path) -> None:
             ax.set_yscale("log")
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=8)
-    figure.suptitle("Case A: SIDW sensitivity to the annulus factor a with b = 1/a "
-                    "(R on the end faces, 10 R on top and bottom)", fontsize=10)
+    figure.suptitle(
+        "Case A: SIDW sensitivity to the annulus factor a with b = 1/a "
+        "(R on the end faces, 10 R on top and bottom)",
+        fontsize=10,
+    )
     with atomic_output(path) as temporary:
         figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
@@ -145,8 +188,9 @@ def plot_factor(results: dict[float, list[SelectionPoint]], path: Path) -> None:
 def plot_spectra(spectra: dict[str, dict[str, Tensor]], path: Path) -> None:
     """Figs. 14–16 (left): σ_i/σ_1 of POD-IDW and POD-ESIDW per case."""
     plt = _pyplot()
-    figure, axes = plt.subplots(1, len(spectra), figsize=(5 * len(spectra), 3.8),
-                                constrained_layout=True, squeeze=False)
+    figure, axes = plt.subplots(
+        1, len(spectra), figsize=(5 * len(spectra), 3.8), constrained_layout=True, squeeze=False
+    )
     for ax, (case, values) in zip(axes[0], spectra.items(), strict=True):
         spec = get_case(case)
         for (name, sigma), style in zip(values.items(), ("o-", "s--"), strict=True):
@@ -169,15 +213,29 @@ def plot_angle(sweep: dict[str, Any], path: Path) -> None:
     plt = _pyplot()
     figure, axes = plt.subplots(1, 3, figsize=(17, 4.2), constrained_layout=True)
     mu = sweep["mu"].tolist()
-    styles = {"IDW": ("k", "-", ""), "ESIDW": ("k", ":", ""),
-              "POD-IDW, 1 mode": ("C0", "-", "o"), "POD-IDW, 2 modes": ("C1", "--", "s"),
-              "POD-ESIDW, 1 mode": ("C2", "-", "o"), "POD-ESIDW, 2 modes": ("C3", "--", "s")}
+    styles = {
+        "IDW": ("k", "-", ""),
+        "ESIDW": ("k", ":", ""),
+        "POD-IDW, 1 mode": ("C0", "-", "o"),
+        "POD-IDW, 2 modes": ("C1", "--", "s"),
+        "POD-ESIDW, 1 mode": ("C2", "-", "o"),
+        "POD-ESIDW, 2 modes": ("C3", "--", "s"),
+    }
 
     def draw(ax, label, values, *, log=False):
         colour, line, marker = styles[label]
         values = [max(float(v), 1e-17) for v in values] if log else [float(v) for v in values]
-        ax.plot(mu, values, color=colour, ls=line, marker=marker, ms=3, label=label,
-                lw=2.0 if label == "ESIDW" else 1.2, zorder=3 if label == "ESIDW" else 2)
+        ax.plot(
+            mu,
+            values,
+            color=colour,
+            ls=line,
+            marker=marker,
+            ms=3,
+            label=label,
+            lw=2.0 if label == "ESIDW" else 1.2,
+            zorder=3 if label == "ESIDW" else 2,
+        )
 
     for label, error in sweep["error"].items():
         draw(axes[0], label, error, log=True)
@@ -196,8 +254,9 @@ def plot_angle(sweep: dict[str, Any], path: Path) -> None:
         ax.set_xlabel("rotation angle μ [°]")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    figure.suptitle("Case C: rotating hull — POD-IDW and POD-ESIDW with one and two modes",
-                    fontsize=10)
+    figure.suptitle(
+        "Case C: rotating hull — POD-IDW and POD-ESIDW with one and two modes", fontsize=10
+    )
     with atomic_output(path) as temporary:
         figure.savefig(temporary, dpi=100, format="png")
     plt.close(figure)
@@ -220,14 +279,20 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", choices=("small", "paper"), default="paper")
     parser.add_argument("--out", default="out/sensitivity", help="output directory")
-    parser.add_argument("--cases", nargs="+", default=["wing", "fluid-wing", "hull"],
-                        help="cases to study: wing, fluid-wing, hull (or A, B, C)")
+    parser.add_argument(
+        "--cases",
+        nargs="+",
+        default=["wing", "fluid-wing", "hull"],
+        help="cases to study: wing, fluid-wing, hull (or A, B, C)",
+    )
     parser.add_argument("--mesher", choices=("gmsh", "pytetwild"), default="gmsh")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--repeats", type=int, default=3,
-                        help="timed repeats of each deformation (median)")
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch intra-op threads (default: torch's choice)")
+    parser.add_argument(
+        "--repeats", type=int, default=3, help="timed repeats of each deformation (median)"
+    )
+    parser.add_argument(
+        "--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice)"
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
     if args.threads is not None:
@@ -235,29 +300,45 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     progress = not args.quiet
-    results: dict[str, Any] = {"size": args.size, "mesher": args.mesher, "seed": args.seed,
-                               "threads": torch.get_num_threads(), "cases": {}}
+    results: dict[str, Any] = {
+        "size": args.size,
+        "mesher": args.mesher,
+        "seed": args.seed,
+        "threads": torch.get_num_threads(),
+        "cases": {},
+    }
     spectra: dict[str, dict[str, Tensor]] = {}
     files = []
     for case in args.cases:
         spec = get_case(case)
         start = time.perf_counter()
         context = prepare_case(spec, size=args.size, mesher=args.mesher)
-        record: dict[str, Any] = {"nodes": context.mesh.num_nodes,
-                                  "reference_quality": context.reference_quality}
+        record: dict[str, Any] = {
+            "nodes": context.mesh.num_nodes,
+            "reference_quality": context.reference_quality,
+        }
         sweep_context = context
         if spec.key == "hull":  # Fig. 13 varies one R on every wall and on the hull
             sweep_context = dataclasses.replace(context, spec=get_case("hull", "uniform"))
-        points = radius_sweep(sweep_context, seed=args.seed, repeats=args.repeats,
-                              progress=progress)
+        points = radius_sweep(
+            sweep_context, seed=args.seed, repeats=args.repeats, progress=progress
+        )
         record["radius"] = points
         path = out / f"{spec.key.replace('-', '_')}_radius.png"
         plot_radius(context, points, path)
         files.append(path)
         if spec.key == "wing":
-            factors = {radius: factor_sweep(context, radius, FACTORS, seed=args.seed,
-                                            repeats=args.repeats, progress=progress)
-                       for radius in FACTOR_RADII}
+            factors = {
+                radius: factor_sweep(
+                    context,
+                    radius,
+                    FACTORS,
+                    seed=args.seed,
+                    repeats=args.repeats,
+                    progress=progress,
+                )
+                for radius in FACTOR_RADII
+            }
             record["factor"] = {str(radius): value for radius, value in factors.items()}
             path = out / "wing_factor.png"
             plot_factor(factors, path)

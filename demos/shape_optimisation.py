@@ -109,8 +109,9 @@ class TipMeasures:
         centres_z = points[tets, 2].mean(1)
         in_tip = centres_z > SPAN - segment
         weights = torch.zeros(mesh.num_nodes, dtype=points.dtype, device=points.device)
-        weights.index_add_(0, tets[in_tip].reshape(-1),
-                           (volumes[in_tip] / 4.0).repeat_interleave(4))
+        weights.index_add_(
+            0, tets[in_tip].reshape(-1), (volumes[in_tip] / 4.0).repeat_interleave(4)
+        )
         weights = weights / weights.sum()
         profile = mesh.node_set("tip_profile")
         chordwise = points[profile, 0]
@@ -123,8 +124,11 @@ class TipMeasures:
 
     def twist(self, displacement: Tensor) -> Tensor:
         """Rotation of the tip chord in the x-y plane, degrees, () or (B,)."""
-        chord = self.reference_chord + displacement[..., self.trailing_edge, :] \
+        chord = (
+            self.reference_chord
+            + displacement[..., self.trailing_edge, :]
             - displacement[..., self.leading_edge, :]
+        )
         angle = torch.atan2(chord[..., 1], chord[..., 0])
         reference = torch.atan2(self.reference_chord[1], self.reference_chord[0])
         return torch.rad2deg(angle - reference)
@@ -144,12 +148,14 @@ class Problem:
         deflection = self.tip.deflection(displacement)
         twist = self.tip.twist(displacement)
         barrier = validity_barrier(self.mesh, displacement, threshold=self.threshold)
-        fit = ((deflection - self.deflection_target) / DEFLECTION_SCALE).square() + \
-            ((twist - self.twist_target) / TWIST_SCALE).square()
+        fit = ((deflection - self.deflection_target) / DEFLECTION_SCALE).square() + (
+            (twist - self.twist_target) / TWIST_SCALE
+        ).square()
         return {"fit": fit, "barrier": barrier, "deflection": deflection, "twist": twist}
 
-    def objective(self, morph: Callable[[Tensor], Tensor], mu: Tensor,
-                  barrier_weight: float | None = None) -> tuple[Tensor, dict[str, Tensor]]:
+    def objective(
+        self, morph: Callable[[Tensor], Tensor], mu: Tensor, barrier_weight: float | None = None
+    ) -> tuple[Tensor, dict[str, Tensor]]:
         weight = self.barrier_weight if barrier_weight is None else barrier_weight
         terms = self.terms(morph(self.family(mu)))
         return terms["fit"] + weight * terms["barrier"], terms
@@ -175,10 +181,17 @@ def min_volume_ratio(mesh: TetMesh, displacement: Tensor) -> float:
         return float((volumes / mesh.volumes).min())
 
 
-def optimise(problem: Problem, morph: Callable[[Tensor], Tensor], *, iterations: int,
-             learning_rate: float, barrier_weight: float | None = None,
-             tolerance: float = 1e-7, print_every: int = 0,
-             label: str = "") -> tuple[Tensor, History]:
+def optimise(
+    problem: Problem,
+    morph: Callable[[Tensor], Tensor],
+    *,
+    iterations: int,
+    learning_rate: float,
+    barrier_weight: float | None = None,
+    tolerance: float = 1e-7,
+    print_every: int = 0,
+    label: str = "",
+) -> tuple[Tensor, History]:
     """Minimise the objective from μ = 0 with Adam (one evaluation per iteration).
 
     Stops after ``iterations`` steps or when the objective falls below ``tolerance``
@@ -193,11 +206,13 @@ def optimise(problem: Problem, morph: Callable[[Tensor], Tensor], *, iterations:
 
     def show(iteration: int) -> None:
         m = history.mu[-1]
-        print(f"{label}{iteration:5d}  J = {history.objective[-1]:11.4e}  fit = "
-              f"{history.fit[-1]:10.3e}  barrier = {history.barrier[-1]:9.3e}  deflection = "
-              f"{history.deflection[-1]:7.4f} m  twist = {history.twist[-1]:7.3f}°  "
-              f"min V/V0 = {history.min_volume_ratio[-1]:6.3f}  inverted = "
-              f"{history.inverted[-1]:3d}  μ = ({m[0]:.4f}, {m[1]:.4f}, {m[2]:.4f})")
+        print(
+            f"{label}{iteration:5d}  J = {history.objective[-1]:11.4e}  fit = "
+            f"{history.fit[-1]:10.3e}  barrier = {history.barrier[-1]:9.3e}  deflection = "
+            f"{history.deflection[-1]:7.4f} m  twist = {history.twist[-1]:7.3f}°  "
+            f"min V/V0 = {history.min_volume_ratio[-1]:6.3f}  inverted = "
+            f"{history.inverted[-1]:3d}  μ = ({m[0]:.4f}, {m[1]:.4f}, {m[2]:.4f})"
+        )
 
     start = time.perf_counter()
     for iteration in range(iterations + 1):
@@ -210,8 +225,7 @@ def optimise(problem: Problem, morph: Callable[[Tensor], Tensor], *, iterations:
         history.min_volume_ratio.append(min_volume_ratio(mesh, displacement.detach()))
         history.inverted.append(count_inverted(mesh, displacement.detach()))
         history.mu.append(mu.detach().cpu().tolist())
-        last = iteration == iterations or \
-            history.objective[-1] <= tolerance * history.objective[0]
+        last = iteration == iterations or history.objective[-1] <= tolerance * history.objective[0]
         if print_every and (iteration < 10 or iteration % print_every == 0 or last):
             show(iteration)
         if last:
@@ -234,8 +248,9 @@ def plot(histories: dict[str, History], problem: Problem, path: Path) -> None:
     styles = ("-", "--", ":")
     for (name, history), colour in zip(histories.items(), ("C0", "C3"), strict=False):
         steps = range(len(history.objective))
-        axes[0].semilogy(steps, [max(v, 1e-300) for v in history.objective], color=colour,
-                         label=name)
+        axes[0].semilogy(
+            steps, [max(v, 1e-300) for v in history.objective], color=colour, label=name
+        )
         for values, style in zip(zip(*history.mu, strict=True), styles, strict=True):
             axes[1].plot(steps, values, style, color=colour)
         axes[1].plot([], [], color=colour, label=name)
@@ -244,17 +259,23 @@ def plot(histories: dict[str, History], problem: Problem, path: Path) -> None:
         unit = "°" if k == 2 else "m"
         axes[1].plot([], [], style, color="k", label=f"μ{k + 1} ({unit})")
     axes[0].set(xlabel="iteration", ylabel="objective J", title="objective")
-    axes[1].set(xlabel="iteration", ylabel="parameter",
-                title="bending μ1 s² + μ2 s³, tip twist μ3")
+    axes[1].set(xlabel="iteration", ylabel="parameter", title="bending μ1 s² + μ2 s³, tip twist μ3")
     axes[2].axhline(0.0, color="k", lw=0.8)
-    axes[2].axhline(problem.threshold, color="grey", lw=0.8, ls="--",
-                    label=f"barrier threshold {problem.threshold:g}")
+    axes[2].axhline(
+        problem.threshold,
+        color="grey",
+        lw=0.8,
+        ls="--",
+        label=f"barrier threshold {problem.threshold:g}",
+    )
     axes[2].set(xlabel="iteration", ylabel="min V / V0", title="smallest volume ratio")
     for axis in axes:
         axis.grid(alpha=0.3)
         axis.legend(fontsize=8)
-    figure.suptitle(f"Case A wing: tip deflection {problem.deflection_target:g} m and twist "
-                    f"{problem.twist_target:g}° through POD-ESIDW")
+    figure.suptitle(
+        f"Case A wing: tip deflection {problem.deflection_target:g} m and twist "
+        f"{problem.twist_target:g}° through POD-ESIDW"
+    )
     figure.tight_layout()
     figure.savefig(path, dpi=120)
     plt.close(figure)
@@ -262,54 +283,110 @@ def plot(histories: dict[str, History], problem: Problem, path: Path) -> None:
 
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--size", choices=("small", "paper"), default="paper",
-                        help="mesh size (default: %(default)s; case A is small either way)")
-    parser.add_argument("--out", default="out/shape_optimisation",
-                        help="directory for the PNG of the history (default: %(default)s); "
-                             "'' writes nothing")
+    parser.add_argument(
+        "--size",
+        choices=("small", "paper"),
+        default="paper",
+        help="mesh size (default: %(default)s; case A is small either way)",
+    )
+    parser.add_argument(
+        "--out",
+        default="out/shape_optimisation",
+        help="directory for the PNG of the history (default: %(default)s); '' writes nothing",
+    )
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ... (default cpu)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float64")
-    parser.add_argument("--iterations", type=int, default=1500,
-                        help="most Adam iterations (default %(default)s)")
-    parser.add_argument("--lr", type=float, default=0.05,
-                        help="Adam's learning rate (default %(default)s)")
-    parser.add_argument("--tolerance", type=float, default=1e-7,
-                        help="stop when the objective is below this fraction of its initial "
-                             "value (default %(default)s)")
-    parser.add_argument("--deflection", type=float, default=1.0,
-                        help="target tip deflection in m (default %(default)s)")
-    parser.add_argument("--twist", type=float, default=5.0,
-                        help="target tip twist in degrees (default %(default)s)")
-    parser.add_argument("--threshold", type=float, default=0.2,
-                        help="volume ratio under which the barrier starts (default %(default)s)")
-    parser.add_argument("--barrier-weight", type=float, default=10.0,
-                        help="weight of the validity barrier (default %(default)s)")
-    parser.add_argument("--segment", type=float, default=0.2,
-                        help="length of the tip segment whose centre of mass is the tip "
-                             "position, m (default %(default)s)")
-    parser.add_argument("--train", type=int, default=100,
-                        help="POD training values (default: the paper's 100 for case A)")
-    parser.add_argument("--energy-tolerance", type=float, default=1e-8,
-                        help="POD energy tolerance ε (default %(default)s)")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="seed of the ESIDW selection and the training set")
-    parser.add_argument("--repeats", type=int, default=20,
-                        help="timed repeats of each evaluation cost (median; default "
-                             "%(default)s)")
-    parser.add_argument("--print-every", type=int, default=10,
-                        help="print every n-th iteration (and the first ten and the last; "
-                             "default %(default)s)")
-    parser.add_argument("--no-compare", action="store_true",
-                        help="skip the run without barrier and the full-morph timings")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: the problem is small, and "
-                             "more threads only wait for each other on a busy machine)")
+    parser.add_argument(
+        "--iterations", type=int, default=1500, help="most Adam iterations (default %(default)s)"
+    )
+    parser.add_argument(
+        "--lr", type=float, default=0.05, help="Adam's learning rate (default %(default)s)"
+    )
+    parser.add_argument(
+        "--tolerance",
+        type=float,
+        default=1e-7,
+        help="stop when the objective is below this fraction of its initial "
+        "value (default %(default)s)",
+    )
+    parser.add_argument(
+        "--deflection",
+        type=float,
+        default=1.0,
+        help="target tip deflection in m (default %(default)s)",
+    )
+    parser.add_argument(
+        "--twist", type=float, default=5.0, help="target tip twist in degrees (default %(default)s)"
+    )
+    parser.add_argument(
+        "--threshold",
+        type=float,
+        default=0.2,
+        help="volume ratio under which the barrier starts (default %(default)s)",
+    )
+    parser.add_argument(
+        "--barrier-weight",
+        type=float,
+        default=10.0,
+        help="weight of the validity barrier (default %(default)s)",
+    )
+    parser.add_argument(
+        "--segment",
+        type=float,
+        default=0.2,
+        help="length of the tip segment whose centre of mass is the tip "
+        "position, m (default %(default)s)",
+    )
+    parser.add_argument(
+        "--train",
+        type=int,
+        default=100,
+        help="POD training values (default: the paper's 100 for case A)",
+    )
+    parser.add_argument(
+        "--energy-tolerance",
+        type=float,
+        default=1e-8,
+        help="POD energy tolerance ε (default %(default)s)",
+    )
+    parser.add_argument(
+        "--seed", type=int, default=0, help="seed of the ESIDW selection and the training set"
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=20,
+        help="timed repeats of each evaluation cost (median; default %(default)s)",
+    )
+    parser.add_argument(
+        "--print-every",
+        type=int,
+        default=10,
+        help="print every n-th iteration (and the first ten and the last; default %(default)s)",
+    )
+    parser.add_argument(
+        "--no-compare",
+        action="store_true",
+        help="skip the run without barrier and the full-morph timings",
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch intra-op threads (default 1: the problem is small, and "
+        "more threads only wait for each other on a busy machine)",
+    )
     parser.add_argument("--quiet", action="store_true", help="print nothing")
     return parser.parse_args(argv)
 
 
-def timed_costs(problem: Problem, morphs: dict[str, Callable[[Tensor], Tensor]], mu: Tensor,
-                repeats: int, device: torch.device) -> dict[str, dict[str, float]]:
+def timed_costs(
+    problem: Problem,
+    morphs: dict[str, Callable[[Tensor], Tensor]],
+    mu: Tensor,
+    repeats: int,
+    device: torch.device,
+) -> dict[str, dict[str, float]]:
     """Median seconds of (a) the morph alone, forward and backward, and (b) the whole
     objective and its gradient, at ``mu``, for each morph."""
     costs = {}
@@ -329,8 +406,10 @@ def timed_costs(problem: Problem, morphs: dict[str, Callable[[Tensor], Tensor]],
             synchronise(device)
             return gradient
 
-        costs[name] = {"morph": median_seconds(morph_only, repeats),
-                       "objective": median_seconds(objective, repeats)}
+        costs[name] = {
+            "morph": median_seconds(morph_only, repeats),
+            "objective": median_seconds(objective, repeats),
+        }
     return costs
 
 
@@ -368,23 +447,33 @@ def _run(args: argparse.Namespace, start: float) -> dict[str, Any]:
     reducer = PODReducer(energy_tolerance=args.energy_tolerance)
     reducer.fit(esidw, family=family, parameters=training.to(device))
     setup = time.perf_counter() - start
-    say(f"case A wing ({args.size}): {mesh.num_nodes} nodes, {mesh.num_tets} tets, "
+    say(
+        f"case A wing ({args.size}): {mesh.num_nodes} nodes, {mesh.num_tets} tets, "
         f"{esidw.num_boundary} boundary nodes; ESIDW {esidw.num_controls} control points; "
         f"POD {reducer.num_modes_} modes from {args.train} training values "
-        f"(ε = {args.energy_tolerance:g}); set-up {setup:.2f} s on {device}")
+        f"(ε = {args.energy_tolerance:g}); set-up {setup:.2f} s on {device}"
+    )
 
     tip = TipMeasures.of(mesh, args.segment)
-    problem = Problem(mesh, family, tip, args.deflection, args.twist, args.threshold,
-                      args.barrier_weight)
+    problem = Problem(
+        mesh, family, tip, args.deflection, args.twist, args.threshold, args.barrier_weight
+    )
 
     # ------------------------------------------------------------------ optimise
-    say(f"\ntargets: tip deflection {args.deflection:g} m, tip twist {args.twist:g}°; Adam "
+    say(
+        f"\ntargets: tip deflection {args.deflection:g} m, tip twist {args.twist:g}°; Adam "
         f"(lr {args.lr:g}) from μ = 0, barrier threshold {args.threshold:g}, weight "
-        f"{args.barrier_weight:g}")
+        f"{args.barrier_weight:g}"
+    )
     print_every = 0 if args.quiet else max(1, args.print_every)
-    mu, history = optimise(problem, reducer, iterations=args.iterations,
-                           learning_rate=args.lr, tolerance=args.tolerance,
-                           print_every=print_every)
+    mu, history = optimise(
+        problem,
+        reducer,
+        iterations=args.iterations,
+        learning_rate=args.lr,
+        tolerance=args.tolerance,
+        print_every=print_every,
+    )
     histories = {"with barrier": history}
     with torch.no_grad():
         reduced = reducer(family(mu))
@@ -414,57 +503,78 @@ def _run(args: argparse.Namespace, start: float) -> dict[str, Any]:
         "setup_s": setup,
     }
     decrease = result["objective_initial"] / max(result["objective_final"], 1e-300)
-    say(f"\noptimum μ = ({mu[0]:.4f} m, {mu[1]:.4f} m, {mu[2]:.4f}°) after "
+    say(
+        f"\noptimum μ = ({mu[0]:.4f} m, {mu[1]:.4f} m, {mu[2]:.4f}°) after "
         f"{result['iterations']} iterations in {history.seconds:.2f} s; objective "
         f"{result['objective_initial']:.3e} -> {result['objective_final']:.3e} "
-        f"({decrease:.1e}x smaller)")
-    say(f"POD-ESIDW at the optimum: deflection {final['deflection']:.5f} m (target "
+        f"({decrease:.1e}x smaller)"
+    )
+    say(
+        f"POD-ESIDW at the optimum: deflection {final['deflection']:.5f} m (target "
         f"{args.deflection:g}), twist {final['twist']:.4f}° (target {args.twist:g}), "
-        f"inverted tets {result['inverted']}, min V/V0 {result['min_volume_ratio']:.3f}")
-    say(f"full ESIDW at the optimum: deflection {checked['deflection']:.5f} m, twist "
+        f"inverted tets {result['inverted']}, min V/V0 {result['min_volume_ratio']:.3f}"
+    )
+    say(
+        f"full ESIDW at the optimum: deflection {checked['deflection']:.5f} m, twist "
         f"{checked['twist']:.4f}°, inverted tets {result['full_inverted']}, min V/V0 "
         f"{result['full_min_volume_ratio']:.3f}; POD vs ESIDW relative error "
-        f"{pod_error:.1e}")
+        f"{pod_error:.1e}"
+    )
 
     # ------------------------------------------------------------------ comparisons
     if not args.no_compare:
-        free_mu, free = optimise(problem, reducer, iterations=args.iterations,
-                                 learning_rate=args.lr, tolerance=args.tolerance,
-                                 barrier_weight=0.0)
+        free_mu, free = optimise(
+            problem,
+            reducer,
+            iterations=args.iterations,
+            learning_rate=args.lr,
+            tolerance=args.tolerance,
+            barrier_weight=0.0,
+        )
         histories["without barrier"] = free
         with torch.no_grad():
             free_field = reducer(family(free_mu))
         result["unconstrained_mu"] = free_mu.cpu().tolist()
         result["unconstrained_inverted"] = count_inverted(mesh, free_field)
         result["unconstrained_history"] = free
-        say(f"\nthe same optimisation without the barrier: μ = ({free_mu[0]:.4f} m, "
+        say(
+            f"\nthe same optimisation without the barrier: μ = ({free_mu[0]:.4f} m, "
             f"{free_mu[1]:.4f} m, {free_mu[2]:.4f}°) after {len(free.objective) - 1} "
             f"iterations, fit {free.fit[-1]:.1e}, {result['unconstrained_inverted']} "
-            f"inverted tets (min V/V0 {free.min_volume_ratio[-1]:.3f})")
+            f"inverted tets (min V/V0 {free.min_volume_ratio[-1]:.3f})"
+        )
 
         idw = MeshMorph(reference).to(device=device, dtype=dtype)
-        morphs = {"POD-ESIDW": reducer, "ESIDW (full W)": esidw,
-                  f"IDW ({idw.num_controls} controls)": idw}
+        morphs = {
+            "POD-ESIDW": reducer,
+            "ESIDW (full W)": esidw,
+            f"IDW ({idw.num_controls} controls)": idw,
+        }
         costs = timed_costs(problem, morphs, mu, args.repeats, device)
         # the same loop, a fixed number of iterations, with each morph
         loop_iterations = min(100, args.iterations)
         per_iteration = {}
         for name, morph in morphs.items():
-            _, timed = optimise(problem, morph, iterations=loop_iterations,
-                                learning_rate=args.lr, tolerance=0.0)
+            _, timed = optimise(
+                problem, morph, iterations=loop_iterations, learning_rate=args.lr, tolerance=0.0
+            )
             per_iteration[name] = timed.seconds / loop_iterations
         result["costs_s"] = costs
         result["iteration_s"] = per_iteration
         base = costs["POD-ESIDW"]
-        say(f"\ncost per evaluation, median of {args.repeats} (forward + gradient to μ), "
+        say(
+            f"\ncost per evaluation, median of {args.repeats} (forward + gradient to μ), "
             f"and per iteration of the loop above ({loop_iterations} iterations; the "
-            f"objective, its gradient, Adam and the validity count), on {device}:")
+            f"objective, its gradient, Adam and the validity count), on {device}:"
+        )
         say(f"  {'morph':28s} {'morph alone':>12s} {'objective':>12s} {'iteration':>12s}")
         for name in morphs:
-            say(f"  {name:28s} {costs[name]['morph'] * 1e3:9.3f} ms "
+            say(
+                f"  {name:28s} {costs[name]['morph'] * 1e3:9.3f} ms "
                 f"{costs[name]['objective'] * 1e3:9.3f} ms "
                 f"{per_iteration[name] * 1e3:9.3f} ms   "
-                f"(morph {costs[name]['morph'] / base['morph']:.1f}x POD)")
+                f"(morph {costs[name]['morph'] / base['morph']:.1f}x POD)"
+            )
 
     if args.out:
         out = Path(args.out)

@@ -35,8 +35,9 @@ def mesh_data(seed: int = 1):
 
     mesh = box_mesh(4)
     generator = torch.Generator().manual_seed(seed)
-    boundary = torch.randn(len(mesh.boundary_nodes), 3, generator=generator,
-                           dtype=torch.float64) * 0.01
+    boundary = (
+        torch.randn(len(mesh.boundary_nodes), 3, generator=generator, dtype=torch.float64) * 0.01
+    )
     weights = torch.randn(mesh.points.shape[0], 3, generator=generator, dtype=torch.float64)
     return mesh, boundary, weights
 
@@ -53,8 +54,9 @@ def owned_nodes(count: int, rank: int, layout: str) -> torch.Tensor:
 def run(rank: int, world: int, port: int, outdir: str) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank,
-                            world_size=world)
+    dist.init_process_group(
+        "gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world
+    )
     try:
         _run(rank, outdir)
     finally:
@@ -91,8 +93,9 @@ def _run(rank: int, outdir: str) -> None:
             results[f"idw/{split}/{mode}/grad_c"] = c.grad
             results[f"idw/{split}/{mode}/grad_t"] = t.grad
         # POD of the sharded snapshots (n = 6 fields)
-        pod = ShardedPOD(num_modes=4).fit(ShardedIDW(controls, targets[rows], mode="dense"),
-                                          _training(controls))
+        pod = ShardedPOD(num_modes=4).fit(
+            ShardedIDW(controls, targets[rows], mode="dense"), _training(controls)
+        )
         results[f"pod/{split}/modes"] = pod.modes_
         results[f"pod/{split}/singular_values"] = pod.singular_values_
         results[f"pod/{split}/projection"] = pod.projection_
@@ -115,8 +118,10 @@ def _run(rank: int, outdir: str) -> None:
             results[f"{key}/grad_d"] = d.grad
             results[f"{key}/grad_points"] = points.grad
             if mode == "dense":
-                training = torch.stack([boundary * k for k in (1.0, -0.5, 2.0)]
-                                       + [boundary.flip(0) * 0.3, boundary.roll(5, 0)])
+                training = torch.stack(
+                    [boundary * k for k in (1.0, -0.5, 2.0)]
+                    + [boundary.flip(0) * 0.3, boundary.roll(5, 0)]
+                )
                 pod = ShardedPOD(num_modes=3).fit(morph, training)
                 results[f"{key}/pod_forward"] = pod(boundary)
             if layout == "interleaved" and mode == "dense":
@@ -126,17 +131,30 @@ def _run(rank: int, outdir: str) -> None:
     except ValueError as error:
         results["partition_error"] = str(error)
     results["gather_batched"] = gather_rows(
-        torch.full((2, 3 - rank, 2), float(rank)), torch.arange(3 - rank) * 2 + rank, 5)
-    save_partitioned(Path(outdir) / "batched", torch.full((2, 3 - rank, 2), float(rank + 1)),
-                     torch.arange(3 - rank) * 2 + rank, 5)
+        torch.full((2, 3 - rank, 2), float(rank)), torch.arange(3 - rank) * 2 + rank, 5
+    )
+    save_partitioned(
+        Path(outdir) / "batched",
+        torch.full((2, 3 - rank, 2), float(rank + 1)),
+        torch.arange(3 - rank) * 2 + rank,
+        5,
+    )
     torch.save(results, Path(outdir) / f"rank{rank}.pt")
 
 
 def _training(controls: torch.Tensor) -> torch.Tensor:
     """Six control displacements: smooth functions of the positions."""
     x = controls
-    return torch.stack([x, x.square(), torch.sin(3 * x), x.roll(1, 1) * x,
-                        torch.cos(2 * x) - 1, x.sum(1, keepdim=True).expand(-1, 3) * x])
+    return torch.stack(
+        [
+            x,
+            x.square(),
+            torch.sin(3 * x),
+            x.roll(1, 1) * x,
+            torch.cos(2 * x) - 1,
+            x.sum(1, keepdim=True).expand(-1, 3) * x,
+        ]
+    )
 
 
 if __name__ == "__main__":  # torchrun tests/_distributed_worker.py OUTDIR

@@ -13,8 +13,14 @@ from torchmorph.selection import SelectionPlan
 
 F64 = torch.float64
 FACES = ("x0", "x1", "y0", "y1", "z0", "z1")
-KINDS = ("idw-dense", "idw-matrix-free", "morph-dense", "morph-matrix-free", "morph-selective",
-         "pod")
+KINDS = (
+    "idw-dense",
+    "idw-matrix-free",
+    "morph-dense",
+    "morph-matrix-free",
+    "morph-selective",
+    "pod",
+)
 
 
 def vector_family(points: torch.Tensor):
@@ -52,8 +58,11 @@ def build(kind: str, *, idw_seed: int, num_controls: int, num_targets: int):
         return IDW(controls, targets, mode=mode, block_bytes=2000), controls, targets
     cube = box_mesh(3)
     if kind == "morph-selective":
-        morph = MeshMorph(cube, SelectionPlan(dict.fromkeys(FACES, 0.5)),
-                          generator=torch.Generator().manual_seed(0))
+        morph = MeshMorph(
+            cube,
+            SelectionPlan(dict.fromkeys(FACES, 0.5)),
+            generator=torch.Generator().manual_seed(0),
+        )
     else:
         morph = MeshMorph(cube, mode="matrix_free" if kind == "morph-matrix-free" else "dense")
     if kind == "pod":

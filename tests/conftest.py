@@ -28,8 +28,12 @@ from torchmorph import TetMesh
 from torchmorph.mesh import box_mesh
 
 #: Environment variables pointed into the session's temporary directory (name -> subfolder).
-ISOLATED = {"HOME": "home", "MPLCONFIGDIR": "config/matplotlib", "XDG_CACHE_HOME": "cache",
-            "XDG_CONFIG_HOME": "config"}
+ISOLATED = {
+    "HOME": "home",
+    "MPLCONFIGDIR": "config/matplotlib",
+    "XDG_CACHE_HOME": "cache",
+    "XDG_CONFIG_HOME": "config",
+}
 #: Caches kept between sessions, in the repository's ignored ``.cache/tests`` (name ->
 #: subfolder): generated meshes and numba's compiled kernels are built once, not per run.
 PERSISTENT = {"TORCHMORPH_CACHE": "meshes", "NUMBA_CACHE_DIR": "numba"}

@@ -25,6 +25,7 @@ def test_writes_the_target_on_success(tmp_path):
 def test_failure_keeps_the_old_file_and_removes_the_temporary(tmp_path):
     target = tmp_path / "out.txt"
     target.write_text("old")
+
     def write_half_then_fail():
         with atomic_output(target) as temporary:
             temporary.write_text("half")
@@ -60,6 +61,8 @@ def test_suffix_override_and_missing_directory(tmp_path):
         temporary.write_bytes(b"x")
     assert (tmp_path / "out.vtu").read_bytes() == b"x"
     missing = tmp_path / "missing" / "out.vtu"
-    with pytest.raises(FileNotFoundError, match="path: directory .*does not exist"), \
-            atomic_output(missing):
+    with (
+        pytest.raises(FileNotFoundError, match="path: directory .*does not exist"),
+        atomic_output(missing),
+    ):
         pass

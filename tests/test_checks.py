@@ -29,8 +29,11 @@ def test_half_precision_is_refused_with_the_argument_named(dtype):
         "snapshots": lambda: pod_basis(torch.ones(2, 4, 3, dtype=dtype)),
     }
     for name, call in calls.items():
-        with pytest.raises(ValueError, match=rf"^{name} has dtype {dtype}: half precision is "
-                                             r"not supported"):
+        with pytest.raises(
+            ValueError,
+            match=rf"^{name} has dtype {dtype}: half precision is "
+            r"not supported",
+        ):
             call()
     with pytest.raises(ValueError, match=rf"^points has dtype {dtype}: half precision"):
         select_control_points(points, 0.3)

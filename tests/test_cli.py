@@ -44,8 +44,9 @@ def _morph(tmp_path, cube_file, displacement, *options, name="d.npy"):
     else:
         np.savetxt(source, displacement, delimiter="," if name.endswith(".csv") else " ")
     out = tmp_path / "out.vtu"
-    code = main(["morph", str(cube_file), "-d", str(source), "-o", str(out),
-                 "--no-progress", *options])
+    code = main(
+        ["morph", str(cube_file), "-d", str(source), "-o", str(out), "--no-progress", *options]
+    )
     return code, out
 
 
@@ -77,8 +78,9 @@ def test_console_script_help():
     executable = shutil.which("torchmorph")
     if executable is None:
         pytest.skip("the torchmorph console script is not on PATH")
-    done = subprocess.run([executable, "--help"], check=False, capture_output=True, text=True,
-                          timeout=120)
+    done = subprocess.run(
+        [executable, "--help"], check=False, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0
     assert "morph" in done.stdout and "reproduce" in done.stdout
 
@@ -127,11 +129,13 @@ def test_morph_moving_rows_exact_and_interior_matches_meshmorph(tmp_path, cube_f
 
     # the reference geometry is written, with flags and quality
     torch.testing.assert_close(mesh.points, reference.points, rtol=0, atol=0)
-    assert torch.equal(point_data["control_point"].bool().nonzero().flatten(),
-                       reference.boundary_nodes)
+    assert torch.equal(
+        point_data["control_point"].bool().nonzero().flatten(), reference.boundary_nodes
+    )
     assert cell_data["quality"].shape == (384,)
-    torch.testing.assert_close(cell_data["quality_reference"],
-                               torch.full((384,), 3.0**0.5, dtype=torch.float64))
+    torch.testing.assert_close(
+        cell_data["quality_reference"], torch.full((384,), 3.0**0.5, dtype=torch.float64)
+    )
     assert int(cell_data["inverted"].sum()) == 0
 
 
@@ -163,11 +167,11 @@ def test_morph_translation_and_text_files(tmp_path, cube_file):
     moving = read_mesh(cube_file).node_set("x1")
     assert torch.equal(translated[moving], torch.from_numpy(shift).expand(25, 3))
     for name in ("d.csv", "d.txt"):
-        code, out = _morph(tmp_path, cube_file, np.tile(shift, (25, 1)), "--moving", "x1",
-                           name=name)
+        code, out = _morph(
+            tmp_path, cube_file, np.tile(shift, (25, 1)), "--moving", "x1", name=name
+        )
         assert code == EXIT_OK
-        torch.testing.assert_close(_result(out)[1]["displacement"], translated,
-                                   rtol=0, atol=1e-15)
+        torch.testing.assert_close(_result(out)[1]["displacement"], translated, rtol=0, atol=1e-15)
 
 
 def test_morph_rows_outside_moving_sets_are_fixed_with_warning(tmp_path, cube_file, capsys):
@@ -233,8 +237,9 @@ def test_region_matches_meshmorph_with_plan(tmp_path, cube_file, capsys):
 
 
 def test_enrich_adds_its_nodes(tmp_path, cube_file, capsys):
-    code, out = _morph(tmp_path, cube_file, _moving_rows(), "--moving", "x1",
-                       "--select", "0.6", "--enrich", "z0")
+    code, out = _morph(
+        tmp_path, cube_file, _moving_rows(), "--moving", "x1", "--select", "0.6", "--enrich", "z0"
+    )
     assert code == EXIT_OK
     assert "ESIDW" in capsys.readouterr().out
     mesh, point_data, _ = _result(out)
@@ -277,8 +282,18 @@ def test_missing_mesh(tmp_path, capsys):
     assert main(["info", str(tmp_path / "nope.vtu")]) == EXIT_ERROR
     assert "does not exist" in _error(capsys)
     np.save(tmp_path / "d.npy", np.zeros((3,)))
-    code = main(["morph", str(tmp_path / "nope.vtu"), "--moving", "x1", "-d",
-                 str(tmp_path / "d.npy"), "-o", str(tmp_path / "o.vtu")])
+    code = main(
+        [
+            "morph",
+            str(tmp_path / "nope.vtu"),
+            "--moving",
+            "x1",
+            "-d",
+            str(tmp_path / "d.npy"),
+            "-o",
+            str(tmp_path / "o.vtu"),
+        ]
+    )
     assert code == EXIT_ERROR
     assert "nope.vtu" in _error(capsys)
 
@@ -298,8 +313,9 @@ def test_unknown_set_lists_known(tmp_path, cube_file, capsys):
     code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "wing")
     assert code == EXIT_ERROR
     assert "unknown node set 'wing' in --moving; known: x0, x1, y0, y1, z0, z1" in _error(capsys)
-    code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--select", "0.5",
-                     "--enrich", "edges")
+    code, _ = _morph(
+        tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--select", "0.5", "--enrich", "edges"
+    )
     assert code == EXIT_ERROR
     assert "unknown node set 'edges' in --enrich" in _error(capsys)
     code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--region", "top=0.5")
@@ -336,20 +352,22 @@ def test_bad_displacement_files(tmp_path, cube_file, capsys):
     assert "NaN" in _error(capsys)
 
 
-@pytest.mark.parametrize(("value", "message"), [
-    ("-1", "radius must be"),
-    ("0", "radius must be"),
-    ("0.3,1.5", "a must satisfy 0 < a < 1"),
-    ("0.3,0.8,0.9", "b must satisfy b > 1"),
-    ("abc", "expected numbers"),
-    ("0.3,0.8,1.3,2", "expected R"),
-])
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("-1", "radius must be"),
+        ("0", "radius must be"),
+        ("0.3,1.5", "a must satisfy 0 < a < 1"),
+        ("0.3,0.8,0.9", "b must satisfy b > 1"),
+        ("abc", "expected numbers"),
+        ("0.3,0.8,1.3,2", "expected R"),
+    ],
+)
 def test_bad_selection_parameters(tmp_path, cube_file, capsys, value, message):
     code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--select", value)
     assert code == EXIT_USAGE
     assert message in _error(capsys)
-    code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--region",
-                     f"x1={value}")
+    code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--region", f"x1={value}")
     assert code == EXIT_USAGE
     assert message in _error(capsys)
 
@@ -360,19 +378,48 @@ def test_uncovered_boundary_nodes_are_named(tmp_path, cube_file, capsys):
     err = _error(capsys)
     assert "73 of the 98 boundary nodes are in no --region" in err
     assert "25 in x0" in err and "--uncovered ignore" in err
-    code, out = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--region", "x1=0.5",
-                       "--uncovered", "ignore")
+    code, out = _morph(
+        tmp_path,
+        cube_file,
+        np.zeros(3),
+        "--moving",
+        "x1",
+        "--region",
+        "x1=0.5",
+        "--uncovered",
+        "ignore",
+    )
     assert code == EXIT_OK
     assert _controls(out) < 25
 
 
 def test_conflicting_regions_name_the_option(tmp_path, cube_file, capsys):
-    code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1",
-                     "--region", "x0+x1=0.4", "--region", "y0+y1+z0+z1=0.6")
+    code, _ = _morph(
+        tmp_path,
+        cube_file,
+        np.zeros(3),
+        "--moving",
+        "x1",
+        "--region",
+        "x0+x1=0.4",
+        "--region",
+        "y0+y1+z0+z1=0.6",
+    )
     assert code == EXIT_ERROR
     assert "--overlap first" in _error(capsys)
-    code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--overlap", "first",
-                     "--region", "x0+x1=0.4", "--region", "y0+y1+z0+z1=0.6")
+    code, _ = _morph(
+        tmp_path,
+        cube_file,
+        np.zeros(3),
+        "--moving",
+        "x1",
+        "--overlap",
+        "first",
+        "--region",
+        "x0+x1=0.4",
+        "--region",
+        "y0+y1+z0+z1=0.6",
+    )
     assert code == EXIT_OK
 
 
@@ -385,9 +432,12 @@ def test_selection_errors_are_typed_and_carry_their_data():
         SelectionPlan({"x1": 0.5}).select(cube)
     assert caught.value.total == 98
     np.testing.assert_array_equal(
-        caught.value.nodes, np.setdiff1d(cube.boundary_nodes.numpy(), cube.node_set("x1").numpy()))
+        caught.value.nodes, np.setdiff1d(cube.boundary_nodes.numpy(), cube.node_set("x1").numpy())
+    )
     with pytest.raises(RegionOverlapError) as caught:
-        SelectionPlan([Region(("x0", "x1"), 0.4), Region(("y0", "y1", "z0", "z1"), 0.6)]).select(cube)
+        SelectionPlan([Region(("x0", "x1"), 0.4), Region(("y0", "y1", "z0", "z1"), 0.6)]).select(
+            cube
+        )
     assert caught.value.first.names == ("x0", "x1") and caught.value.count > 0
 
 
@@ -395,13 +445,24 @@ def test_usage_errors(tmp_path, cube_file, capsys):
     code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--enrich", "z0")
     assert code == EXIT_USAGE
     assert "--enrich: needs --select or --region" in _error(capsys)
-    code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--select", "0.5",
-                     "--region", "x1=0.5")
+    code, _ = _morph(
+        tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--select", "0.5", "--region", "x1=0.5"
+    )
     assert code == EXIT_USAGE
     assert "not allowed with" in _error(capsys)
     np.save(tmp_path / "d.npy", np.zeros(3))
-    code = main(["morph", str(cube_file), "--moving", "x1", "-d", str(tmp_path / "d.npy"),
-                 "-o", str(tmp_path / "out.stl")])
+    code = main(
+        [
+            "morph",
+            str(cube_file),
+            "--moving",
+            "x1",
+            "-d",
+            str(tmp_path / "d.npy"),
+            "-o",
+            str(tmp_path / "out.stl"),
+        ]
+    )
     assert code == EXIT_USAGE
     assert "unsupported mesh file extension '.stl'" in _error(capsys)
     code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--power", "-1")
@@ -440,14 +501,32 @@ def fake_paper(monkeypatch):
 
 def test_reproduce_passes_options(tmp_path, fake_paper):
     out = tmp_path / "results"
-    code = main(["reproduce", "B", "--size", "small", "--out", str(out), "--mesher", "pytetwild",
-                 "--seed", "3"])
+    code = main(
+        [
+            "reproduce",
+            "B",
+            "--size",
+            "small",
+            "--out",
+            str(out),
+            "--mesher",
+            "pytetwild",
+            "--seed",
+            "3",
+        ]
+    )
     assert code == EXIT_OK
-    assert fake_paper == [("fluid-wing", {"size": "small", "out": str(out),
-                                          "mesher": "pytetwild", "seed": 3, "verbose": True})]
+    assert fake_paper == [
+        (
+            "fluid-wing",
+            {"size": "small", "out": str(out), "mesher": "pytetwild", "seed": 3, "verbose": True},
+        )
+    ]
     assert main(["reproduce", "wing"]) == EXIT_OK
-    assert fake_paper[-1] == ("wing", {"size": "paper", "out": None, "mesher": "gmsh",
-                                       "seed": 0, "verbose": True})
+    assert fake_paper[-1] == (
+        "wing",
+        {"size": "paper", "out": None, "mesher": "gmsh", "seed": 0, "verbose": True},
+    )
 
 
 def test_reproduce_missing_dependency_names_extra(fake_paper, capsys):
@@ -487,7 +566,6 @@ def test_tests_run_with_a_temporary_home_and_a_repository_cache(temporary_home):
     assert Path(os.environ["NUMBA_CACHE_DIR"]).is_relative_to(repository_cache)
 
 
-
 # --------------------------------------------------------------------------- mesh
 
 
@@ -505,8 +583,19 @@ def test_mesh_writes_a_mesh_with_named_sets_and_reports_quality(tmp_path, capsys
     pytest.importorskip("pytetwild")
     source = _sphere_obj(tmp_path / "ball.obj")
     out = tmp_path / "ball.vtu"
-    code = main(["mesh", f"body={source}", "--box", "1", "--edge-length", "1", "-o", str(out),
-                 "--no-progress"])
+    code = main(
+        [
+            "mesh",
+            f"body={source}",
+            "--box",
+            "1",
+            "--edge-length",
+            "1",
+            "-o",
+            str(out),
+            "--no-progress",
+        ]
+    )
     assert code == EXIT_OK
     printed = capsys.readouterr().out
     assert "surface         body:" in printed and "80 triangles" in printed
@@ -543,8 +632,10 @@ def test_mesh_without_pytetwild_names_the_tetwild_extra(tmp_path, monkeypatch, c
     monkeypatch.setitem(sys.modules, "pytetwild", None)  # import pytetwild -> ImportError
     assert main(["mesh", str(source), "-o", str(tmp_path / "ball.vtu")]) == EXIT_ERROR
     err = _error(capsys)
-    assert ("tetrahedralising needs pytetwild (which imports pyvista): pip install "
-            "'torchmorph[tetwild]'") in err
+    assert (
+        "tetrahedralising needs pytetwild (which imports pyvista): pip install "
+        "'torchmorph[tetwild]'"
+    ) in err
     assert "torchmorph[mesh]" not in err
     assert not (tmp_path / "ball.vtu").exists()
 
@@ -585,9 +676,12 @@ def test_every_help_example_runs_as_printed(tmp_path, monkeypatch, capsys):
     np.save(tmp_path / "tip.npy", np.array([0.0, 0.05, 0.0]))
     np.save(tmp_path / "d.npy", np.array([0.0, 0.01, 0.0]))
     trimesh.creation.icosphere(subdivisions=2, radius=0.5).export(tmp_path / "body.stl")
-    car = trimesh.convex.convex_hull(np.array(
-        [[x, y, z] for x in (0, 1) for y in (-0.22, 0.22) for z in (0, 0.2)]
-        + [[x, y, 0.36] for x in (0.32, 0.68) for y in (-0.17, 0.17)]))
+    car = trimesh.convex.convex_hull(
+        np.array(
+            [[x, y, z] for x in (0, 1) for y in (-0.22, 0.22) for z in (0, 0.2)]
+            + [[x, y, 0.36] for x in (0.32, 0.68) for y in (-0.17, 0.17)]
+        )
+    )
     car.export(tmp_path / "car.obj")
     monkeypatch.chdir(tmp_path)
     for command in ("morph", "mesh"):

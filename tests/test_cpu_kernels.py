@@ -77,8 +77,9 @@ def test_nearest_squared_matches_brute_force(dtype, dim):
     nearest = kernels.nearest_squared(targets, controls)
     exact = (targets.double()[:, None] - controls.double()[None]).square().sum(-1).amin(1)
     assert nearest.dtype == dtype and nearest.shape == (targets.shape[0],)
-    torch.testing.assert_close(nearest.double(), exact, rtol=1e-6 if dtype == torch.float32
-                               else 1e-14, atol=0)
+    torch.testing.assert_close(
+        nearest.double(), exact, rtol=1e-6 if dtype == torch.float32 else 1e-14, atol=0
+    )
 
 
 def test_nearest_squared_is_zero_on_a_control():
@@ -100,8 +101,9 @@ def test_apply_matches_brute_force(dtype, power, dim, columns):
     exact = (r / r.sum(1, keepdim=True)) @ values.double()
     assert out.shape == (targets.shape[0], columns) and out.dtype == dtype
     torch.testing.assert_close(out.double(), exact, **tolerance(dtype))
-    torch.testing.assert_close(sums.double(), r.sum(1),
-                               rtol=2e-6 if dtype == torch.float32 else 1e-12, atol=0)
+    torch.testing.assert_close(
+        sums.double(), r.sum(1), rtol=2e-6 if dtype == torch.float32 else 1e-12, atol=0
+    )
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -110,8 +112,9 @@ def test_apply_interpolates_exactly_at_the_controls(dtype, power):
     targets, controls = cloud(10, 200, 3, dtype)
     targets[::2] = controls[[0, 50, 100, 150, 199]]
     values = random_values(200, 3, dtype)
-    out, sums = kernels.apply(targets, controls, values, power, RADIUS2,
-                              kernels.nearest_squared(targets, controls))
+    out, sums = kernels.apply(
+        targets, controls, values, power, RADIUS2, kernels.nearest_squared(targets, controls)
+    )
     assert torch.equal(out[::2], values[[0, 50, 100, 150, 199]])
     assert torch.equal(sums[::2], torch.ones(5, dtype=dtype))
 
@@ -122,8 +125,9 @@ def test_target_on_a_control_with_zero_radius_takes_its_value(dtype):
     targets, controls = cloud(4, 100, 3, dtype)
     targets[1] = controls[42]
     values = random_values(100, 3, dtype)
-    out, _ = kernels.apply(targets, controls, values, 4.0, 0.0,
-                           kernels.nearest_squared(targets, controls))
+    out, _ = kernels.apply(
+        targets, controls, values, 4.0, 0.0, kernels.nearest_squared(targets, controls)
+    )
     assert torch.equal(out[1], values[42])
 
 
@@ -135,26 +139,35 @@ def test_coincident_duplicates_take_the_mean(dtype, power):
     controls[251] = controls[10]
     targets[3] = controls[10]
     values = random_values(300, 2, dtype)
-    out, sums = kernels.apply(targets, controls, values, power, RADIUS2,
-                              kernels.nearest_squared(targets, controls))
+    out, sums = kernels.apply(
+        targets, controls, values, power, RADIUS2, kernels.nearest_squared(targets, controls)
+    )
     mean = values[[10, 250, 251]].double().mean(0)
     torch.testing.assert_close(out[3].double(), mean, **tolerance(dtype))
     assert sums[3] == 3
     # the same mean whatever the order of the controls
     order = torch.randperm(300, generator=torch.Generator().manual_seed(3))
-    shuffled, _ = kernels.apply(targets, controls[order], values[order], power, RADIUS2,
-                                kernels.nearest_squared(targets, controls[order]))
+    shuffled, _ = kernels.apply(
+        targets,
+        controls[order],
+        values[order],
+        power,
+        RADIUS2,
+        kernels.nearest_squared(targets, controls[order]),
+    )
     torch.testing.assert_close(shuffled[3].double(), mean, **tolerance(dtype))
 
 
 def test_controls_within_the_radius_count_equally():
     # a target within the radius of two distinct controls weighs both by 1/2
     targets = torch.tensor([[0.5, 0.5], [0.1, 0.9]], dtype=torch.float64)
-    controls = torch.tensor([[0.5, 0.5 + 1e-9], [0.5, 0.5 - 2e-9], [0.0, 0.0], [1.0, 1.0]],
-                            dtype=torch.float64)
+    controls = torch.tensor(
+        [[0.5, 0.5 + 1e-9], [0.5, 0.5 - 2e-9], [0.0, 0.0], [1.0, 1.0]], dtype=torch.float64
+    )
     values = torch.tensor([[1.0], [3.0], [10.0], [20.0]], dtype=torch.float64)
-    out, _ = kernels.apply(targets, controls, values, 4.0, 1e-16,
-                           kernels.nearest_squared(targets, controls))
+    out, _ = kernels.apply(
+        targets, controls, values, 4.0, 1e-16, kernels.nearest_squared(targets, controls)
+    )
     assert out[0, 0] == 2.0
     exact = reference_weights(targets, controls, 4.0, 1e-16) @ values
     torch.testing.assert_close(out, exact, rtol=0, atol=1e-14)
@@ -164,8 +177,9 @@ def test_float32_accumulation_at_case_b_scale():
     """Float32 error <= 1e-6 of max |d| with 14,126 controls (a sample of targets)."""
     targets, controls = cloud(48, 14126, 3, torch.float32, seed=4)
     values = random_values(14126, 3, torch.float32)
-    out, _ = kernels.apply(targets, controls, values, 4.0, RADIUS2,
-                           kernels.nearest_squared(targets, controls))
+    out, _ = kernels.apply(
+        targets, controls, values, 4.0, RADIUS2, kernels.nearest_squared(targets, controls)
+    )
     exact = reference_weights(targets, controls, 4.0) @ values.double()
     error = (out.double() - exact).abs().max() / values.double().abs().max()
     assert error <= 1e-6
@@ -183,13 +197,15 @@ def test_apply_transposed_matches_brute_force(dtype, power, columns):
     targets[6] = controls[3]
     grad = random_values(targets.shape[0], columns, dtype, seed=5)
     nearest2 = kernels.nearest_squared(targets, controls)
-    _, sums = kernels.apply(targets, controls, random_values(controls.shape[0], 1, dtype),
-                            power, RADIUS2, nearest2)
+    _, sums = kernels.apply(
+        targets, controls, random_values(controls.shape[0], 1, dtype), power, RADIUS2, nearest2
+    )
     result = kernels.apply_transposed(targets, controls, grad, power, RADIUS2, nearest2, sums)
     exact = reference_weights(targets, controls, power).T @ grad.double()
     assert result.shape == (controls.shape[0], columns) and result.dtype == dtype
-    torch.testing.assert_close(result.double(), exact, rtol=0,
-                               atol=2e-5 if dtype == torch.float32 else 1e-12)
+    torch.testing.assert_close(
+        result.double(), exact, rtol=0, atol=2e-5 if dtype == torch.float32 else 1e-12
+    )
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -200,9 +216,12 @@ def test_apply_transposed_is_the_adjoint_of_apply(dtype):
     nearest2 = kernels.nearest_squared(targets, controls)
     out, sums = kernels.apply(targets, controls, values, 3.0, RADIUS2, nearest2)
     back = kernels.apply_transposed(targets, controls, grad, 3.0, RADIUS2, nearest2, sums)
-    torch.testing.assert_close((out.double() * grad.double()).sum(),
-                               (values.double() * back.double()).sum(),
-                               rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=0)
+    torch.testing.assert_close(
+        (out.double() * grad.double()).sum(),
+        (values.double() * back.double()).sum(),
+        rtol=1e-5 if dtype == torch.float32 else 1e-12,
+        atol=0,
+    )
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
@@ -214,11 +233,15 @@ def test_weights_match_brute_force(dtype, power, dim):
     dense = kernels.weights(targets, controls, power, RADIUS2)
     exact = reference_weights(targets, controls, power)
     assert dense.shape == exact.shape and dense.dtype == dtype and dense.is_contiguous()
-    torch.testing.assert_close(dense.double(), exact, rtol=0,
-                               atol=1e-6 if dtype == torch.float32 else 1e-14)
-    torch.testing.assert_close(dense.double().sum(1), torch.ones(targets.shape[0],
-                               dtype=torch.float64),
-                               rtol=0, atol=1e-5 if dtype == torch.float32 else 1e-13)
+    torch.testing.assert_close(
+        dense.double(), exact, rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-14
+    )
+    torch.testing.assert_close(
+        dense.double().sum(1),
+        torch.ones(targets.shape[0], dtype=torch.float64),
+        rtol=0,
+        atol=1e-5 if dtype == torch.float32 else 1e-13,
+    )
     assert dense[2, 300] == 1 and dense[2].count_nonzero() == 1
 
 
@@ -228,8 +251,9 @@ def test_weights_fill_out_and_agree_with_apply():
     result = kernels.weights(targets, controls, 4.0, RADIUS2, out=out)
     assert result is out and not out.isnan().any()
     values = random_values(301, 3, torch.float64)
-    applied, _ = kernels.apply(targets, controls, values, 4.0, RADIUS2,
-                               kernels.nearest_squared(targets, controls))
+    applied, _ = kernels.apply(
+        targets, controls, values, 4.0, RADIUS2, kernels.nearest_squared(targets, controls)
+    )
     torch.testing.assert_close(out @ values, applied, rtol=0, atol=1e-14)
 
 
@@ -248,8 +272,9 @@ def test_one_and_two_threads_agree(dtype):
         nearest2 = kernels.nearest_squared(targets, controls)
         out, sums = kernels.apply(targets, controls, values, 4.0, RADIUS2, nearest2)
         back = kernels.apply_transposed(targets, controls, grad, 4.0, RADIUS2, nearest2, sums)
-        results.append((nearest2, out, sums, back, kernels.weights(targets, controls, 4.0,
-                                                                   RADIUS2)))
+        results.append(
+            (nearest2, out, sums, back, kernels.weights(targets, controls, 4.0, RADIUS2))
+        )
     for one, two in zip(*results, strict=True):
         assert torch.equal(one, two)
     import numba
@@ -263,8 +288,9 @@ def test_no_targets():
     assert kernels.nearest_squared(targets, controls).shape == (0,)
     out, sums = kernels.apply(targets, controls, torch.rand(5, 2), 4.0, 0.0, torch.empty(0))
     assert out.shape == (0, 2) and sums.shape == (0,)
-    back = kernels.apply_transposed(targets, controls, torch.empty(0, 2), 4.0, 0.0,
-                                    torch.empty(0), torch.empty(0))
+    back = kernels.apply_transposed(
+        targets, controls, torch.empty(0, 2), 4.0, 0.0, torch.empty(0), torch.empty(0)
+    )
     assert torch.equal(back, torch.zeros(5, 2))
     assert kernels.weights(targets, controls, 4.0, 0.0).shape == (0, 5)
 
@@ -299,8 +325,7 @@ def test_bad_arguments_name_themselves():
 
 def test_without_numba_the_module_imports_and_is_unavailable(monkeypatch):
     # a second copy of the module, imported where numba cannot be
-    spec = importlib.util.spec_from_file_location("cpu_kernels_without_numba",
-                                                  kernels.__file__)
+    spec = importlib.util.spec_from_file_location("cpu_kernels_without_numba", kernels.__file__)
     module = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "numba", None)
     spec.loader.exec_module(module)
@@ -317,8 +342,12 @@ def test_dense_apply_matches_torch(dtype, columns):
     values = random_values(controls.shape[0], columns, dtype)
     result = kernels.dense_apply(dense, values)
     assert result.shape == (targets.shape[0], columns) and result.dtype == dtype
-    torch.testing.assert_close(result.double(), dense.double() @ values.double(),
-                               rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-14)
+    torch.testing.assert_close(
+        result.double(),
+        dense.double() @ values.double(),
+        rtol=0,
+        atol=1e-6 if dtype == torch.float32 else 1e-14,
+    )
 
 
 def test_dense_apply_messages():

@@ -424,8 +424,12 @@ def test_pytetwild_small_mesh_is_valid_and_tagged(case, tmp_path):
 def tiny_mesh():
     from data_gen._arrays import MeshArrays
 
-    return MeshArrays(points=np.eye(4, 3), tets=np.array([[0, 1, 2, 3]]),
-                      node_sets={"all": np.arange(4)}, info={"case": "tiny"})
+    return MeshArrays(
+        points=np.eye(4, 3),
+        tets=np.array([[0, 1, 2, 3]]),
+        node_sets={"all": np.arange(4)},
+        info={"case": "tiny"},
+    )
 
 
 def test_cache_files_are_readable_and_round_trip(tmp_path):
@@ -468,8 +472,10 @@ def test_corrupt_cache_entry_is_reported_removed_and_rebuilt(tmp_path, monkeypat
         raise RuntimeError("meshing again")
 
     monkeypatch.setattr(cases, "_generate", meshing)
-    with pytest.warns(RuntimeWarning, match="is unreadable .*building the mesh again"), \
-            pytest.raises(RuntimeError, match="meshing again"):
+    with (
+        pytest.warns(RuntimeWarning, match="is unreadable .*building the mesh again"),
+        pytest.raises(RuntimeError, match="meshing again"),
+    ):
         data_gen.build_arrays("wing", "small", cache_dir=tmp_path)
     assert not path.exists()
 
@@ -478,26 +484,36 @@ def test_read_only_cache_still_returns_the_built_mesh(tmp_path, monkeypatch):
     blocker = tmp_path / "file"
     blocker.write_text("not a directory")
     monkeypatch.setattr(cases, "_generate", lambda *a, **k: (None, None, None))
-    monkeypatch.setattr(cases, "_finish", lambda *a, **k: (
-        np.eye(4, 3), np.array([[0, 1, 2, 3]]), {"all": np.arange(4)}, 0))
+    monkeypatch.setattr(
+        cases,
+        "_finish",
+        lambda *a, **k: (np.eye(4, 3), np.array([[0, 1, 2, 3]]), {"all": np.arange(4)}, 0),
+    )
     monkeypatch.setattr(cases, "mesh_figures", lambda points, tets: {})
     with pytest.warns(RuntimeWarning, match="could not write the mesh cache entry"):
         mesh = data_gen.build_arrays("wing", "small", cache_dir=blocker / "cache")
     assert np.array_equal(mesh.tets, [[0, 1, 2, 3]])
 
 
-@pytest.mark.parametrize(("arguments", "message"), [
-    (["D"], r"^error: case: case must be one of"),
-    (["A", "--mesh-scale", "0"], r"^error: --mesh-scale must be a finite number > 0, got 0.0$"),
-    (["A", "--mesh-scale", "nan"], r"^error: --mesh-scale must be a finite number > 0"),
-    (["A", "--seed", "-1"], r"^error: --seed must be >= 0, got -1$"),
-    (["A", "-o", "{tmp}/mesh.stl"], r"^error: --output: unsupported mesh file extension '.stl'"),
-    (["A", "-o", "{tmp}/missing/mesh.vtu"], r"^error: --output: directory .*' does not exist$"),
-    (["A", "-o", "{tmp}"], r"^error: --output: .* is a directory$"),
-    (["A", "--cache-dir", "{tmp}/file"], r"^error: --cache-dir: .*file' is not a directory$"),
-])
-def test_cli_bad_arguments_are_one_line_errors_before_meshing(tmp_path, monkeypatch, capsys,
-                                                              arguments, message):
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["D"], r"^error: case: case must be one of"),
+        (["A", "--mesh-scale", "0"], r"^error: --mesh-scale must be a finite number > 0, got 0.0$"),
+        (["A", "--mesh-scale", "nan"], r"^error: --mesh-scale must be a finite number > 0"),
+        (["A", "--seed", "-1"], r"^error: --seed must be >= 0, got -1$"),
+        (
+            ["A", "-o", "{tmp}/mesh.stl"],
+            r"^error: --output: unsupported mesh file extension '.stl'",
+        ),
+        (["A", "-o", "{tmp}/missing/mesh.vtu"], r"^error: --output: directory .*' does not exist$"),
+        (["A", "-o", "{tmp}"], r"^error: --output: .* is a directory$"),
+        (["A", "--cache-dir", "{tmp}/file"], r"^error: --cache-dir: .*file' is not a directory$"),
+    ],
+)
+def test_cli_bad_arguments_are_one_line_errors_before_meshing(
+    tmp_path, monkeypatch, capsys, arguments, message
+):
     from data_gen.__main__ import main
 
     (tmp_path / "file").write_text("x")

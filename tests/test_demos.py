@@ -28,8 +28,7 @@ def load_demo(name: str):
 
 
 def run_demo(name: str, out: Path):
-    return load_demo(name).main(["--size", "small", "--out", str(out), "--quiet",
-                                 "--repeats", "1"])
+    return load_demo(name).main(["--size", "small", "--out", str(out), "--quiet", "--repeats", "1"])
 
 
 def check_common(result, out: Path, png: str) -> None:
@@ -46,8 +45,7 @@ def check_common(result, out: Path, png: str) -> None:
             assert row.modes >= 1 and row.offline_s >= row.fit_s > 0
     assert result.mesh["interior"] + result.mesh["boundary"] == result.mesh["nodes"]
     assert result.quality_deformed["IDW"]["num_inverted"] == 0
-    for name in ("reference.vtu", "deformed_idw.vtu", "deformed_esidw.vtu", png,
-                 "results.json"):
+    for name in ("reference.vtu", "deformed_idw.vtu", "deformed_esidw.vtu", png, "results.json"):
         path = out / name
         assert path.is_file() and path.stat().st_size > 0, name
         assert str(path) in result.files
@@ -59,8 +57,7 @@ def check_common(result, out: Path, png: str) -> None:
 def test_structural_wing(tmp_path):
     result = run_demo("structural_wing", tmp_path)
     check_common(result, tmp_path, "wing.png")
-    assert [row.method for row in result.rows] == ["IDW", "SIDW", "ESIDW", "POD-IDW",
-                                                   "POD-ESIDW"]
+    assert [row.method for row in result.rows] == ["IDW", "SIDW", "ESIDW", "POD-IDW", "POD-ESIDW"]
     sidw, esidw = result.row("SIDW"), result.row("ESIDW")
     assert 0 < esidw.error < sidw.error
     assert sidw.controls < esidw.controls < result.row("IDW").controls
@@ -81,8 +78,16 @@ def test_rotating_hull(tmp_path):
     result = run_demo("rotating_hull", tmp_path)
     check_common(result, tmp_path, "hull.png")
     methods = [row.method for row in result.rows]
-    assert methods == ["IDW", "ESIDW", "POD-IDW", "POD-IDW (1 mode)", "POD-IDW (2 modes)",
-                       "POD-ESIDW", "POD-ESIDW (1 mode)", "POD-ESIDW (2 modes)"]
+    assert methods == [
+        "IDW",
+        "ESIDW",
+        "POD-IDW",
+        "POD-IDW (1 mode)",
+        "POD-IDW (2 modes)",
+        "POD-ESIDW",
+        "POD-ESIDW (1 mode)",
+        "POD-ESIDW (2 modes)",
+    ]
     # a rigid rotation is exactly a two-dimensional family: sin μ and 1 - cos μ parts
     assert result.row("POD-IDW (2 modes)").error < 1e-6
     assert result.row("POD-IDW").modes == 2
@@ -92,10 +97,18 @@ def test_rotating_hull(tmp_path):
 
 
 def test_sensitivity(tmp_path):
-    results = load_demo("sensitivity").main(["--size", "small", "--out", str(tmp_path),
-                                             "--quiet", "--repeats", "1"])
-    for name in ("wing_radius.png", "wing_factor.png", "fluid_wing_radius.png",
-                 "hull_radius.png", "hull_angle.png", "spectra.png", "sensitivity.json"):
+    results = load_demo("sensitivity").main(
+        ["--size", "small", "--out", str(tmp_path), "--quiet", "--repeats", "1"]
+    )
+    for name in (
+        "wing_radius.png",
+        "wing_factor.png",
+        "fluid_wing_radius.png",
+        "hull_radius.png",
+        "hull_angle.png",
+        "spectra.png",
+        "sensitivity.json",
+    ):
         assert (tmp_path / name).stat().st_size > 0, name
     wing = results["cases"]["wing"]
     sidw = [p for p in wing["radius"] if not p["enrich"]]

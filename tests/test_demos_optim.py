@@ -34,7 +34,8 @@ def load_demo(name: str):
 
 def test_shape_optimisation_converges_to_a_valid_wing(tmp_path):
     result = load_demo("shape_optimisation").main(
-        ["--size", "small", "--out", str(tmp_path), "--quiet", "--repeats", "3"])
+        ["--size", "small", "--out", str(tmp_path), "--quiet", "--repeats", "3"]
+    )
     assert result["objective_final"] < 1e-5 * result["objective_initial"]
     history = result["history"].objective
     assert all(math.isfinite(value) for value in history)
@@ -55,8 +56,24 @@ def test_shape_optimisation_converges_to_a_valid_wing(tmp_path):
 
 def test_batched_morph_equals_looped_and_trains_through_the_morph(tmp_path):
     result = load_demo("batched_morph").main(
-        ["--size", "small", "--out", str(tmp_path), "--quiet", "--batch", "300", "--loop", "5",
-         "--repeats", "1", "--train-steps", "200", "--train-batch", "64"])
+        [
+            "--size",
+            "small",
+            "--out",
+            str(tmp_path),
+            "--quiet",
+            "--batch",
+            "300",
+            "--loop",
+            "5",
+            "--repeats",
+            "1",
+            "--train-steps",
+            "200",
+            "--train-batch",
+            "64",
+        ]
+    )
     assert result["looped_error"] < 1e-12
     assert result["vmap_error"] < 1e-12
     assert result["pod_error"] < 1e-10  # two POD modes span the rotation exactly

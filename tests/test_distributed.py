@@ -53,8 +53,7 @@ def test_sharded_idw_forward_equals_single_process(ranks, split, mode):
         local = result[f"idw/{split}/{mode}/forward"]
         assert local.shape == (2, len(rows), 3)
         torch.testing.assert_close(local, reference[:, rows], **TOLERANCE)
-        torch.testing.assert_close(result[f"idw/{split}/{mode}/gathered"], reference,
-                                   **TOLERANCE)
+        torch.testing.assert_close(result[f"idw/{split}/{mode}/gathered"], reference, **TOLERANCE)
     # the coincident target takes its control's displacement exactly on its rank
     assert torch.equal(results[0][f"idw/{split}/{mode}/forward"][:, 3], displacements[:, 5])
 
@@ -74,8 +73,9 @@ def test_sharded_idw_gradients_equal_single_process(ranks, split, mode):
         torch.testing.assert_close(result[f"idw/{split}/{mode}/grad_d"], d.grad, **TOLERANCE)
         torch.testing.assert_close(result[f"idw/{split}/{mode}/grad_c"], c.grad, **TOLERANCE)
         # local targets: their own rows
-        torch.testing.assert_close(result[f"idw/{split}/{mode}/grad_t"],
-                                   t.grad[_rows(split, rank)], **TOLERANCE)
+        torch.testing.assert_close(
+            result[f"idw/{split}/{mode}/grad_t"], t.grad[_rows(split, rank)], **TOLERANCE
+        )
 
 
 @pytest.mark.parametrize("split", list(worker.SPLITS))
@@ -85,19 +85,22 @@ def test_sharded_pod_equals_single_process(ranks, split):
     training = worker._training(controls)
     reference = PODReducer(num_modes=4).fit(IDW(controls, targets, mode="dense"), training)
     for result in results:
-        torch.testing.assert_close(result[f"pod/{split}/singular_values"],
-                                   reference.singular_values_, **TOLERANCE)
+        torch.testing.assert_close(
+            result[f"pod/{split}/singular_values"], reference.singular_values_, **TOLERANCE
+        )
     # the modes, assembled over ranks, equal the reference's up to sign
     modes = torch.cat([result[f"pod/{split}/modes"] for result in results], 1)
     signs = torch.sign((modes * reference.modes_).sum((1, 2)))
     assert torch.equal(signs.abs(), torch.ones(4, dtype=signs.dtype))
     torch.testing.assert_close(modes * signs[:, None, None], reference.modes_, **TOLERANCE)
-    torch.testing.assert_close(results[0][f"pod/{split}/projection"],
-                               results[1][f"pod/{split}/projection"], rtol=0, atol=0)
+    torch.testing.assert_close(
+        results[0][f"pod/{split}/projection"], results[1][f"pod/{split}/projection"], rtol=0, atol=0
+    )
     full = reference(displacements)
     for rank, result in enumerate(results):
-        torch.testing.assert_close(result[f"pod/{split}/forward"],
-                                   full[:, _rows(split, rank)], **TOLERANCE)
+        torch.testing.assert_close(
+            result[f"pod/{split}/forward"], full[:, _rows(split, rank)], **TOLERANCE
+        )
 
 
 @pytest.mark.parametrize("mode", ["dense", "matrix_free"])
@@ -115,23 +118,30 @@ def test_sharded_mesh_morph_equals_single_process(ranks, layout, mode):
     assert torch.equal(torch.cat(owned).sort().values, torch.arange(count))
     if layout == "default":  # half of the boundary and half of the interior nodes each
         for rank in range(2):
-            expected = torch.cat([
-                mesh.boundary_nodes[shard_rows(len(mesh.boundary_nodes), rank=rank,
-                                               world_size=2)],
-                mesh.interior_nodes[shard_rows(len(mesh.interior_nodes), rank=rank,
-                                               world_size=2)]]).sort().values
+            expected = (
+                torch.cat(
+                    [
+                        mesh.boundary_nodes[
+                            shard_rows(len(mesh.boundary_nodes), rank=rank, world_size=2)
+                        ],
+                        mesh.interior_nodes[
+                            shard_rows(len(mesh.interior_nodes), rank=rank, world_size=2)
+                        ],
+                    ]
+                )
+                .sort()
+                .values
+            )
             assert torch.equal(owned[rank], expected)
     if layout == "empty":
         assert owned[1].numel() == 0
         assert results[1][f"mesh/{layout}/{mode}/forward"].shape == (0, 3)
     for rank, result in enumerate(results):
         key = f"mesh/{layout}/{mode}"
-        torch.testing.assert_close(result[f"{key}/forward"], reference[owned[rank]],
-                                   **TOLERANCE)
+        torch.testing.assert_close(result[f"{key}/forward"], reference[owned[rank]], **TOLERANCE)
         torch.testing.assert_close(result[f"{key}/grad_d"], d.grad, **TOLERANCE)
         torch.testing.assert_close(result[f"{key}/grad_points"], points.grad, **TOLERANCE)
-    torch.testing.assert_close(results[0][f"mesh/{layout}/{mode}/gathered"], reference,
-                               **TOLERANCE)
+    torch.testing.assert_close(results[0][f"mesh/{layout}/{mode}/gathered"], reference, **TOLERANCE)
     assert results[1][f"mesh/{layout}/{mode}/gathered"] is None
 
 
@@ -140,22 +150,27 @@ def test_sharded_mesh_pod_equals_single_process(ranks, layout):
     results, _ = ranks
     mesh, boundary, _ = worker.mesh_data()
     morph = MeshMorph(mesh, mode="dense")
-    training = torch.stack([boundary * k for k in (1.0, -0.5, 2.0)]
-                           + [boundary.flip(0) * 0.3, boundary.roll(5, 0)])
+    training = torch.stack(
+        [boundary * k for k in (1.0, -0.5, 2.0)] + [boundary.flip(0) * 0.3, boundary.roll(5, 0)]
+    )
     reference = PODReducer(num_modes=3).fit(morph, training)(boundary)
     for result in results:
         owned = result[f"mesh/{layout}/dense/owned"]
-        torch.testing.assert_close(result[f"mesh/{layout}/dense/pod_forward"], reference[owned],
-                                   **TOLERANCE)
+        torch.testing.assert_close(
+            result[f"mesh/{layout}/dense/pod_forward"], reference[owned], **TOLERANCE
+        )
 
 
 def test_partitioned_files_and_batched_gather(ranks):
     results, outdir = ranks
     mesh, boundary, _ = worker.mesh_data()
-    torch.testing.assert_close(load_partitioned(outdir / "parts"),
-                               MeshMorph(mesh, mode="dense")(boundary), **TOLERANCE)
+    torch.testing.assert_close(
+        load_partitioned(outdir / "parts"), MeshMorph(mesh, mode="dense")(boundary), **TOLERANCE
+    )
     assert sorted(p.name for p in (outdir / "parts").iterdir()) == [
-        "part-00000-of-00002.pt", "part-00001-of-00002.pt"]
+        "part-00000-of-00002.pt",
+        "part-00001-of-00002.pt",
+    ]
     expected = torch.tensor([0.0, 1.0, 0.0, 1.0, 0.0])[None, :, None].expand(2, 5, 2)
     torch.testing.assert_close(results[0]["gather_batched"], expected, rtol=0, atol=0)
     assert results[1]["gather_batched"] is None
@@ -171,7 +186,8 @@ def test_partition_must_cover_every_node_once(ranks):
     for result in results:
         assert result["partition_error"] == (
             f"owned_nodes must partition the {count} mesh nodes across the ranks: "
-            f"{count - 10} nodes are owned by no rank and 10 by several")
+            f"{count - 10} nodes are owned by no rank and 10 by several"
+        )
 
 
 def test_shard_rows_splits_evenly():

@@ -15,12 +15,32 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_distributed_demo_small(tmp_path):
     pytest.importorskip("gmsh")
-    environment = {**os.environ, "TORCHMORPH_CACHE": str(tmp_path / "meshes"),
-                   "OMP_NUM_THREADS": "1"}
+    environment = {
+        **os.environ,
+        "TORCHMORPH_CACHE": str(tmp_path / "meshes"),
+        "OMP_NUM_THREADS": "1",
+    }
     completed = subprocess.run(
-        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-         str(ROOT / "demos" / "distributed_morph.py"), "--size", "small", "--repeats", "1"],
-        cwd=tmp_path, env=environment, capture_output=True, text=True, timeout=300, check=False)
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc-per-node",
+            "2",
+            str(ROOT / "demos" / "distributed_morph.py"),
+            "--size",
+            "small",
+            "--repeats",
+            "1",
+        ],
+        cwd=tmp_path,
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
     assert completed.returncode == 0, completed.stdout[-3000:] + completed.stderr[-3000:]
     out = completed.stdout
     assert "2 ranks on cpu" in out

@@ -22,8 +22,12 @@ def test_default_norm_is_the_mass_matrix_norm():
     mesh = structured_cube(3)
     d, d_ref = fields(mesh)
     assert ERROR_NORMS == ("mass", "nodal")
-    torch.testing.assert_close(relative_l2_error(mesh, d, d_ref),
-                               relative_l2_error(mesh, d, d_ref, norm="mass"), rtol=0, atol=0)
+    torch.testing.assert_close(
+        relative_l2_error(mesh, d, d_ref),
+        relative_l2_error(mesh, d, d_ref, norm="mass"),
+        rtol=0,
+        atol=0,
+    )
 
 
 def test_nodal_norm_against_a_literal_loop():
@@ -33,15 +37,16 @@ def test_nodal_norm_against_a_literal_loop():
     denominator = sum(float((d_ref[i] ** 2).sum()) for i in range(mesh.num_nodes))
     expected = (numerator / denominator) ** 0.5
     assert float(relative_nodal_error(mesh, d, d_ref)) == pytest.approx(expected, rel=1e-13)
-    assert float(relative_l2_error(mesh, d, d_ref, norm="nodal")) == pytest.approx(expected,
-                                                                                 rel=1e-13)
+    assert float(relative_l2_error(mesh, d, d_ref, norm="nodal")) == pytest.approx(
+        expected, rel=1e-13
+    )
 
 
 def test_the_norms_differ_on_a_graded_mesh():
     # an error only at the nodes of the small elements: the mass norm sees it less
     mesh = structured_cube(4)
     points = mesh.points.clone()
-    points = points ** 2  # elements shrink towards the corner x = y = z = 0
+    points = points**2  # elements shrink towards the corner x = y = z = 0
     from torchmorph.mesh import TetMesh
 
     graded = TetMesh(points, mesh.tets)
@@ -60,5 +65,4 @@ def test_old_spelling_warns_and_means_mass():
     d, d_ref = fields(mesh, 2)
     with pytest.warns(DeprecationWarning, match="norm='l2'\\) is deprecated"):
         old = relative_l2_error(mesh, d, d_ref, norm="l2")
-    torch.testing.assert_close(old, relative_l2_error(mesh, d, d_ref, norm="mass"), rtol=0,
-                               atol=0)
+    torch.testing.assert_close(old, relative_l2_error(mesh, d, d_ref, norm="mass"), rtol=0, atol=0)

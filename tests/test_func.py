@@ -36,8 +36,9 @@ def central_differences(function, mu: torch.Tensor, step: float = 1e-5) -> torch
         plus, minus = flat.clone(), flat.clone()
         plus[index] += step
         minus[index] -= step
-        columns.append((function(plus.reshape(mu.shape)) - function(minus.reshape(mu.shape)))
-                       / (2 * step))
+        columns.append(
+            (function(plus.reshape(mu.shape)) - function(minus.reshape(mu.shape))) / (2 * step)
+        )
     return torch.stack(columns, -1).reshape(*columns[0].shape, *mu.shape)
 
 
@@ -154,10 +155,12 @@ def test_compiled_forward_has_no_graph_break(kind, fresh_dynamo):
     compiled = torch.compile(morph, fullgraph=True, backend="aot_eager")
     mus = torch.linspace(0.0, 0.3, 4, dtype=F64)
     with torch.no_grad():
-        torch.testing.assert_close(compiled(family(mus)), morph(family(mus)), rtol=1e-13,
-                                   atol=1e-15)
-        torch.testing.assert_close(compiled(family(mus[1])), morph(family(mus[1])),
-                                   rtol=1e-13, atol=1e-15)
+        torch.testing.assert_close(
+            compiled(family(mus)), morph(family(mus)), rtol=1e-13, atol=1e-15
+        )
+        torch.testing.assert_close(
+            compiled(family(mus[1])), morph(family(mus[1])), rtol=1e-13, atol=1e-15
+        )
     # and through the compiled graph, gradients to μ are autograd's
     mu = torch.tensor(0.2, dtype=F64, requires_grad=True)
     (compiled_gradient,) = torch.autograd.grad(compiled(family(mu)).square().sum(), mu)
@@ -169,10 +172,12 @@ def test_compiled_forward_with_moved_points_has_no_graph_break(fresh_dynamo):
     morph, inputs, outputs = build("morph-dense")
     boundary = scalar_family(inputs)(torch.tensor(0.2, dtype=F64))
     moved = outputs + 0.01 * torch.sin(3.0 * outputs)
-    compiled = torch.compile(lambda points: morph(boundary, points=points), fullgraph=True,
-                             backend="aot_eager")
-    torch.testing.assert_close(compiled(moved), morph(boundary, points=moved), rtol=1e-13,
-                               atol=1e-15)
+    compiled = torch.compile(
+        lambda points: morph(boundary, points=points), fullgraph=True, backend="aot_eager"
+    )
+    torch.testing.assert_close(
+        compiled(moved), morph(boundary, points=moved), rtol=1e-13, atol=1e-15
+    )
 
 
 @pytest.mark.slow
@@ -184,8 +189,9 @@ def test_inductor_compiled_forward_equals_eager(kind, fresh_dynamo):
     compiled = torch.compile(morph, fullgraph=True)
     mus = torch.linspace(0.0, 0.3, 8, dtype=F64)
     with torch.no_grad():
-        torch.testing.assert_close(compiled(family(mus)), morph(family(mus)), rtol=1e-12,
-                                   atol=1e-14)
+        torch.testing.assert_close(
+            compiled(family(mus)), morph(family(mus)), rtol=1e-12, atol=1e-14
+        )
 
 
 # --------------------------------------------------------------------------------------

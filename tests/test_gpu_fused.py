@@ -24,8 +24,11 @@ def sphere_cloud(n_controls, n_targets, dtype, seed=0):
     controls = torch.randn(n_controls, 3, generator=generator, dtype=F64)
     controls /= controls.norm(dim=1, keepdim=True)
     targets = torch.randn(n_targets, 3, generator=generator, dtype=F64)
-    targets *= torch.rand(n_targets, 1, generator=generator, dtype=F64) ** 0.25 * 0.999 / \
-        targets.norm(dim=1, keepdim=True)
+    targets *= (
+        torch.rand(n_targets, 1, generator=generator, dtype=F64) ** 0.25
+        * 0.999
+        / targets.norm(dim=1, keepdim=True)
+    )
     return controls.to(dtype).cuda(), targets.to(dtype).cuda(), generator
 
 
@@ -40,8 +43,20 @@ def test_fused_matrix_free_matches_float64(dtype, batch, power):
     controls, targets, generator = sphere_cloud(3000, 5000, dtype)
     shape = (3000, 3) if batch is None else (batch, 3000, 3)
     displacements = torch.randn(*shape, generator=generator, dtype=F64)
-    reference = idw_apply(controls=controls.double().cpu(), targets=targets.double().cpu(), displacements=displacements, power=power, implementation="torch")
-    got = idw_apply(controls=controls, targets=targets, displacements=displacements.to(dtype).cuda(), power=power, implementation="fused")
+    reference = idw_apply(
+        controls=controls.double().cpu(),
+        targets=targets.double().cpu(),
+        displacements=displacements,
+        power=power,
+        implementation="torch",
+    )
+    got = idw_apply(
+        controls=controls,
+        targets=targets,
+        displacements=displacements.to(dtype).cuda(),
+        power=power,
+        implementation="fused",
+    )
     error = (got.double().cpu() - reference).norm() / reference.norm()
     assert error < (1e-5 if dtype == torch.float32 else 1e-12), float(error)
 
@@ -51,18 +66,29 @@ def test_fused_exact_at_controls_and_mean_on_duplicates():
     controls[7] = controls[6]
     targets[0], targets[1] = controls[3], controls[6]
     displacements = torch.randn(500, 3, generator=generator, dtype=F64).cuda()
-    got = idw_apply(controls=controls, targets=targets, displacements=displacements, implementation="fused")
+    got = idw_apply(
+        controls=controls, targets=targets, displacements=displacements, implementation="fused"
+    )
     assert torch.equal(got[0], displacements[3])
     torch.testing.assert_close(got[1], (displacements[6] + displacements[7]) / 2)
-    torch.testing.assert_close(got, idw_apply(controls=controls, targets=targets, displacements=displacements, implementation="torch"))
+    torch.testing.assert_close(
+        got,
+        idw_apply(
+            controls=controls, targets=targets, displacements=displacements, implementation="torch"
+        ),
+    )
 
 
 def test_fused_gradient_to_displacements_gradcheck():
     controls, targets, generator = sphere_cloud(40, 60, F64)
     displacements = torch.randn(2, 40, 3, generator=generator, dtype=F64).cuda()
     displacements.requires_grad_(True)
-    assert gradcheck(lambda d: idw_apply(controls=controls, targets=targets, displacements=d, implementation="fused"),
-                     (displacements,))
+    assert gradcheck(
+        lambda d: idw_apply(
+            controls=controls, targets=targets, displacements=d, implementation="fused"
+        ),
+        (displacements,),
+    )
     module = IDW(controls, targets, mode="matrix_free", implementation="fused")
     assert gradcheck(module, (displacements,))
 
@@ -74,12 +100,29 @@ def test_fused_gradient_to_positions_gradcheck():
     targets.requires_grad_(True)
     controls.requires_grad_(True)
     displacements.requires_grad_(True)
-    assert gradcheck(lambda t, c, d: idw_apply(controls=c, targets=t, displacements=d, power=3.0, implementation="fused"),
-                     (targets, controls, displacements))
-    fused = torch.autograd.grad(idw_apply(controls=controls, targets=targets, displacements=displacements[0]).square().sum(),
-                                (targets, controls))
-    plain = torch.autograd.grad(idw_apply(controls=controls, targets=targets, displacements=displacements[0], implementation="torch").square().sum(),
-                                (targets, controls))
+    assert gradcheck(
+        lambda t, c, d: idw_apply(
+            controls=c, targets=t, displacements=d, power=3.0, implementation="fused"
+        ),
+        (targets, controls, displacements),
+    )
+    fused = torch.autograd.grad(
+        idw_apply(controls=controls, targets=targets, displacements=displacements[0])
+        .square()
+        .sum(),
+        (targets, controls),
+    )
+    plain = torch.autograd.grad(
+        idw_apply(
+            controls=controls,
+            targets=targets,
+            displacements=displacements[0],
+            implementation="torch",
+        )
+        .square()
+        .sum(),
+        (targets, controls),
+    )
     for got, expected in zip(fused, plain, strict=True):
         torch.testing.assert_close(got, expected)
 
@@ -88,10 +131,17 @@ def test_gradient_to_positions_with_many_columns_falls_back_to_torch():
     controls, targets, generator = sphere_cloud(30, 50, F64)
     displacements = torch.randn(9, 30, 3, generator=generator, dtype=F64).cuda()
     targets.requires_grad_(True)
-    assert gradcheck(lambda t: idw_apply(controls=controls, targets=t, displacements=displacements), (targets,))
-    with pytest.raises(ValueError, match="implementation='fused' cannot run here: gradients to "
-                                         "point positions are fused on CUDA for D <= 3"):
-        idw_apply(controls=controls, targets=targets, displacements=displacements, implementation="fused")
+    assert gradcheck(
+        lambda t: idw_apply(controls=controls, targets=t, displacements=displacements), (targets,)
+    )
+    with pytest.raises(
+        ValueError,
+        match="implementation='fused' cannot run here: gradients to "
+        "point positions are fused on CUDA for D <= 3",
+    ):
+        idw_apply(
+            controls=controls, targets=targets, displacements=displacements, implementation="fused"
+        )
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
@@ -128,5 +178,8 @@ def test_traced_calls_use_torch_and_forcing_fused_there_fails():
     batched = torch.func.vmap(lambda mu: module(mu * direction))(mus)
     torch.testing.assert_close(batched, module(mus[:, None, None] * direction))
     with pytest.raises(ValueError, match="the call is traced"):
-        torch.func.vmap(lambda d: idw_apply(controls=controls, targets=targets, displacements=d, implementation="fused"))(
-            mus[:, None, None] * direction)
+        torch.func.vmap(
+            lambda d: idw_apply(
+                controls=controls, targets=targets, displacements=d, implementation="fused"
+            )
+        )(mus[:, None, None] * direction)

@@ -41,8 +41,9 @@ def finite_difference_gradient(objective, value: torch.Tensor, step: float = 1e-
         plus, minus = flat.clone(), flat.clone()
         plus[index] += step
         minus[index] -= step
-        gradient[index] = (objective(plus.reshape(value.shape))
-                           - objective(minus.reshape(value.shape))) / (2 * step)
+        gradient[index] = (
+            objective(plus.reshape(value.shape)) - objective(minus.reshape(value.shape))
+        ) / (2 * step)
     return gradient.reshape(value.shape)
 
 
@@ -79,8 +80,10 @@ def test_gradient_with_respect_to_mu_matches_finite_differences(kind, parameters
     def objective(value: torch.Tensor) -> torch.Tensor:
         return (weights * morph(family(value))).sum()
 
-    assert relative_error(autograd_gradient(objective, mu),
-                          finite_difference_gradient(objective, mu)) <= 1e-6
+    assert (
+        relative_error(autograd_gradient(objective, mu), finite_difference_gradient(objective, mu))
+        <= 1e-6
+    )
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -91,8 +94,11 @@ def test_gradcheck_with_respect_to_mu(kind, parameters):
     family = make_family(inputs)
     # a batch (many outputs) and matrix-free backward passes (which recompute the
     # tiles) take the fast check: one random projection of the Jacobian
-    assert gradcheck(lambda value: morph(family(value)), (mu.clone().requires_grad_(True),),
-                     fast_mode=parameters == "batch" or "matrix-free" in kind)
+    assert gradcheck(
+        lambda value: morph(family(value)),
+        (mu.clone().requires_grad_(True),),
+        fast_mode=parameters == "batch" or "matrix-free" in kind,
+    )
 
 
 def test_gradcheck_of_pod_morph_parameters_with_a_vector_family():
@@ -129,8 +135,9 @@ def small_morph(mode: str) -> tuple[MeshMorph, torch.Tensor]:
 def test_gradcheck_with_respect_to_points(mode):
     morph, boundary = small_morph(mode)
     points = morph.points.clone().requires_grad_(True)
-    assert gradcheck(lambda moved: morph(boundary, points=moved), (points,),
-                     fast_mode=mode == "matrix_free")
+    assert gradcheck(
+        lambda moved: morph(boundary, points=moved), (points,), fast_mode=mode == "matrix_free"
+    )
 
 
 @pytest.mark.parametrize("mode", ("dense", "matrix_free"))
@@ -141,16 +148,23 @@ def test_gradient_with_respect_to_points_matches_finite_differences(mode):
     def objective(points: torch.Tensor) -> torch.Tensor:
         return (weights * morph(boundary, points=points)).sum()
 
-    assert relative_error(autograd_gradient(objective, morph.points),
-                          finite_difference_gradient(objective, morph.points)) <= 1e-6
+    assert (
+        relative_error(
+            autograd_gradient(objective, morph.points),
+            finite_difference_gradient(objective, morph.points),
+        )
+        <= 1e-6
+    )
 
 
 def test_point_gradients_agree_between_dense_and_matrix_free():
     dense, boundary = small_morph("dense")
     free, _ = small_morph("matrix_free")
     weights = output_weights(dense.points.shape, seed=5)
-    gradients = [autograd_gradient(lambda p, m=m: (weights * m(boundary, points=p)).sum(),
-                                   dense.points) for m in (dense, free)]
+    gradients = [
+        autograd_gradient(lambda p, m=m: (weights * m(boundary, points=p)).sum(), dense.points)
+        for m in (dense, free)
+    ]
     torch.testing.assert_close(gradients[1], gradients[0], rtol=1e-10, atol=1e-13)
 
 
@@ -178,8 +192,10 @@ def test_barrier_of_the_morph_matches_finite_differences():
         return validity_barrier(mesh, morph(family(value)), threshold=0.9)
 
     assert float(objective(mu)) > 0
-    assert relative_error(autograd_gradient(objective, mu),
-                          finite_difference_gradient(objective, mu)) <= 1e-6
+    assert (
+        relative_error(autograd_gradient(objective, mu), finite_difference_gradient(objective, mu))
+        <= 1e-6
+    )
     assert gradcheck(objective, (mu.clone().requires_grad_(True),))
 
 
@@ -216,6 +232,7 @@ def test_gradients_on_cuda_match_cpu(kind):
     expected = autograd_gradient(lambda value: (weights * morph(family(value))).sum(), mu)
     on_gpu = morph.to("cuda")
     gpu_family, gpu_weights = vector_family(inputs.to("cuda")), weights.to("cuda")
-    got = autograd_gradient(lambda value: (gpu_weights * on_gpu(gpu_family(value))).sum(),
-                            mu.to("cuda"))
+    got = autograd_gradient(
+        lambda value: (gpu_weights * on_gpu(gpu_family(value))).sum(), mu.to("cuda")
+    )
     torch.testing.assert_close(got.cpu(), expected, rtol=1e-10, atol=1e-12)

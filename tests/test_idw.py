@@ -42,7 +42,10 @@ def graded_cloud(dtype=F64):
     def sphere_points(radii, per_shell):
         directions = torch.randn(len(radii) * per_shell, 3, generator=generator, dtype=F64)
         directions /= directions.norm(dim=1, keepdim=True)
-        return directions * torch.repeat_interleave(torch.as_tensor(radii, dtype=F64), per_shell)[:, None]
+        return (
+            directions
+            * torch.repeat_interleave(torch.as_tensor(radii, dtype=F64), per_shell)[:, None]
+        )
 
     controls = sphere_points(np.logspace(-6, 2, 9), 12)
     targets = sphere_points(np.logspace(-6, 2, 17) * 1.7, 8)
@@ -81,8 +84,9 @@ def test_rows_sum_to_one_and_lie_in_unit_interval(dtype):
     assert torch.isfinite(weights).all()
     assert (weights >= 0).all() and (weights <= 1).all()
     tolerance = 1e-6 if dtype == torch.float32 else 1e-14
-    torch.testing.assert_close(weights.sum(1), torch.ones(len(targets), dtype=dtype),
-                               rtol=0, atol=tolerance)
+    torch.testing.assert_close(
+        weights.sum(1), torch.ones(len(targets), dtype=dtype), rtol=0, atol=tolerance
+    )
 
 
 def test_float32_weights_do_not_overflow_far_or_near():
@@ -109,7 +113,9 @@ def test_weights_of_a_2d_cloud():
     controls = torch.rand(10, 2, generator=generator, dtype=F64)
     targets = torch.rand(6, 2, generator=generator, dtype=F64)
     reference = brute_force_weights(targets.numpy(), controls.numpy())
-    torch.testing.assert_close(idw_weights(controls=controls, targets=targets), torch.from_numpy(reference))
+    torch.testing.assert_close(
+        idw_weights(controls=controls, targets=targets), torch.from_numpy(reference)
+    )
 
 
 # --------------------------------------------------------------------------- #
@@ -141,7 +147,9 @@ def test_matrix_free_equals_dense_in_float64():
     displacements = torch.randn(4, controls.shape[0], 3, generator=generator, dtype=F64)
     dense = IDW(controls, targets, mode="dense")(displacements)
     for block_bytes in (512, 4096, 10**6):  # tiles of a few rows/columns up to one tile
-        free = idw_apply(controls=controls, targets=targets, displacements=displacements, block_bytes=block_bytes)
+        free = idw_apply(
+            controls=controls, targets=targets, displacements=displacements, block_bytes=block_bytes
+        )
         torch.testing.assert_close(free, dense, rtol=0, atol=1e-12)
 
 
@@ -188,9 +196,13 @@ def test_gradcheck_positions_functional():
     targets.requires_grad_(True)
     controls.requires_grad_(True)
     displacements = torch.randn(8, 3, generator=generator, dtype=F64, requires_grad=True)
-    assert gradcheck(lambda t, c, d: idw_weights(controls=c, targets=t) @ d, (targets, controls, displacements))
-    assert gradcheck(lambda t, c, d: idw_apply(controls=c, targets=t, displacements=d, block_bytes=300),
-                     (targets, controls, displacements))
+    assert gradcheck(
+        lambda t, c, d: idw_weights(controls=c, targets=t) @ d, (targets, controls, displacements)
+    )
+    assert gradcheck(
+        lambda t, c, d: idw_apply(controls=c, targets=t, displacements=d, block_bytes=300),
+        (targets, controls, displacements),
+    )
 
 
 @pytest.mark.parametrize("mode", ["dense", "matrix_free"])
@@ -204,8 +216,10 @@ def test_module_built_from_positions_that_require_grad_rebuilds_w(mode):
     assert controls.grad is not None and controls.grad.abs().sum() > 0
     assert targets.grad is not None and targets.grad.abs().sum() > 0
     # and the gradient is the true one
-    assert gradcheck(lambda t, c: IDW(c, t, mode=mode)(displacements),
-                     (targets.detach().requires_grad_(), controls.detach().requires_grad_()))
+    assert gradcheck(
+        lambda t, c: IDW(c, t, mode=mode)(displacements),
+        (targets.detach().requires_grad_(), controls.detach().requires_grad_()),
+    )
 
 
 @pytest.mark.parametrize("mode", ["dense", "matrix_free"])
@@ -221,8 +235,9 @@ def test_forward_with_moved_geometry_against_finite_differences(mode):
         plus, minus = controls.clone(), controls.clone()
         plus[index] += step
         minus[index] -= step
-        numeric = (morph(displacements, controls=plus).sum()
-                   - morph(displacements, controls=minus).sum()) / (2 * step)
+        numeric = (
+            morph(displacements, controls=plus).sum() - morph(displacements, controls=minus).sum()
+        ) / (2 * step)
         assert math.isclose(float(gradient[index]), float(numeric), rel_tol=1e-6, abs_tol=1e-9)
 
 
@@ -234,8 +249,7 @@ def test_state_dict_round_trip():
     morph = IDW(controls, targets)
     state = morph.state_dict()
     assert set(state) == {"controls", "targets", "weights", "_extra_state"}
-    assert state["_extra_state"] == {"power": 4.0, "coincidence_tolerance": 1e-10,
-                                     "mode": "dense"}
+    assert state["_extra_state"] == {"power": 4.0, "coincidence_tolerance": 1e-10, "mode": "dense"}
     shifted = IDW(controls + 1.0, targets)
     shifted.load_state_dict(state)
     displacements = torch.randn(controls.shape[0], 3, generator=generator, dtype=F64)
@@ -245,8 +259,9 @@ def test_state_dict_round_trip():
 def test_state_with_another_power_or_tolerance_fails_to_load():
     targets, controls, _ = cloud()
     state = IDW(controls, targets, power=2.0).state_dict()
-    with pytest.raises(ValueError, match="power: the state was saved with power=2.0 but this "
-                                         "module has power=4.0"):
+    with pytest.raises(
+        ValueError, match="power: the state was saved with power=2.0 but this module has power=4.0"
+    ):
         IDW(controls, targets).load_state_dict(state)
     state = IDW(controls, targets, coincidence_tolerance=1e-6).state_dict()
     with pytest.raises(ValueError, match="coincidence_tolerance: the state was saved with"):
@@ -282,9 +297,12 @@ def test_to_dtype_moves_buffers():
     morph = IDW(controls, targets).to(torch.float32)
     assert morph.weights.dtype == morph.controls.dtype == torch.float32
     displacements = torch.randn(controls.shape[0], 3, generator=generator)
-    torch.testing.assert_close(morph(displacements).double(),
-                               IDW(controls, targets)(displacements.double()),
-                               rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(
+        morph(displacements).double(),
+        IDW(controls, targets)(displacements.double()),
+        rtol=1e-5,
+        atol=1e-6,
+    )
 
 
 @pytest.mark.gpu
@@ -327,7 +345,9 @@ def test_errors_name_the_argument():
 def test_forward_errors_name_the_argument():
     targets, controls, _ = cloud()
     morph = IDW(controls, targets)
-    with pytest.raises(ValueError, match=r"displacements must have shape \(25, 3\) or \(B, 25, 3\)"):
+    with pytest.raises(
+        ValueError, match=r"displacements must have shape \(25, 3\) or \(B, 25, 3\)"
+    ):
         morph(torch.zeros(24, 3, dtype=F64))
     with pytest.raises(ValueError, match="displacements has dtype torch.float32"):
         morph(torch.zeros(25, 3))
@@ -341,14 +361,18 @@ def test_forward_errors_name_the_argument():
         with pytest.raises(ValueError, match="displacements is on device"):
             morph(torch.zeros(25, 3, dtype=F64, device="cuda"))
     with pytest.raises(ValueError, match="displacements must have shape"):
-        idw_apply(controls=controls, targets=targets, displacements=torch.zeros(2, 2, 25, 3, dtype=F64))
+        idw_apply(
+            controls=controls, targets=targets, displacements=torch.zeros(2, 2, 25, 3, dtype=F64)
+        )
 
 
 # --------------------------------------------------------------------------- #
 # numerics: scale, duplicates, coincident gradients; memory; implementations
 # --------------------------------------------------------------------------- #
-@pytest.mark.parametrize(("dtype", "scale"), [(torch.float32, 1e-19), (torch.float32, 1e30),
-                                              (F64, 1e-170), (F64, 1e155), (F64, 1e300)])
+@pytest.mark.parametrize(
+    ("dtype", "scale"),
+    [(torch.float32, 1e-19), (torch.float32, 1e30), (F64, 1e-170), (F64, 1e155), (F64, 1e300)],
+)
 def test_weights_do_not_depend_on_the_units(dtype, scale):
     targets, controls, _ = cloud()
     expected = idw_weights(controls=controls, targets=targets)
@@ -363,8 +387,10 @@ def test_duplicate_controls_give_the_mean_whatever_their_order():
     controls[11] = controls[4]
     targets[0] = controls[4]
     displacements = torch.randn(25, 3, generator=generator, dtype=F64)
-    with pytest.warns(UserWarning, match="controls: 2 control points lie within the coincidence "
-                                         "radius of another one"):
+    with pytest.warns(
+        UserWarning,
+        match="controls: 2 control points lie within the coincidence radius of another one",
+    ):
         morph = IDW(controls, targets, mode="dense")
     moved = morph(displacements)
     torch.testing.assert_close(moved[0], (displacements[4] + displacements[11]) / 2)
@@ -382,8 +408,12 @@ def test_position_gradients_are_finite_on_coincident_rows(power):
     targets.requires_grad_(True)
     controls.requires_grad_(True)
     displacements = torch.randn(25, 3, dtype=F64)
-    for function in (lambda: idw_weights(controls=controls, targets=targets, power=power) @ displacements,
-                     lambda: idw_apply(controls=controls, targets=targets, displacements=displacements, power=power)):
+    for function in (
+        lambda: idw_weights(controls=controls, targets=targets, power=power) @ displacements,
+        lambda: idw_apply(
+            controls=controls, targets=targets, displacements=displacements, power=power
+        ),
+    ):
         gradients = torch.autograd.grad(function().square().sum(), (targets, controls))
         assert all(torch.isfinite(g).all() for g in gradients)
 
@@ -393,8 +423,11 @@ def test_dense_that_cannot_fit_fails_before_allocating(monkeypatch):
 
     targets, controls, _ = cloud()
     monkeypatch.setattr(idw_module, "_free_memory", lambda device: 1000)
-    with pytest.raises(ValueError, match=r"mode='dense': W \(40 x 25, 0.0 GiB\) does not fit in "
-                                         r"the 0.0 GiB free on cpu; use mode='matrix_free'"):
+    with pytest.raises(
+        ValueError,
+        match=r"mode='dense': W \(40 x 25, 0.0 GiB\) does not fit in "
+        r"the 0.0 GiB free on cpu; use mode='matrix_free'",
+    ):
         IDW(controls, targets, mode="dense")
     assert IDW(controls, targets).mode == "matrix_free"  # auto: half of what is free
     monkeypatch.setattr(idw_module, "_free_memory", lambda device: 2 * 40 * 25 * 8)
@@ -404,16 +437,30 @@ def test_dense_that_cannot_fit_fails_before_allocating(monkeypatch):
 def test_implementation_is_checked_and_forced_fused_explains_why_not():
     targets, controls, _ = cloud()
     displacements = torch.zeros(25, 3, dtype=F64)
-    with pytest.raises(ValueError, match="implementation must be 'auto', 'fused' or 'torch', "
-                                         "got 'cuda'"):
+    with pytest.raises(
+        ValueError, match="implementation must be 'auto', 'fused' or 'torch', got 'cuda'"
+    ):
         IDW(controls, targets, implementation="cuda")
     if not fused_available("cpu"):
-        with pytest.raises(ValueError, match="implementation='fused' cannot run here: no fused "
-                                             "kernels on device cpu"):
-            idw_apply(controls=controls, targets=targets, displacements=displacements, implementation="fused")
+        with pytest.raises(
+            ValueError,
+            match="implementation='fused' cannot run here: no fused kernels on device cpu",
+        ):
+            idw_apply(
+                controls=controls,
+                targets=targets,
+                displacements=displacements,
+                implementation="fused",
+            )
     torch.testing.assert_close(
-        idw_apply(controls=controls, targets=targets, displacements=displacements + 1.0, implementation="torch"),
-        torch.ones(40, 3, dtype=F64))
+        idw_apply(
+            controls=controls,
+            targets=targets,
+            displacements=displacements + 1.0,
+            implementation="torch",
+        ),
+        torch.ones(40, 3, dtype=F64),
+    )
 
 
 @pytest.mark.skipif(not fused_available("cpu"), reason="needs numba (the CPU fused kernels)")
@@ -435,15 +482,21 @@ def test_points_are_keywords_and_the_old_positional_order_is_deprecated():
     targets, controls, generator = cloud()
     displacements = torch.randn(25, 3, generator=generator, dtype=F64)
     expected = idw_apply(controls=controls, targets=targets, displacements=displacements)
-    with pytest.warns(DeprecationWarning, match=r"idw_apply\(targets, controls, \.\.\.\) with "
-                                                "positional points is deprecated"):
+    with pytest.warns(
+        DeprecationWarning,
+        match=r"idw_apply\(targets, controls, \.\.\.\) with "
+        "positional points is deprecated",
+    ):
         old = idw_apply(targets, controls, displacements)
     torch.testing.assert_close(old, expected, rtol=0, atol=0)
     with pytest.warns(DeprecationWarning, match=r"idw_weights\(targets, controls"):
         weights = idw_weights(targets, controls)
     torch.testing.assert_close(weights @ displacements, expected)
-    with pytest.raises(TypeError, match=r"idw_weights\(\) takes its points as keywords: "
-                                        r"idw_weights\(controls=\.\.\., targets=\.\.\.\)"):
+    with pytest.raises(
+        TypeError,
+        match=r"idw_weights\(\) takes its points as keywords: "
+        r"idw_weights\(controls=\.\.\., targets=\.\.\.\)",
+    ):
         idw_weights(targets, controls=controls)
     with pytest.raises(TypeError, match=r"idw_apply\(\) needs displacements="):
         idw_apply(controls=controls, targets=targets)

@@ -181,9 +181,24 @@ def test_write_rejects_bad_fields(tmp_path, cube):
 # --------------------------------------------------------------------------- awkward names
 
 AWKWARD_SET_NAMES = [
-    "inlet wall", 'q"uote', "less<than", "amp&ersand", "tab\tname", "new\nline",
-    "apos'trophe", "greater>than", "per%cent", "per%41cent", "ümlaut-ε", "semi;colon",
-    "col:on", " leading", "trailing ", "no\u00a0break", "set:nested", "back\\slash",
+    "inlet wall",
+    'q"uote',
+    "less<than",
+    "amp&ersand",
+    "tab\tname",
+    "new\nline",
+    "apos'trophe",
+    "greater>than",
+    "per%cent",
+    "per%41cent",
+    "ümlaut-ε",
+    "semi;colon",
+    "col:on",
+    " leading",
+    "trailing ",
+    "no\u00a0break",
+    "set:nested",
+    "back\\slash",
 ]
 
 

@@ -29,6 +29,9 @@ def test_large_size_is_accepted_and_finer_than_paper(case, tmp_path):
 
 @pytest.mark.parametrize(("case", "mesher"), [("wing", "gmsh"), ("hull", "pytetwild")])
 def test_large_size_only_where_defined(case, mesher, tmp_path):
-    with pytest.raises(ValueError, match=f"size 'large' is not defined for case '{case}' "
-                                         f"with mesher '{mesher}'; its sizes: small, paper"):
+    with pytest.raises(
+        ValueError,
+        match=f"size 'large' is not defined for case '{case}' "
+        f"with mesher '{mesher}'; its sizes: small, paper",
+    ):
         cases.cache_path(case, "large", mesher, cache_dir=tmp_path)

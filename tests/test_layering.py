@@ -62,13 +62,29 @@ def test_no_import_cycle_in_the_library():
 def test_one_tet_edge_table():
     table = "(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)"
     holders = [path.name for path in LIBRARY.glob("*.py") if table in path.read_text()]
-    holders += [path.name for path in (LIBRARY.parent / "data_gen").glob("*.py")
-                if table in path.read_text()]
+    holders += [
+        path.name
+        for path in (LIBRARY.parent / "data_gen").glob("*.py")
+        if table in path.read_text()
+    ]
     assert [name for name in holders if name != "paper.py"] == ["_tet.py"]
 
 
-@pytest.mark.parametrize("module", ["selection", "_sidw", "morph", "pod", "pod_functional",
-                                    "_pod_protocol", "mesh", "quality", "io", "_tet"])
+@pytest.mark.parametrize(
+    "module",
+    [
+        "selection",
+        "_sidw",
+        "morph",
+        "pod",
+        "pod_functional",
+        "_pod_protocol",
+        "mesh",
+        "quality",
+        "io",
+        "_tet",
+    ],
+)
 def test_core_files_stay_small(module):
     """About 600 lines at most (docstrings included), so that a module stays one concept."""
     lines = (LIBRARY / f"{module}.py").read_text().count("\n")

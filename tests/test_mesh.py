@@ -253,8 +253,11 @@ def test_folded_reference_tetrahedra_are_rejected():
     points = torch.as_tensor(points, dtype=F64).clone()
     inner = int(np.flatnonzero((points > 0).all(1) & (points < 1).all(1))[0])
     points[inner] += torch.tensor([0.5, 0.45, 0.4], dtype=F64)
-    with pytest.raises(ValueError, match=r"tets: \d+ interior face\(s\) have both of their "
-                                         r"tetrahedra on the same side"):
+    with pytest.raises(
+        ValueError,
+        match=r"tets: \d+ interior face\(s\) have both of their "
+        r"tetrahedra on the same side",
+    ):
         TetMesh(points, tets)
 
 
@@ -271,8 +274,10 @@ def test_fold_check_agrees_without_int64_face_keys(monkeypatch):
     points, tets = kuhn_grid(3)
     reference = TetMesh(points, tets).boundary_faces
     monkeypatch.setattr(mesh_module, "_MAX_NODES_FOR_FACE_KEYS", 0)
-    assert torch.equal(torch.sort(TetMesh(points, tets).boundary_faces.sort(1).values, 0).values,
-                       torch.sort(reference.sort(1).values, 0).values)
+    assert torch.equal(
+        torch.sort(TetMesh(points, tets).boundary_faces.sort(1).values, 0).values,
+        torch.sort(reference.sort(1).values, 0).values,
+    )
     with pytest.raises(ValueError, match="belong to more than two tetrahedra"):
         TetMesh(points, np.concatenate([tets, tets[:1]]))
 
@@ -282,10 +287,10 @@ def test_overlapping_tets_that_share_no_face_are_rejected():
 
     cube = box_mesh(2)  # one interior node, the centre
     (centre,) = cube.interior_nodes.tolist()
-    corners = [k for k in range(cube.num_nodes)
-               if all(float(x) in (0.0, 1.0) for x in cube.points[k])]
-    faces = {tuple(sorted(face)) for tet in cube.tets.tolist()
-             for face in combinations(tet, 3)}
+    corners = [
+        k for k in range(cube.num_nodes) if all(float(x) in (0.0, 1.0) for x in cube.points[k])
+    ]
+    faces = {tuple(sorted(face)) for tet in cube.tets.tolist() for face in combinations(tet, 3)}
     for a, b, c in combinations(corners, 3):
         extra = [centre, a, b, c]
         if any(tuple(sorted(face)) in faces for face in combinations(extra, 3)):
@@ -294,8 +299,11 @@ def test_overlapping_tets_that_share_no_face_are_rejected():
         if abs(float(volume)) > 1e-3:
             break
     tets = torch.cat([cube.tets, torch.tensor([extra])])
-    with pytest.raises(ValueError, match=r"tets: the tetrahedra around \d+ node\(s\) cover more "
-                                         r"than one sphere .* e\.g\. node \d+: solid angle"):
+    with pytest.raises(
+        ValueError,
+        match=r"tets: the tetrahedra around \d+ node\(s\) cover more "
+        r"than one sphere .* e\.g\. node \d+: solid angle",
+    ):
         TetMesh(cube.points, tets)
 
 

@@ -60,10 +60,12 @@ def test_problems_name_holes_inconsistent_orientation_and_zero_area():
     ]
     doubled = np.concatenate([faces, faces[:1, ::-1]])
     assert "3 edge(s) are shared by more than two faces (non-manifold)" in surface_problems(
-        vertices, doubled)
+        vertices, doubled
+    )
     flat = np.concatenate([vertices, vertices[:1]])  # a zero-area face on a duplicated vertex
     assert "1 face(s) have zero area (e.g. face 0)" in surface_problems(
-        flat, np.array([[0, len(vertices), 1]]))
+        flat, np.array([[0, len(vertices), 1]])
+    )
 
 
 def test_stl_soup_is_merged_and_an_inward_surface_flipped(tmp_path):
@@ -80,9 +82,12 @@ def test_stl_soup_is_merged_and_an_inward_surface_flipped(tmp_path):
 def test_open_surface_is_refused_with_what_is_wrong_and_repaired_on_request(tmp_path):
     vertices, faces = icosphere()
     path = write_obj(tmp_path / "open.obj", vertices, faces[1:])
-    with pytest.raises(ValueError, match=r"path: surface '.*open.obj' is not a closed, "
-                       r"consistently oriented surface: 3 edge\(s\) belong to one face only .*"
-                       r"pass repair=True \(torchmorph mesh --repair\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"path: surface '.*open.obj' is not a closed, "
+        r"consistently oriented surface: 3 edge\(s\) belong to one face only .*"
+        r"pass repair=True \(torchmorph mesh --repair\)",
+    ):
         load_surface(path)
     repaired = load_surface(path, repair=True)
     assert surface_problems(repaired.vertices, repaired.faces) == []
@@ -128,23 +133,29 @@ def test_closest_points_match_brute_force():
     rng = np.random.default_rng(0)
     queries = rng.normal(size=(300, 3)) * rng.uniform(0.2, 2.0, size=(300, 1))
     points, face, distance = closest_points(queries, vertices, faces)
-    brute = np.stack([
-        _surface._closest_on_triangles(np.repeat(q[None], len(faces), 0),
-                                      *(vertices[faces[:, k]] for k in range(3)))
-        for q in queries
-    ])  # (Q, F, 3)
+    brute = np.stack(
+        [
+            _surface._closest_on_triangles(
+                np.repeat(q[None], len(faces), 0), *(vertices[faces[:, k]] for k in range(3))
+            )
+            for q in queries
+        ]
+    )  # (Q, F, 3)
     all_distances = np.linalg.norm(brute - queries[:, None], axis=2)
     np.testing.assert_allclose(distance, all_distances.min(1), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(points, brute[np.arange(len(queries)), all_distances.argmin(1)],
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        points, brute[np.arange(len(queries)), all_distances.argmin(1)], atol=1e-12
+    )
     np.testing.assert_allclose(all_distances[np.arange(len(queries)), face], distance, atol=1e-12)
     # the closest point of a triangle: a vertex, an edge point and an interior point
     a, b, c = np.eye(3)[None, 0], np.eye(3)[None, 1], np.zeros((1, 3))
     np.testing.assert_allclose(_surface._closest_on_triangles(np.array([[2.0, -1, 0]]), a, b, c), a)
-    np.testing.assert_allclose(_surface._closest_on_triangles(np.array([[1.0, 1, 0]]), a, b, c),
-                               [[0.5, 0.5, 0]])
-    np.testing.assert_allclose(_surface._closest_on_triangles(np.array([[0.2, 0.2, 5]]), a, b, c),
-                               [[0.2, 0.2, 0]])
+    np.testing.assert_allclose(
+        _surface._closest_on_triangles(np.array([[1.0, 1, 0]]), a, b, c), [[0.5, 0.5, 0]]
+    )
+    np.testing.assert_allclose(
+        _surface._closest_on_triangles(np.array([[0.2, 0.2, 5]]), a, b, c), [[0.2, 0.2, 0]]
+    )
 
 
 def test_feature_edges_of_a_box_are_its_twelve_edges_and_six_faces():
@@ -167,8 +178,9 @@ def test_feature_edges_of_a_box_are_its_twelve_edges_and_six_faces():
 def ball_in_box():
     pytest.importorskip("pytetwild")
     vertices, faces = icosphere(1)
-    return mesh_surfaces({"ball": Surface(vertices, faces)}, box=1.0, edge_length=1.0,
-                         body_edge_length=0.35)
+    return mesh_surfaces(
+        {"ball": Surface(vertices, faces)}, box=1.0, edge_length=1.0, body_edge_length=0.35
+    )
 
 
 def test_sphere_alone_is_meshed_with_its_boundary_on_the_surface():
@@ -210,8 +222,9 @@ def test_feature_angle_puts_nodes_on_the_sharp_edges_and_names_the_patches():
     assert {"block", "block_edges"} | {f"block_patch{k}" for k in range(6)} <= names
     points = mesh.points.numpy()
     edge_points = points[mesh.node_sets["block_edges"].numpy()]
-    at_bound = (np.isclose(edge_points, 0.0, atol=1e-12)
-                | np.isclose(edge_points, [1.0, 0.6, 0.4], atol=1e-12))
+    at_bound = np.isclose(edge_points, 0.0, atol=1e-12) | np.isclose(
+        edge_points, [1.0, 0.6, 0.4], atol=1e-12
+    )
     assert (at_bound.sum(1) >= 2).all()  # on an edge: two coordinates at the box's bounds
     patches = [mesh.node_sets[f"block_patch{k}"].numpy() for k in range(6)]
     np.testing.assert_array_equal(np.unique(np.concatenate(patches)), mesh.boundary_nodes.numpy())
@@ -224,8 +237,9 @@ def test_two_files_the_outer_one_is_the_wall(tmp_path):
     vertices, faces = icosphere(1, radius=0.3)
     inner = write_obj(tmp_path / "body.obj", vertices, faces)
     box = box_surface([[-1, -1, -1], [1, 1, 1]])
-    outer = write_obj(tmp_path / "tunnel.obj", box.vertices, box.faces,
-                      np.repeat(meshing.WALL_NAMES, 2))
+    outer = write_obj(
+        tmp_path / "tunnel.obj", box.vertices, box.faces, np.repeat(meshing.WALL_NAMES, 2)
+    )
     mesh = mesh_surfaces({"walls": outer, "body": inner}, edge_length=0.4)
     assert {"walls", "body", *meshing.WALL_NAMES} <= set(mesh.node_sets)
     # a hole: no node inside the body
@@ -266,8 +280,9 @@ def test_tetrahedralize_reports_start_and_elapsed_time_on_request(capsys):
     points, tets = meshing.tetrahedralize(vertices, faces, edge_length=0.5, progress=True)
     err = capsys.readouterr().err.splitlines()
     assert err[0].startswith("fTetWild: meshing 80 surface triangles (edge length 0.5, epsilon")
-    assert re.fullmatch(rf"fTetWild: {len(points)} nodes, {len(tets)} tetrahedra in \d+\.\d s",
-                        err[1])
+    assert re.fullmatch(
+        rf"fTetWild: {len(points)} nodes, {len(tets)} tetrahedra in \d+\.\d s", err[1]
+    )
     assert (meshing._signed_volumes(points, tets) > 0).all()
     meshing.tetrahedralize(vertices, faces, edge_length=0.5)
     assert capsys.readouterr().err == ""

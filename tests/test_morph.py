@@ -42,8 +42,9 @@ def test_boundary_is_exact_and_interior_is_plain_idw(cube):
     field = morph(boundary)
     assert field.shape == (cube.num_nodes, 3)
     assert torch.equal(field[cube.boundary_nodes], boundary)
-    torch.testing.assert_close(field[cube.interior_nodes], brute_force_interior(cube, boundary),
-                               rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(
+        field[cube.interior_nodes], brute_force_interior(cube, boundary), rtol=1e-12, atol=1e-15
+    )
 
 
 def test_selecting_everything_equals_plain_idw(cube):
@@ -66,18 +67,19 @@ def test_selection_uses_fewer_controls_and_keeps_the_boundary_exact(cube):
     field = morph(boundary)
     assert torch.equal(field[cube.boundary_nodes], boundary)
     weights = morph.idw.weights_matrix()
-    torch.testing.assert_close(field[cube.interior_nodes],
-                               weights @ boundary[morph.selected])
+    torch.testing.assert_close(field[cube.interior_nodes], weights @ boundary[morph.selected])
 
 
 def test_batched_equals_loop(cube):
     morph = MeshMorph(cube)
     amplitudes = torch.linspace(0.1, 1.0, 4, dtype=F64)
     batch = morph.boundary_displacement(
-        "z1", lambda p: amplitudes[:, None, None] * bend_top(p)[None])
+        "z1", lambda p: amplitudes[:, None, None] * bend_top(p)[None]
+    )
     assert batch.shape == (4, morph.num_boundary, 3)
-    torch.testing.assert_close(morph(batch), torch.stack([morph(single) for single in batch]),
-                               rtol=1e-14, atol=1e-15)
+    torch.testing.assert_close(
+        morph(batch), torch.stack([morph(single) for single in batch]), rtol=1e-14, atol=1e-15
+    )
 
 
 def test_matrix_free_equals_dense(cube):
@@ -117,8 +119,11 @@ def test_count_inverted(cube):
     morph = MeshMorph(cube)
     gentle = morph(morph.boundary_displacement("z1", bend_top))
     assert morph.count_inverted(gentle) == 0
-    crushed = morph(morph.boundary_displacement(
-        "z1", lambda p: torch.tensor([0.0, 0.0, -1.5], dtype=F64).expand_as(p)))
+    crushed = morph(
+        morph.boundary_displacement(
+            "z1", lambda p: torch.tensor([0.0, 0.0, -1.5], dtype=F64).expand_as(p)
+        )
+    )
     assert morph.count_inverted(crushed) > 0
     count = morph.count_inverted(crushed)
     assert isinstance(count, int)
@@ -157,8 +162,9 @@ def test_state_dict_keeps_node_sets_and_loads_into_another_mesh(cube):
     from conftest import structured_cube
 
     small = structured_cube(2)
-    source = MeshMorph(cube, SelectionPlan(dict.fromkeys(FACES, 0.6)),
-                       generator=torch.Generator().manual_seed(1))
+    source = MeshMorph(
+        cube, SelectionPlan(dict.fromkeys(FACES, 0.6)), generator=torch.Generator().manual_seed(1)
+    )
     target = MeshMorph(TetMesh(small.points, small.tets, {"other": [0, 1]}))
     target.load_state_dict(saved(source))
     assert sorted(target.node_sets) == sorted(source.node_sets)
@@ -180,20 +186,29 @@ def test_node_sets_are_copies_of_the_mesh_sets(cube):
     assert torch.equal(morph.boundary_mask("z1"), before)
 
 
-@pytest.mark.parametrize(("key", "change", "message"), [
-    ("selected", lambda v: v + 1000, r"'selected'\]: holds indices outside"),
-    ("control_nodes", lambda v: v.flip(0), r"'control_nodes'\]: must equal boundary_nodes"),
-    ("interior_nodes", lambda v: v[1:], r"'interior_nodes'\]: boundary_nodes and interior"),
-    ("tets", lambda v: v + 10_000, r"'tets'\]: holds vertex indices outside"),
-    ("node_set_members", lambda v: v + 10_000, r"'node_set_members'\]: holds indices"),
-    ("node_set_offsets", lambda v: v[:-1], r"'node_set_offsets'\]: must rise from 0"),
-    ("idw.targets", lambda v: v[1:], r"'idw.targets'\]: has 26 rows but the morph's state needs 27"),
-    ("_extra_state", lambda v: {**v, "node_set_names": ["a"]},
-     r"'node_set_offsets'\]: holds 6 node sets but the names are 1"),
-    ("_extra_state", lambda v: {**v, "version": 99}, r"'_extra_state'\]: version 99"),
-])
-def test_a_tampered_state_fails_to_load_and_leaves_the_module_intact(cube, key, change,
-                                                                     message):
+@pytest.mark.parametrize(
+    ("key", "change", "message"),
+    [
+        ("selected", lambda v: v + 1000, r"'selected'\]: holds indices outside"),
+        ("control_nodes", lambda v: v.flip(0), r"'control_nodes'\]: must equal boundary_nodes"),
+        ("interior_nodes", lambda v: v[1:], r"'interior_nodes'\]: boundary_nodes and interior"),
+        ("tets", lambda v: v + 10_000, r"'tets'\]: holds vertex indices outside"),
+        ("node_set_members", lambda v: v + 10_000, r"'node_set_members'\]: holds indices"),
+        ("node_set_offsets", lambda v: v[:-1], r"'node_set_offsets'\]: must rise from 0"),
+        (
+            "idw.targets",
+            lambda v: v[1:],
+            r"'idw.targets'\]: has 26 rows but the morph's state needs 27",
+        ),
+        (
+            "_extra_state",
+            lambda v: {**v, "node_set_names": ["a"]},
+            r"'node_set_offsets'\]: holds 6 node sets but the names are 1",
+        ),
+        ("_extra_state", lambda v: {**v, "version": 99}, r"'_extra_state'\]: version 99"),
+    ],
+)
+def test_a_tampered_state_fails_to_load_and_leaves_the_module_intact(cube, key, change, message):
     morph = MeshMorph(cube, SelectionPlan(dict.fromkeys(FACES, 0.6)))
     state = saved(morph)
     state[key] = change(state[key])

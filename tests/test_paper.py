@@ -70,15 +70,27 @@ def test_parameters_of_the_paper():
 def test_wing_regions():
     radii = {region.names: region.radius for region in CASES["wing"].regions()}
     assert radii == {("root",): 0.05, ("tip",): 0.05, ("upper",): 0.5, ("lower",): 0.5}
-    assert set(CASES["wing"].enrich) == {"root_profile", "tip_profile", "leading_edge",
-                                         "trailing_edge"}
+    assert set(CASES["wing"].enrich) == {
+        "root_profile",
+        "tip_profile",
+        "leading_edge",
+        "trailing_edge",
+    }
 
 
 def test_fluid_wing_regions():
     radii = {region.names[0]: region.radius for region in CASES["fluid-wing"].regions()}
-    assert radii == {"wall_x0": 0.5, "wall_x1": 0.5, "wall_y0": 0.5, "wall_y1": 0.5,
-                     "wall_z0": 0.25, "wall_z1": 0.25, "upper": 0.05, "lower": 0.05,
-                     "tip": 0.05}
+    assert radii == {
+        "wall_x0": 0.5,
+        "wall_x1": 0.5,
+        "wall_y0": 0.5,
+        "wall_y1": 0.5,
+        "wall_z0": 0.25,
+        "wall_z1": 0.25,
+        "upper": 0.05,
+        "lower": 0.05,
+        "tip": 0.05,
+    }
     # the sensitivity study of Fig. 10: box R, left/right walls 0.5 R, wing 0.1 R
     scaled = {region.names[0]: region.radius for region in CASES["fluid-wing"].regions(2.0)}
     assert scaled["wall_y1"] == 2.0 and scaled["wall_z0"] == 1.0
@@ -88,9 +100,17 @@ def test_fluid_wing_regions():
 def test_hull_regions():
     # the paper configuration: walls and hull thinned alike (walls 2 m, hull 0.05 m)
     radii = {region.names[0]: region.radius for region in CASES["hull"].regions()}
-    assert radii == pytest.approx({"wall_x0": 2.0, "wall_x1": 2.0, "wall_y0": 2.0,
-                                   "wall_y1": 2.0, "wall_z0": 2.0, "wall_z1": 2.0,
-                                   "hull": 0.05})
+    assert radii == pytest.approx(
+        {
+            "wall_x0": 2.0,
+            "wall_x1": 2.0,
+            "wall_y0": 2.0,
+            "wall_y1": 2.0,
+            "wall_z0": 2.0,
+            "wall_z1": 2.0,
+            "hull": 0.05,
+        }
+    )
     assert CASES["hull"].radius == 1.5 and CASES["hull"].variant == "paper"
     assert CASES["hull"].enrich == ("hull_edges",)
     # R = 1.5 m everywhere, as printed, is the documented variant "uniform"
@@ -102,8 +122,9 @@ def test_hull_regions():
 def test_variants_and_their_errors():
     assert get_case("C", "paper") is CASES["hull"]
     assert get_case("wing", "paper") is CASES["wing"]
-    with pytest.raises(ValueError, match="variant must be one of paper for case 'wing', "
-                                         "got 'uniform'"):
+    with pytest.raises(
+        ValueError, match="variant must be one of paper for case 'wing', got 'uniform'"
+    ):
         get_case("wing", "uniform")
     with pytest.raises(ValueError, match="variant must be None for a CaseSpec"):
         get_case(CASES["hull"], "uniform")
@@ -128,7 +149,8 @@ def test_plan_with_and_without_enrichment():
     assert sidw.enrich == () and esidw.enrich == spec.enrich
     assert esidw.overlap == "first"
     assert [region.radius for region in esidw.regions] == sorted(
-        region.radius for region in esidw.regions)
+        region.radius for region in esidw.regions
+    )
     custom = spec.plan(0.1, a=0.5, b=2.0)
     assert {(region.a, region.b) for region in custom.regions} == {(0.5, 2.0)}
     assert max(region.radius for region in custom.regions) == pytest.approx(1.0)
@@ -173,10 +195,12 @@ def test_hull_rotation_is_rigid():
     displacement = hull_rotation(points, angles)
     assert displacement.shape == (4, 40, 3)
     moved = points + displacement
-    torch.testing.assert_close(torch.cdist(moved, moved, compute_mode="donot_use_mm_for_euclid_dist"),
-                               torch.cdist(points, points,
-                                           compute_mode="donot_use_mm_for_euclid_dist")
-                               .expand(4, -1, -1), rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        torch.cdist(moved, moved, compute_mode="donot_use_mm_for_euclid_dist"),
+        torch.cdist(points, points, compute_mode="donot_use_mm_for_euclid_dist").expand(4, -1, -1),
+        rtol=0,
+        atol=1e-12,
+    )
     assert torch.equal(displacement[..., 2], torch.zeros(4, 40, dtype=torch.float64))
     assert torch.equal(displacement[2], torch.zeros(40, 3, dtype=torch.float64))
 
@@ -184,9 +208,12 @@ def test_hull_rotation_is_rigid():
 def test_hull_rotation_angle_and_sense():
     points = torch.tensor([[1.0, 0.0, 0.3], [0.0, 2.0, -1.0]], dtype=torch.float64)
     displacement = hull_rotation(points, 90.0)
-    torch.testing.assert_close(points + displacement,
-                               torch.tensor([[0.0, 1.0, 0.3], [-2.0, 0.0, -1.0]],
-                                            dtype=torch.float64), rtol=0, atol=1e-15)
+    torch.testing.assert_close(
+        points + displacement,
+        torch.tensor([[0.0, 1.0, 0.3], [-2.0, 0.0, -1.0]], dtype=torch.float64),
+        rtol=0,
+        atol=1e-15,
+    )
     # the paper's -5 degrees turns the bow (x > 0) down
     bow = hull_rotation(torch.tensor([[1.25, 0.0, 0.0]], dtype=torch.float64), -5.0)
     assert float(bow[0, 1]) == pytest.approx(1.25 * math.sin(math.radians(-5.0)))
@@ -195,8 +222,9 @@ def test_hull_rotation_angle_and_sense():
 def test_hull_rotation_keeps_its_centre():
     centre = torch.tensor([HULL_CENTRE], dtype=torch.float64)
     assert torch.equal(hull_rotation(centre, -20.0), torch.zeros(1, 3, dtype=torch.float64))
-    shifted = hull_rotation(torch.tensor([[2.0, 1.0, 0.0]], dtype=torch.float64), 45.0,
-                            centre=(2.0, 1.0, 5.0))
+    shifted = hull_rotation(
+        torch.tensor([[2.0, 1.0, 0.0]], dtype=torch.float64), 45.0, centre=(2.0, 1.0, 5.0)
+    )
     assert torch.equal(shifted, torch.zeros(1, 3, dtype=torch.float64))
 
 
@@ -210,8 +238,7 @@ def test_family_moves_only_the_moving_sets():
     assert boundary.shape == (2, morph.num_boundary, 3)
     moving = morph.boundary_mask("x1")
     z = morph.boundary_points[:, 2]
-    torch.testing.assert_close(boundary[:, moving, 1], mu[:, None] * z[moving] ** 2,
-                               rtol=0, atol=0)
+    torch.testing.assert_close(boundary[:, moving, 1], mu[:, None] * z[moving] ** 2, rtol=0, atol=0)
     assert not bool(boundary[:, ~moving].any())
     assert family(0.5).shape == (morph.num_boundary, 3)
     # the whole mesh follows: boundary exact, interior interpolated
@@ -228,26 +255,42 @@ def test_family_rejects_matrix_parameters():
 
 
 def test_paper_meshes():
-    expected = {"wing": (8850, 2463, 797, 1666), "fluid-wing": (169598, 36036, 21910, 14126),
-                "hull": (30265, 7186, 3322, 3864)}
+    expected = {
+        "wing": (8850, 2463, 797, 1666),
+        "fluid-wing": (169598, 36036, 21910, 14126),
+        "hull": (30265, 7186, 3322, 3864),
+    }
     for key, spec in CASES.items():
         mesh = spec.paper_mesh
         assert (mesh.tets, mesh.nodes, mesh.interior, mesh.boundary) == expected[key]
         assert mesh.interior + mesh.boundary == mesh.nodes
     assert (CASES["fluid-wing"].paper_mesh.max_q, CASES["fluid-wing"].paper_mesh.mean_q) == (
-        4.31, 1.48)
+        4.31,
+        1.48,
+    )
     hull = CASES["hull"].paper_mesh
     assert (hull.max_q, hull.mean_q, hull.max_q_deformed, hull.mean_q_deformed) == (
-        2.47, 1.62, 2.56, 1.63)
+        2.47,
+        1.62,
+        2.56,
+        1.63,
+    )
 
 
 def test_paper_tables_are_complete():
     methods = {key: [row.method for row in spec.paper_rows] for key, spec in CASES.items()}
     assert methods["wing"] == ["IDW", "SIDW", "ESIDW", "POD-IDW", "POD-ESIDW"]
     assert methods["fluid-wing"] == ["IDW", "ESIDW", "POD-IDW", "POD-ESIDW"]
-    assert methods["hull"] == ["IDW", "ESIDW", "POD-IDW", "POD-IDW (1 mode)",
-                               "POD-IDW (2 modes)", "POD-ESIDW", "POD-ESIDW (1 mode)",
-                               "POD-ESIDW (2 modes)"]
+    assert methods["hull"] == [
+        "IDW",
+        "ESIDW",
+        "POD-IDW",
+        "POD-IDW (1 mode)",
+        "POD-IDW (2 modes)",
+        "POD-ESIDW",
+        "POD-ESIDW (1 mode)",
+        "POD-ESIDW (2 modes)",
+    ]
     for spec in CASES.values():
         assert [spec.mesh_table, spec.results_table] in ([1, 4], [2, 5], [3, 6])
         for row in spec.paper_rows:
@@ -263,8 +306,12 @@ def test_paper_tables_are_complete():
 def test_paper_table_values():
     wing, fluid, hull = CASES.values()
     row = wing.paper_row("ESIDW")
-    assert (row.controls, row.online_s, row.error, row.error_value) == (390, 0.034, "1.06 %",
-                                                                        0.0106)
+    assert (row.controls, row.online_s, row.error, row.error_value) == (
+        390,
+        0.034,
+        "1.06 %",
+        0.0106,
+    )
     assert wing.paper_row("SIDW").controls == 92
     assert wing.paper_row("POD-IDW").offline_s == 90.93
     assert fluid.paper_row("IDW").online_s == 83.09
@@ -298,17 +345,40 @@ def test_plane_section_of_a_cube_has_its_area():
 
 def test_case_result_report_and_lookup():
     spec = CASES["wing"]
-    rows = [MethodResult("IDW", 10, 0.01, None, 0, 2.0, 1.5, assembly_s=0.1),
-            MethodResult("ESIDW", 4, 0.002, 0.0123, 0, 2.1, 1.5, selection_s=0.01,
-                         assembly_s=0.05, error_nodal=0.02)]
+    rows = [
+        MethodResult("IDW", 10, 0.01, None, 0, 2.0, 1.5, assembly_s=0.1),
+        MethodResult(
+            "ESIDW",
+            4,
+            0.002,
+            0.0123,
+            0,
+            2.1,
+            1.5,
+            selection_s=0.01,
+            assembly_s=0.05,
+            error_nodal=0.02,
+        ),
+    ]
     quality = {"max_edge_ratio": 2.0, "mean_edge_ratio": 1.5, "num_inverted": 0}
     result = CaseResult(
-        case="wing", letter="A", title=spec.title, size="small", mesher="gmsh", seed=0,
-        mu_star=0.01, mesh={"tets": 5, "nodes": 14, "interior": 4, "boundary": 10,
-                            "max_q": 2.0, "mean_q": 1.5},
-        paper_mesh=spec.paper_mesh, rows=rows, paper_rows=spec.paper_rows,
-        quality_reference=quality, quality_deformed={"IDW": quality}, singular_values={},
-        mesh_table=1, results_table=4)
+        case="wing",
+        letter="A",
+        title=spec.title,
+        size="small",
+        mesher="gmsh",
+        seed=0,
+        mu_star=0.01,
+        mesh={"tets": 5, "nodes": 14, "interior": 4, "boundary": 10, "max_q": 2.0, "mean_q": 1.5},
+        paper_mesh=spec.paper_mesh,
+        rows=rows,
+        paper_rows=spec.paper_rows,
+        quality_reference=quality,
+        quality_deformed={"IDW": quality},
+        singular_values={},
+        mesh_table=1,
+        results_table=4,
+    )
     text = result.report()
     assert "Table 1" in text and "Table 4" in text and "1.23 %" in text and "1.06 %" in text
     assert result.row("ESIDW").controls == 4
@@ -332,11 +402,14 @@ def test_load_mesh_without_data_gen_names_the_extra(monkeypatch):
 def test_core_never_imports_the_reproduction():
     import subprocess
 
-    code = ("import sys, torchmorph, torchmorph.idw, torchmorph.selection, torchmorph.morph, "
-            "torchmorph.pod, torchmorph.mesh, torchmorph.quality, torchmorph.io\n"
-            "bad = sorted(m for m in sys.modules "
-            "if m.startswith(('data_gen', 'torchmorph.paper')))\n"
-            "print(bad)\nsys.exit(1 if bad else 0)")
-    run = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True,
-                         text=True, timeout=120)
+    code = (
+        "import sys, torchmorph, torchmorph.idw, torchmorph.selection, torchmorph.morph, "
+        "torchmorph.pod, torchmorph.mesh, torchmorph.quality, torchmorph.io\n"
+        "bad = sorted(m for m in sys.modules "
+        "if m.startswith(('data_gen', 'torchmorph.paper')))\n"
+        "print(bad)\nsys.exit(1 if bad else 0)"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120
+    )
     assert run.returncode == 0, run.stdout + run.stderr

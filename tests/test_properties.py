@@ -35,13 +35,13 @@ def test_rows_of_w_sum_to_one_and_are_nonnegative(num_controls, num_targets, see
     weights = IDW(controls, targets, power=power, mode="dense").weights_matrix()
     assert weights.shape == (num_targets, num_controls)
     assert bool((weights >= 0).all())
-    torch.testing.assert_close(weights.sum(1), torch.ones(num_targets, dtype=F64),
-                               rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        weights.sum(1), torch.ones(num_targets, dtype=F64), rtol=0, atol=1e-12
+    )
 
 
 @PROPERTY
-@given(num_controls=sizes, seed=seeds, power=powers, mode=st.sampled_from(["dense",
-                                                                            "matrix_free"]))
+@given(num_controls=sizes, seed=seeds, power=powers, mode=st.sampled_from(["dense", "matrix_free"]))
 def test_exact_reproduction_at_the_controls(num_controls, seed, power, mode):
     controls = random_points(num_controls, seed)
     generator = torch.Generator().manual_seed(seed + 2)
@@ -62,7 +62,8 @@ def test_permutation_equivariance(num_controls, num_targets, seed, power):
     by_target = torch.randperm(num_targets, generator=generator)
     reference = IDW(controls, targets, power=power)(displacements)
     permuted = IDW(controls[by_control], targets[by_target], power=power)(
-        displacements[:, by_control])
+        displacements[:, by_control]
+    )
     torch.testing.assert_close(permuted, reference[:, by_target], rtol=1e-12, atol=1e-14)
 
 
@@ -79,17 +80,23 @@ def test_dense_equals_matrix_free(num_controls, num_targets, seed, power):
 
 
 @PROPERTY
-@given(count=st.integers(min_value=1, max_value=120), seed=seeds,
-       radius=st.floats(min_value=0.05, max_value=0.6), dim=st.sampled_from([2, 3]),
-       a=st.floats(min_value=0.2, max_value=0.95), b=st.floats(min_value=1.05, max_value=2.5),
-       strategy=st.sampled_from(["random", "centroid", "farthest"]))
+@given(
+    count=st.integers(min_value=1, max_value=120),
+    seed=seeds,
+    radius=st.floats(min_value=0.05, max_value=0.6),
+    dim=st.sampled_from([2, 3]),
+    a=st.floats(min_value=0.2, max_value=0.95),
+    b=st.floats(min_value=1.05, max_value=2.5),
+    strategy=st.sampled_from(["random", "centroid", "farthest"]),
+)
 def test_selection_separation_and_coverage(count, seed, radius, dim, a, b, strategy):
     """Algorithm 1: every chosen point removes its ball B(c; R) from the candidates and
     the next one is sought outside it, so the chosen points are pairwise at least R
     apart and every candidate ends within R of one of them."""
     points = random_points(count, seed, dim)
-    chosen = select_control_points(points, radius, a=a, b=b, strategy=strategy,
-                                   generator=torch.Generator().manual_seed(seed))
+    chosen = select_control_points(
+        points, radius, a=a, b=b, strategy=strategy, generator=torch.Generator().manual_seed(seed)
+    )
     assert chosen.numel() == chosen.unique().numel() >= 1
     distances = torch.cdist(points, points[chosen])
     assert float(distances.min(1).values.max()) <= radius * (1 + 1e-12)

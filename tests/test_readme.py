@@ -30,8 +30,11 @@ def readme_commands() -> list[str]:
     """
     spans = re.findall(r"`((?:torchmorph|python) [^`]+)`", README)
     # "`torchmorph mesh`" in a sentence names the command; a command line has arguments
-    return [span for span in spans
-            if "pytest" not in span and "pip " not in span and len(span.split()) >= 3]
+    return [
+        span
+        for span in spans
+        if "pytest" not in span and "pip " not in span and len(span.split()) >= 3
+    ]
 
 
 def test_python_examples_run_as_written(capsys):
@@ -39,8 +42,11 @@ def test_python_examples_run_as_written(capsys):
     assert len(blocks) >= 2
     exec(compile(blocks[0], "README.md", "exec"), {"__name__": "readme"})
     first = capsys.readouterr().out
-    match = re.fullmatch(r"W \(2000, 500\): 2000 targets from 500 controls; largest interpolated "
-                         r"move (\S+) \(controls: (\S+)\); batch \(3, 2000, 3\)\n", first)
+    match = re.fullmatch(
+        r"W \(2000, 500\): 2000 targets from 500 controls; largest interpolated "
+        r"move (\S+) \(controls: (\S+)\); batch \(3, 2000, 3\)\n",
+        first,
+    )
     assert match, first
     assert 0 < float(match[1]) <= float(match[2])  # IDW is a convex combination
     for block in blocks[1:]:
@@ -88,8 +94,9 @@ def _marks(command: str):
     return marks
 
 
-@pytest.mark.parametrize("command", [pytest.param(c, marks=_marks(c), id=c[:60])
-                                     for c in readme_commands()])
+@pytest.mark.parametrize(
+    "command", [pytest.param(c, marks=_marks(c), id=c[:60]) for c in readme_commands()]
+)
 def test_readme_command_runs_as_printed(command, workspace, monkeypatch, capsys):
     """Commands run in README order in one directory (the mesh one writes body.vtu first)."""
     words = shlex.split(command)
@@ -97,8 +104,10 @@ def test_readme_command_runs_as_printed(command, workspace, monkeypatch, capsys)
         pytest.importorskip("pytetwild")
     if words[0] == "torchmorph":
         if words[1] in ("info", "morph") and not (workspace / "body.vtu").exists():
-            assert main(["mesh", "body.stl", "--box", "1", "-o", "body.vtu",
-                         "--no-progress"]) == EXIT_OK
+            assert (
+                main(["mesh", "body.stl", "--box", "1", "-o", "body.vtu", "--no-progress"])
+                == EXIT_OK
+            )
         monkeypatch.chdir(workspace)
         assert main(words[1:]) == EXIT_OK, capsys.readouterr().err
         return
@@ -106,7 +115,14 @@ def test_readme_command_runs_as_printed(command, workspace, monkeypatch, capsys)
         monkeypatch.chdir(workspace)
         assert main(["mesh", "body.stl", "--box", "1", "-o", "body.vtu"]) == EXIT_OK
     environment = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, *words[1:]], cwd=workspace, env=environment,
-                          capture_output=True, text=True, timeout=600, check=False)
+    done = subprocess.run(
+        [sys.executable, *words[1:]],
+        cwd=workspace,
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip(), "the command printed nothing"

@@ -67,7 +67,8 @@ def test_small_mesh_counts(small_results, case):
     figures = small_results[case].mesh
     nodes, interior, boundary, tets = SMALL[case]["mesh"]
     assert (figures["nodes"], figures["interior"], figures["boundary"]) == pytest.approx(
-        (nodes, interior, boundary), rel=0.02)
+        (nodes, interior, boundary), rel=0.02
+    )
     assert figures["tets"] == pytest.approx(tets, rel=0.02)
 
 
@@ -132,8 +133,12 @@ def test_paper_size_reproduction(case, tmp_path):
     mesh = data_gen.build(case, "paper", cache_dir=tmp_path)
     result = reproduce(case, size="paper", mesh=mesh, verbose=False, repeats=1)
     nodes, interior, boundary, tets = PAPER[case]["mesh"]
-    assert (mesh.num_nodes, int(mesh.interior_nodes.numel()), int(mesh.boundary_nodes.numel()),
-            mesh.num_tets) == pytest.approx((nodes, interior, boundary, tets), rel=0.02)
+    assert (
+        mesh.num_nodes,
+        int(mesh.interior_nodes.numel()),
+        int(mesh.boundary_nodes.numel()),
+        mesh.num_tets,
+    ) == pytest.approx((nodes, interior, boundary, tets), rel=0.02)
     for method, expected in PAPER[case].items():
         if method == "mesh":
             continue

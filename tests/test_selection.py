@@ -110,8 +110,10 @@ def cube_mesh(cells: int = 4) -> TetMesh:
     index = np.arange(points.shape[0]).reshape((cells + 1,) * 3)
     tets = []
     for i, j, k in itertools.product(range(cells), repeat=3):
-        corner = {bits: index[i + bits[0], j + bits[1], k + bits[2]]
-                  for bits in itertools.product((0, 1), repeat=3)}
+        corner = {
+            bits: index[i + bits[0], j + bits[1], k + bits[2]]
+            for bits in itertools.product((0, 1), repeat=3)
+        }
         for order in itertools.permutations(range(3)):
             path, bits = [corner[(0, 0, 0)]], [0, 0, 0]
             for axis in order:
@@ -150,10 +152,18 @@ def test_equals_reference_on_random_clouds(strategy, seed):
     points = rng.random((int(rng.integers(1, 300)), dim)) * rng.uniform(0.5, 5.0)
     radius, a, b = rng.uniform(0.05, 1.0), rng.uniform(0.2, 0.95), rng.uniform(1.05, 2.5)
     start = int(rng.integers(len(points)))
-    expected = reference_sidw(points, radius, a, b, start, strategy,
-                              torch.Generator().manual_seed(seed))
-    got = select_control_points(points, radius, a=a, b=b, start=start, strategy=strategy,
-                                generator=torch.Generator().manual_seed(seed))
+    expected = reference_sidw(
+        points, radius, a, b, start, strategy, torch.Generator().manual_seed(seed)
+    )
+    got = select_control_points(
+        points,
+        radius,
+        a=a,
+        b=b,
+        start=start,
+        strategy=strategy,
+        generator=torch.Generator().manual_seed(seed),
+    )
     assert got.tolist() == expected
 
 
@@ -164,10 +174,12 @@ def test_equals_reference_on_grids_with_ties(strategy, seed):
     rng = np.random.default_rng(100 + seed)
     points = np.round(rng.random((250, 2 + seed % 2)) * 8) / 4
     radius = [0.3, 0.5, 0.75, 1.0][seed]
-    expected = reference_sidw(points, radius, 0.8, 1.3, seed, strategy,
-                              torch.Generator().manual_seed(seed))
-    got = select_control_points(points, radius, start=seed, strategy=strategy,
-                                generator=torch.Generator().manual_seed(seed))
+    expected = reference_sidw(
+        points, radius, 0.8, 1.3, seed, strategy, torch.Generator().manual_seed(seed)
+    )
+    got = select_control_points(
+        points, radius, start=seed, strategy=strategy, generator=torch.Generator().manual_seed(seed)
+    )
     assert got.tolist() == expected
 
 
@@ -175,8 +187,9 @@ def test_equals_reference_on_grids_with_ties(strategy, seed):
 def test_equals_reference_on_paper_grid(strategy):
     points = grid_2d(0.2)
     expected = reference_sidw(points, 2.1, 0.8, 1.4, 1234, strategy, torch.Generator())
-    got = select_control_points(points, 2.1, a=0.8, b=1.4, start=1234, strategy=strategy,
-                                generator=torch.Generator())
+    got = select_control_points(
+        points, 2.1, a=0.8, b=1.4, start=1234, strategy=strategy, generator=torch.Generator()
+    )
     assert got.tolist() == expected
 
 
@@ -186,13 +199,15 @@ def test_equals_reference_on_disconnected_annuli():
     rng = np.random.default_rng(7)
     angle = rng.uniform(0.0, 2 * np.pi, 200)
     ring = np.stack([np.cos(angle), np.sin(angle)], axis=1) * 3.0
-    clusters = np.concatenate([rng.normal(size=(50, 2)) * 0.2 + [6.0, 0.0],
-                               rng.normal(size=(50, 2)) * 0.2 + [-6.0, 0.0]])
+    clusters = np.concatenate(
+        [rng.normal(size=(50, 2)) * 0.2 + [6.0, 0.0], rng.normal(size=(50, 2)) * 0.2 + [-6.0, 0.0]]
+    )
     points = np.concatenate([[[0.0, 0.0]], ring, clusters])
     for strategy in STRATEGIES:
         expected = reference_sidw(points, 0.4, 0.8, 1.3, 0, strategy, torch.Generator())
-        got = select_control_points(points, 0.4, start=0, strategy=strategy,
-                                    generator=torch.Generator())
+        got = select_control_points(
+            points, 0.4, start=0, strategy=strategy, generator=torch.Generator()
+        )
         assert got.tolist() == expected
 
 
@@ -207,8 +222,9 @@ def test_covers_and_separates_random_clouds(strategy, dim):
     rng = np.random.default_rng(dim)
     points = rng.random((3000, dim))
     radius = 0.08 if dim == 2 else 0.15
-    selected = select_control_points(points, radius, strategy=strategy,
-                                     generator=torch.Generator().manual_seed(3))
+    selected = select_control_points(
+        points, radius, strategy=strategy, generator=torch.Generator().manual_seed(3)
+    )
     assert 10 < len(selected) < 600
     assert_sidw_properties(points, selected, radius)
 
@@ -221,8 +237,14 @@ def test_paper_illustration(strategy):
     # "farthest"; the default generator gives 20 for each strategy.
     points = grid_2d(0.2)
     for seed in range(5):
-        selected = select_control_points(points, 2.1, a=0.8, b=1.4, strategy=strategy,
-                                         generator=torch.Generator().manual_seed(seed))
+        selected = select_control_points(
+            points,
+            2.1,
+            a=0.8,
+            b=1.4,
+            strategy=strategy,
+            generator=torch.Generator().manual_seed(seed),
+        )
         assert 15 <= len(selected) <= 25
         assert_sidw_properties(points, selected, 2.1)
         # uniformly spread: every cell of a 3 x 3 partition of the square holds one
@@ -258,8 +280,7 @@ def test_start_is_first_and_output_format():
 def test_accepts_numpy_float32_and_torch():
     points = np.random.default_rng(0).random((400, 2))
     from_numpy = select_control_points(points, 0.1, start=0, strategy="centroid")
-    from_torch = select_control_points(torch.from_numpy(points), 0.1, start=0,
-                                       strategy="centroid")
+    from_torch = select_control_points(torch.from_numpy(points), 0.1, start=0, strategy="centroid")
     assert from_numpy.tolist() == from_torch.tolist()
     assert_sidw_properties(points, select_control_points(points.astype(np.float32), 0.1), 0.1)
 
@@ -270,8 +291,7 @@ def test_deterministic_given_generator(strategy):
 
     def run(seed):
         generator = None if seed is None else torch.Generator().manual_seed(seed)
-        return select_control_points(points, 0.05, strategy=strategy,
-                                     generator=generator).tolist()
+        return select_control_points(points, 0.05, strategy=strategy, generator=generator).tolist()
 
     assert run(5) == run(5)
     assert run(None) == run(None)  # None: a fresh generator with a fixed seed
@@ -280,10 +300,10 @@ def test_deterministic_given_generator(strategy):
 
 def test_random_strategy_depends_on_generator_beyond_start():
     points = np.random.default_rng(2).random((2000, 2))
-    first = select_control_points(points, 0.05, start=0,
-                                  generator=torch.Generator().manual_seed(1))
-    second = select_control_points(points, 0.05, start=0,
-                                   generator=torch.Generator().manual_seed(2))
+    first = select_control_points(points, 0.05, start=0, generator=torch.Generator().manual_seed(1))
+    second = select_control_points(
+        points, 0.05, start=0, generator=torch.Generator().manual_seed(2)
+    )
     assert first.tolist() != second.tolist()
 
 
@@ -342,22 +362,33 @@ def test_bad_points(points, message):
 
 
 def test_plan_on_cube_covers_each_region(cube8):
-    plan = SelectionPlan([Region(("x0", "x1"), 0.3), Region(("y0", "y1", "z0", "z1"), 0.5)],
-                         overlap="first")
+    plan = SelectionPlan(
+        [Region(("x0", "x1"), 0.3), Region(("y0", "y1", "z0", "z1"), 0.5)], overlap="first"
+    )
     selected = plan.select(cube8, generator=torch.Generator().manual_seed(0))
     points = cube8.points.numpy()
     assert torch.equal(selected, torch.unique(selected))
     assert set(selected.tolist()) <= set(cube8.boundary_nodes.tolist())
     for region, nodes in zip(plan.regions, plan.region_nodes(cube8), strict=True):
         mine = np.intersect1d(selected.numpy(), nodes.numpy())
-        assert_sidw_properties(points[nodes.numpy()],
-                               torch.from_numpy(np.searchsorted(nodes.numpy(), mine)),
-                               region.radius)
+        assert_sidw_properties(
+            points[nodes.numpy()],
+            torch.from_numpy(np.searchsorted(nodes.numpy(), mine)),
+            region.radius,
+        )
 
 
 def test_plan_dict_shorthand_and_enrichment(cube8):
-    plan = SelectionPlan({"x0": 0.4, ("x1", "y0"): (0.4, 0.8), "y1": (0.4, 0.8, 1.3),
-                          "z0": {"radius": 0.4}, "z1": 0.4}, enrich=["edge", "x1"])
+    plan = SelectionPlan(
+        {
+            "x0": 0.4,
+            ("x1", "y0"): (0.4, 0.8),
+            "y1": (0.4, 0.8, 1.3),
+            "z0": {"radius": 0.4},
+            "z1": 0.4,
+        },
+        enrich=["edge", "x1"],
+    )
     assert plan.regions[1] == Region(("x1", "y0"), 0.4, 0.8, 1.3)
     selected = set(plan.select(cube8).tolist())
     assert set(cube8.node_set("edge").tolist()) <= selected
@@ -370,8 +401,9 @@ def test_plan_dict_shorthand_and_enrichment(cube8):
 def test_plan_selects_like_select_control_points(cube8):
     nodes = cube8.boundary_nodes
     generator = torch.Generator().manual_seed(4)
-    expected = nodes[select_control_points(cube8.points[nodes], 0.3, strategy="centroid",
-                                           generator=generator)]
+    expected = nodes[
+        select_control_points(cube8.points[nodes], 0.3, strategy="centroid", generator=generator)
+    ]
     plan = SelectionPlan([Region(FACES, 0.3)], strategy="centroid")
     got = plan.select(cube8, generator=torch.Generator().manual_seed(4))
     assert got.tolist() == sorted(expected.tolist())

@@ -51,9 +51,9 @@ def cloud(n_targets, n_controls, dim, dtype, seed):
     generator = torch.Generator().manual_seed(seed)
     controls = torch.rand(n_controls, dim, generator=generator, dtype=F64) * 2 - 1
     targets = torch.rand(n_targets, dim, generator=generator, dtype=F64) * 2 - 1
-    targets[3] = controls[5]                 # a target on a control
-    controls[9] = controls[8]                # duplicated controls ...
-    targets[4] = controls[8]                 # ... and a target on them: the mean
+    targets[3] = controls[5]  # a target on a control
+    controls[9] = controls[8]  # duplicated controls ...
+    targets[4] = controls[8]  # ... and a target on them: the mean
     return targets.to(dtype), controls.to(dtype), generator
 
 
@@ -61,26 +61,29 @@ TOLERANCES = {torch.float32: dict(rtol=2e-5, atol=2e-6), F64: dict(rtol=1e-11, a
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
-@pytest.mark.parametrize(("power", "dim", "columns"),
-                         [(4.0, 3, 3), (2.0, 3, 1), (1.0, 2, 2), (0.5, 3, 3), (7.5, 3, 5),
-                          (4.0, 3, 20)])
+@pytest.mark.parametrize(
+    ("power", "dim", "columns"),
+    [(4.0, 3, 3), (2.0, 3, 1), (1.0, 2, 2), (0.5, 3, 3), (7.5, 3, 5), (4.0, 3, 20)],
+)
 def test_apply_and_transposed_match_brute_force(kernels, dtype, power, dim, columns):
     # sizes that are not multiples of the tiles: masked rows and columns
     targets, controls, generator = cloud(70, 45, dim, dtype, seed=int(power * 10) + columns)
     values = torch.randn(45, columns, generator=generator, dtype=F64).to(dtype)
     radius2 = 1e-20
     weights = brute_force(targets, controls, power, radius2)
-    out, nearest2, sums = kernels.apply(targets.T.contiguous(), controls.T.contiguous(), values,
-                                        power, radius2)
+    out, nearest2, sums = kernels.apply(
+        targets.T.contiguous(), controls.T.contiguous(), values, power, radius2
+    )
     torch.testing.assert_close(out.double(), weights @ values.double(), **TOLERANCES[dtype])
     assert torch.equal(out[3], values[5])  # exact interpolation
-    torch.testing.assert_close(out[4].double(), (values[8].double() + values[9].double()) / 2,
-                               **TOLERANCES[dtype])
+    torch.testing.assert_close(
+        out[4].double(), (values[8].double() + values[9].double()) / 2, **TOLERANCES[dtype]
+    )
     grad = torch.randn(70, columns, generator=generator, dtype=F64).to(dtype)
-    transposed = kernels.apply_transposed(targets.T.contiguous(), controls.T.contiguous(), grad,
-                                          nearest2, sums, power, radius2)
-    torch.testing.assert_close(transposed.double(), weights.T @ grad.double(),
-                               **TOLERANCES[dtype])
+    transposed = kernels.apply_transposed(
+        targets.T.contiguous(), controls.T.contiguous(), grad, nearest2, sums, power, radius2
+    )
+    torch.testing.assert_close(transposed.double(), weights.T @ grad.double(), **TOLERANCES[dtype])
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
@@ -89,12 +92,16 @@ def test_dense_weights_and_dense_apply(kernels, dtype):
     expected = brute_force(targets, controls, 4.0, 1e-20)
     weights = kernels.weights(targets.T.contiguous(), controls.T.contiguous(), 4.0, 1e-20)
     torch.testing.assert_close(weights.double(), expected, **TOLERANCES[dtype])
-    torch.testing.assert_close(weights.sum(1).double(), torch.ones(50, dtype=F64),
-                               **TOLERANCES[dtype])
+    torch.testing.assert_close(
+        weights.sum(1).double(), torch.ones(50, dtype=F64), **TOLERANCES[dtype]
+    )
     for columns in (1, 2, 3):
         values = torch.randn(37, columns, generator=generator, dtype=F64).to(dtype)
-        torch.testing.assert_close(kernels.dense_apply(weights, values).double(),
-                                   weights.double() @ values.double(), **TOLERANCES[dtype])
+        torch.testing.assert_close(
+            kernels.dense_apply(weights, values).double(),
+            weights.double() @ values.double(),
+            **TOLERANCES[dtype],
+        )
     with pytest.raises(ValueError, match="values: dense_apply takes 1 to 3 columns, got 4"):
         kernels.dense_apply(weights, torch.zeros(37, 4, dtype=dtype))
 
@@ -103,8 +110,9 @@ def test_coincidence_radius_selects_near_controls(kernels):
     targets, controls, generator = cloud(20, 30, 3, F64, seed=2)
     targets[0] = controls[1] + 1e-7  # within a radius of 1e-6, not exactly on it
     values = torch.randn(30, 3, generator=generator, dtype=F64)
-    out, _, sums = kernels.apply(targets.T.contiguous(), controls.T.contiguous(), values, 0.5,
-                                 1e-12)
+    out, _, sums = kernels.apply(
+        targets.T.contiguous(), controls.T.contiguous(), values, 0.5, 1e-12
+    )
     assert torch.equal(out[0], values[1])
     assert sums[0] == 1.0
     expected = brute_force(targets, controls, 0.5, 1e-12) @ values
@@ -135,14 +143,17 @@ def test_position_gradients_match_autograd(kernels, dtype, power, columns):
     coincident = dist2.detach().amin(1, keepdim=True) <= radius2
     safe = torch.where(coincident, torch.ones_like(dist2), dist2)
     inverse = safe ** (-power / 2)
-    weights = torch.where(coincident, brute_force(targets, controls, power, radius2),
-                          inverse / inverse.sum(1, keepdim=True))
+    weights = torch.where(
+        coincident,
+        brute_force(targets, controls, power, radius2),
+        inverse / inverse.sum(1, keepdim=True),
+    )
     expected = torch.autograd.grad(((weights @ values) * grad).sum(), (t, c))
     targets_t, controls_t = targets.T.contiguous().to(dtype), controls.T.contiguous().to(dtype)
     out, nearest2, sums = kernels.apply(targets_t, controls_t, values.to(dtype), power, radius2)
-    got = kernels.position_gradients(targets_t, controls_t, values.to(dtype), grad.to(dtype), out,
-                                     nearest2, sums, power, radius2)
-    tolerance = dict(rtol=1e-4, atol=1e-4) if dtype == torch.float32 else dict(rtol=1e-9,
-                                                                               atol=1e-9)
+    got = kernels.position_gradients(
+        targets_t, controls_t, values.to(dtype), grad.to(dtype), out, nearest2, sums, power, radius2
+    )
+    tolerance = dict(rtol=1e-4, atol=1e-4) if dtype == torch.float32 else dict(rtol=1e-9, atol=1e-9)
     for value, reference in zip(got, expected, strict=True):
         torch.testing.assert_close(value.T.double(), reference, **tolerance)

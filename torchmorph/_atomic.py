@@ -47,8 +47,8 @@ def atomic_output(path: str | os.PathLike, *, suffix: str | None = None) -> Iter
     if not directory.is_dir():
         raise FileNotFoundError(f"path: directory {str(directory)!r} does not exist")
     handle, name = tempfile.mkstemp(
-        prefix=f".{target.name}.", suffix=target.suffix if suffix is None else suffix,
-        dir=directory)
+        prefix=f".{target.name}.", suffix=target.suffix if suffix is None else suffix, dir=directory
+    )
     os.close(handle)
     temporary = Path(name)
     temporary.unlink()  # the writer creates it; some writers refuse an existing file

@@ -65,7 +65,9 @@ def as_points(
     return value
 
 
-def as_index(value: Tensor | np.ndarray | Sequence, name: str, *, size: int | None = None) -> Tensor:
+def as_index(
+    value: Tensor | np.ndarray | Sequence, name: str, *, size: int | None = None
+) -> Tensor:
     """Return ``value`` as a 1-D int64 tensor of indices, checked against ``size``.
 
     Boolean masks of length ``size`` are converted to the indices they select.
@@ -89,9 +91,7 @@ def as_index(value: Tensor | np.ndarray | Sequence, name: str, *, size: int | No
     if size is not None and value.numel() > 0:
         low, high = int(value.min()), int(value.max())
         if low < 0 or high >= size:
-            raise ValueError(
-                f"{name} holds indices outside [0, {size}): min {low}, max {high}"
-            )
+            raise ValueError(f"{name} holds indices outside [0, {size}): min {low}, max {high}")
     return value
 
 
@@ -174,7 +174,9 @@ def check_positive(value: float, name: str) -> float:
     return number
 
 
-def check_same_device_dtype(reference: Tensor, reference_name: str, other: Tensor, name: str) -> None:
+def check_same_device_dtype(
+    reference: Tensor, reference_name: str, other: Tensor, name: str
+) -> None:
     """Raise ``ValueError`` if ``other`` is not on ``reference``'s device and dtype."""
     if other.device != reference.device:
         raise ValueError(

@@ -45,24 +45,29 @@ def _positive_float(text: str) -> float:
 
 def _float_list(*counts: int):
     """A parser of comma-separated numbers, as many as one of ``counts``."""
+
     def parse(text: str) -> tuple[float, ...]:
         try:
             numbers = tuple(float(part) for part in text.split(","))
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got "
-                                             f"{text!r}") from None
+            raise argparse.ArgumentTypeError(
+                f"expected numbers separated by commas, got {text!r}"
+            ) from None
         if len(numbers) not in counts:
             expected = " or ".join(str(count) for count in counts)
             raise argparse.ArgumentTypeError(f"expected {expected} number(s), got {text!r}")
         if not np.isfinite(numbers).all():
             raise argparse.ArgumentTypeError(f"expected finite numbers, got {text!r}")
         return numbers
+
     return parse
 
 
 def _progress_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--progress", action=argparse.BooleanOptionalAction, default=None,
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="progress bars on stderr (default: when stderr is a terminal)",
     )
 
@@ -73,9 +78,14 @@ class _Stages:
     def __init__(self, total: int, enabled: bool | None) -> None:
         from tqdm.auto import tqdm
 
-        self._bar = tqdm(total=total, file=sys.stderr, disable=None if enabled is None
-                         else not enabled, leave=False, unit="step",
-                         bar_format="{desc:<32} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
+        self._bar = tqdm(
+            total=total,
+            file=sys.stderr,
+            disable=None if enabled is None else not enabled,
+            leave=False,
+            unit="step",
+            bar_format="{desc:<32} {bar} {n_fmt}/{total_fmt} [{elapsed}]",
+        )
 
     @contextmanager
     def step(self, name: str) -> Iterator[None]:
@@ -188,8 +198,10 @@ def _boundary_rows(
     num_boundary = boundary_nodes.size
     accepted = []
     if moving_nodes is not None:
-        accepted.append(f"({moving_nodes.size}, 3) for the {moving_nodes.size} moving nodes "
-                        f"of {moving_label} in ascending node id")
+        accepted.append(
+            f"({moving_nodes.size}, 3) for the {moving_nodes.size} moving nodes "
+            f"of {moving_label} in ascending node id"
+        )
     accepted.append(f"({num_boundary}, 3) for the boundary nodes in ascending node id")
     accepted.append(f"({num_nodes}, 3) for every node")
     if moving_nodes is not None:
@@ -241,9 +253,11 @@ def _boundary_rows(
     elif count == num_nodes:
         rows, layout = field[boundary_nodes], f"nodal field ({count}, 3), boundary rows used"
     else:
-        raise wrong_shape("" if moving_nodes is not None else
-                          " (to give only the rows of the moving nodes, name their node sets "
-                          "with --moving)")
+        raise wrong_shape(
+            ""
+            if moving_nodes is not None
+            else " (to give only the rows of the moving nodes, name their node sets with --moving)"
+        )
     dropped = 0.0
     if moving_nodes is not None:
         keep = np.zeros(num_boundary, dtype=bool)

@@ -68,12 +68,19 @@ def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMe
             _check_names(mesh, names, "--region")
         selection_mesh = mesh
         regions = [Region(names, *parameters) for names, parameters in args.region]
-        text = "; ".join(f"{region.label} R={region.radius:g}, a={region.a:g}, b={region.b:g}"
-                         for region in regions)
+        text = "; ".join(
+            f"{region.label} R={region.radius:g}, a={region.a:g}, b={region.b:g}"
+            for region in regions
+        )
     if enrich:
         text += f"; enriched with {', '.join(enrich)}"
-    plan = SelectionPlan(regions, enrich=enrich, strategy=args.strategy, overlap=args.overlap,
-                         uncovered=args.uncovered)
+    plan = SelectionPlan(
+        regions,
+        enrich=enrich,
+        strategy=args.strategy,
+        overlap=args.overlap,
+        uncovered=args.uncovered,
+    )
     return plan, selection_mesh, f"{method} ({args.strategy}): {text}"
 
 
@@ -114,19 +121,24 @@ def _run_morph(args: argparse.Namespace) -> int:
 
     output = Path(args.output)
     if output.suffix.lower() not in MESH_FORMATS:
-        args.parser.error(f"argument --output/-o: unsupported mesh file extension "
-                          f"{output.suffix or '(none)'!r}; supported: "
-                          f"{', '.join(sorted(MESH_FORMATS))}")
+        args.parser.error(
+            f"argument --output/-o: unsupported mesh file extension "
+            f"{output.suffix or '(none)'!r}; supported: "
+            f"{', '.join(sorted(MESH_FORMATS))}"
+        )
     if args.enrich and args.select is None and not args.region:
-        args.parser.error("argument --enrich: needs --select or --region (without a selection "
-                          "every boundary node is a control point already)")
+        args.parser.error(
+            "argument --enrich: needs --select or --region (without a selection "
+            "every boundary node is a control point already)"
+        )
     try:
         device = torch.device(args.device)
     except RuntimeError as error:
         args.parser.error(f"argument --device: {error}")
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise CommandError(f"--device {args.device}: CUDA is not available in this torch build "
-                           "or on this machine")
+        raise CommandError(
+            f"--device {args.device}: CUDA is not available in this torch build or on this machine"
+        )
     dtype = getattr(torch, args.dtype)
     moving = _split_names(args.moving)
 
@@ -156,20 +168,29 @@ def _run_morph(args: argparse.Namespace) -> int:
             _check_names(mesh, _split_names(args.enrich), "--enrich")
         moving_label = ", ".join(moving) if moving else ""
         rows, layout, dropped = _boundary_rows(
-            array, source=args.displacement, num_nodes=mesh.num_nodes, boundary_nodes=boundary,
-            moving_nodes=moving_nodes, moving_label=moving_label, batch_index=args.batch_index,
+            array,
+            source=args.displacement,
+            num_nodes=mesh.num_nodes,
+            boundary_nodes=boundary,
+            moving_nodes=moving_nodes,
+            moving_label=moving_label,
+            batch_index=args.batch_index,
         )
         if dropped > 0:
-            _warn("morph", f"the displacement file gives non-zero rows (max |value| {dropped:.3g}) "
-                           f"for boundary nodes outside the moving sets ({moving_label}); they "
-                           "are fixed (zero displacement)")
+            _warn(
+                "morph",
+                f"the displacement file gives non-zero rows (max |value| {dropped:.3g}) "
+                f"for boundary nodes outside the moving sets ({moving_label}); they "
+                "are fixed (zero displacement)",
+            )
         mesh = mesh.to(device=device, dtype=dtype)
         plan, selection_mesh, method = _selection_plan(args, mesh)
         generator = torch.Generator().manual_seed(args.seed)
         with stages.step("selecting controls, assembling W"):
             try:
-                morph = MeshMorph(selection_mesh, plan, power=args.power, mode=args.mode,
-                                  generator=generator)
+                morph = MeshMorph(
+                    selection_mesh, plan, power=args.power, mode=args.mode, generator=generator
+                )
             except UncoveredNodesError as error:
                 raise CommandError(_uncovered_message(mesh, error)) from error
             except RegionOverlapError as error:
@@ -201,49 +222,79 @@ def _run_morph(args: argparse.Namespace) -> int:
         with stages.step("writing output"):
             control_flag = torch.zeros(mesh.num_nodes, dtype=torch.uint8)
             control_flag[morph.control_nodes.cpu()] = 1
-            written = mesh_cpu.deformed(field.cpu().to(mesh_cpu.dtype)) if args.write_deformed \
+            written = (
+                mesh_cpu.deformed(field.cpu().to(mesh_cpu.dtype))
+                if args.write_deformed
                 else mesh_cpu
+            )
             output.parent.mkdir(parents=True, exist_ok=True)
-            write_mesh(output, written,
-                       point_data={"displacement": field.cpu(), "control_point": control_flag},
-                       cell_data={"quality": quality_after.cpu(),
-                                  "quality_reference": quality_before.cpu(),
-                                  "inverted": inverted.cpu()})
+            write_mesh(
+                output,
+                written,
+                point_data={"displacement": field.cpu(), "control_point": control_flag},
+                cell_data={
+                    "quality": quality_after.cpu(),
+                    "quality_reference": quality_before.cpu(),
+                    "inverted": inverted.cpu(),
+                },
+            )
     finally:
         stages.close()
 
     num_inverted = int(after["num_inverted"])
-    _line("mesh", f"{args.mesh}: {mesh.num_nodes} nodes, {mesh.num_tets} tets "
-                  f"({morph.num_boundary} boundary, {morph.num_interior} interior nodes)")
+    _line(
+        "mesh",
+        f"{args.mesh}: {mesh.num_nodes} nodes, {mesh.num_tets} tets "
+        f"({morph.num_boundary} boundary, {morph.num_interior} interior nodes)",
+    )
     if moving is not None:
-        _line("moving", f"{moving_label}: {moving_nodes.size} nodes; the other "
-                        f"{boundary.size - moving_nodes.size} boundary nodes are fixed")
+        _line(
+            "moving",
+            f"{moving_label}: {moving_nodes.size} nodes; the other "
+            f"{boundary.size - moving_nodes.size} boundary nodes are fixed",
+        )
     else:
         _line("moving", "every boundary node, as given in the file")
-    _line("displacement", f"{args.displacement}: {layout}; max |d| on the boundary "
-                          f"{float(np.abs(rows).max()) if rows.size else 0.0:.4g}")
+    _line(
+        "displacement",
+        f"{args.displacement}: {layout}; max |d| on the boundary "
+        f"{float(np.abs(rows).max()) if rows.size else 0.0:.4g}",
+    )
     _line("method", method)
     _line("controls", f"{morph.num_controls} of {morph.num_boundary} boundary nodes")
     _line("selection", _seconds(morph.selection_time))
-    storage = ("matrix-free: weights recomputed at every morph" if morph.idw.mode == "matrix_free"
-               else "dense, stored")
-    _line("assembly", f"{_seconds(morph.assembly_time)} (W {morph.num_interior} x "
-                      f"{morph.num_controls}, {storage}; p={args.power:g}, "
-                      f"{args.dtype} on {device})")
+    storage = (
+        "matrix-free: weights recomputed at every morph"
+        if morph.idw.mode == "matrix_free"
+        else "dense, stored"
+    )
+    _line(
+        "assembly",
+        f"{_seconds(morph.assembly_time)} (W {morph.num_interior} x "
+        f"{morph.num_controls}, {storage}; p={args.power:g}, "
+        f"{args.dtype} on {device})",
+    )
     _line("morph", _seconds(morph_time))
-    _line("quality Q", f"max {before['max_edge_ratio']:.4g} -> {after['max_edge_ratio']:.4g}, "
-                       f"mean {before['mean_edge_ratio']:.4g} -> {after['mean_edge_ratio']:.4g}")
+    _line(
+        "quality Q",
+        f"max {before['max_edge_ratio']:.4g} -> {after['max_edge_ratio']:.4g}, "
+        f"mean {before['mean_edge_ratio']:.4g} -> {after['mean_edge_ratio']:.4g}",
+    )
     _line("min vol. ratio", f"{after['min_volume_ratio']:.4g} (deformed / reference volume)")
     _line("inverted tets", f"{num_inverted} of {mesh.num_tets}")
-    _line("wrote", f"{output} ({'deformed' if args.write_deformed else 'reference'} mesh; point "
-                   "data displacement, control_point; cell data quality, quality_reference, "
-                   "inverted)")
+    _line(
+        "wrote",
+        f"{output} ({'deformed' if args.write_deformed else 'reference'} mesh; point "
+        "data displacement, control_point; cell data quality, quality_reference, "
+        "inverted)",
+    )
     if num_inverted:
-        _warn("morph", f"the morph inverts {num_inverted} of {mesh.num_tets} tetrahedra (cell "
-                       "data 'inverted' marks them); try a smaller displacement, more control "
-                       "points (smaller R, --enrich) or a larger --power")
+        _warn(
+            "morph",
+            f"the morph inverts {num_inverted} of {mesh.num_tets} tetrahedra (cell "
+            "data 'inverted' marks them); try a smaller displacement, more control "
+            "points (smaller R, --enrich) or a larger --power",
+        )
         if args.strict:
             return EXIT_INVERTED
     return EXIT_OK
-
-

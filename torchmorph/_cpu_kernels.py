@@ -246,8 +246,7 @@ def _apply_kernel(targets, controls_t, values_t, nearest2, params, mode, out, su
                 _ratio_powers(max(nearest2[row], tiny), buffer, width, mode, params)
                 total[local] += _sum(chunk, zero)
                 for column in range(columns):
-                    accumulated[local, column] += _dot(chunk, values_t[column, start:stop],
-                                                       zero)
+                    accumulated[local, column] += _dot(chunk, values_t[column, start:stop], zero)
         for row in range(first, last):
             local = row - first
             sums[row] = total[local]
@@ -295,7 +294,8 @@ def _transposed_kernel(controls, targets_t, scaled_t, nearest2, params, mode, ou
                         buffer[k] = within if floored[k] <= radius2 else power
                 for column in range(columns):
                     accumulated[row - first, column] += _dot(
-                        chunk, scaled_t[column, start:stop], zero)
+                        chunk, scaled_t[column, start:stop], zero
+                    )
         for row in range(first, last):
             for column in range(columns):
                 out[row, column] = accumulated[row - first, column]
@@ -403,8 +403,10 @@ def _points(targets: Tensor, controls: Tensor) -> tuple[np.ndarray, np.ndarray]:
     target_array = _array(targets, "targets", 2)
     control_array = _array(controls, "controls", 2, targets.dtype)
     if control_array.shape[1] != target_array.shape[1] or control_array.shape[1] < 1:
-        raise ValueError(f"controls must have shape (N_c, {target_array.shape[1]}) like "
-                         f"targets, got {tuple(control_array.shape)}")
+        raise ValueError(
+            f"controls must have shape (N_c, {target_array.shape[1]}) like "
+            f"targets, got {tuple(control_array.shape)}"
+        )
     if control_array.shape[0] == 0:
         raise ValueError("controls must hold at least one point, got 0")
     return target_array, control_array
@@ -434,8 +436,9 @@ def _vector(tensor: Tensor, name: str, length: int, dtype: torch.dtype) -> np.nd
 def _matrix(tensor: Tensor, name: str, rows: int, what: str, dtype: torch.dtype) -> np.ndarray:
     array = _array(tensor, name, 2, dtype)
     if array.shape[0] != rows:
-        raise ValueError(f"{name} must have shape ({rows}, K): one row per {what}, "
-                         f"got {tuple(array.shape)}")
+        raise ValueError(
+            f"{name} must have shape ({rows}, K): one row per {what}, got {tuple(array.shape)}"
+        )
     return array
 
 
@@ -468,13 +471,23 @@ def nearest_squared(targets: Tensor, controls: Tensor) -> Tensor:
     if target_array.shape[0]:
         _require_numba()
         with _threads():
-            _nearest_kernel(target_array, np.ascontiguousarray(control_array.T),
-                            _largest_integer(target_array.dtype), out.numpy())
+            _nearest_kernel(
+                target_array,
+                np.ascontiguousarray(control_array.T),
+                _largest_integer(target_array.dtype),
+                out.numpy(),
+            )
     return out
 
 
-def apply(targets: Tensor, controls: Tensor, values: Tensor, power: float, radius2: float,
-          nearest2: Tensor) -> tuple[Tensor, Tensor]:
+def apply(
+    targets: Tensor,
+    controls: Tensor,
+    values: Tensor,
+    power: float,
+    radius2: float,
+    nearest2: Tensor,
+) -> tuple[Tensor, Tensor]:
     """Matrix-free ``W @ values`` and the row sums ``s_i`` (paper eqs. (1)–(2)).
 
     Parameters
@@ -507,14 +520,28 @@ def apply(targets: Tensor, controls: Tensor, values: Tensor, power: float, radiu
     if target_array.shape[0]:
         _require_numba()
         with _threads():
-            _apply_kernel(target_array, np.ascontiguousarray(control_array.T),
-                               np.ascontiguousarray(value_array.T), nearest_array, params, mode,
-                               out.numpy(), sums.numpy())
+            _apply_kernel(
+                target_array,
+                np.ascontiguousarray(control_array.T),
+                np.ascontiguousarray(value_array.T),
+                nearest_array,
+                params,
+                mode,
+                out.numpy(),
+                sums.numpy(),
+            )
     return out, sums
 
 
-def apply_transposed(targets: Tensor, controls: Tensor, grad: Tensor, power: float,
-                     radius2: float, nearest2: Tensor, sums: Tensor) -> Tensor:
+def apply_transposed(
+    targets: Tensor,
+    controls: Tensor,
+    grad: Tensor,
+    power: float,
+    radius2: float,
+    nearest2: Tensor,
+    sums: Tensor,
+) -> Tensor:
     """``Wᵀ @ grad``: the backward pass of :func:`apply` to its values.
 
     Parameters
@@ -544,13 +571,21 @@ def apply_transposed(targets: Tensor, controls: Tensor, grad: Tensor, power: flo
     scaled_t = np.ascontiguousarray((grad_array / sum_array[:, None]).T)
     _require_numba()
     with _threads():
-        _transposed_kernel(control_array, np.ascontiguousarray(target_array.T), scaled_t,
-                                nearest_array, params, mode, out.numpy())
+        _transposed_kernel(
+            control_array,
+            np.ascontiguousarray(target_array.T),
+            scaled_t,
+            nearest_array,
+            params,
+            mode,
+            out.numpy(),
+        )
     return out
 
 
-def weights(targets: Tensor, controls: Tensor, power: float, radius2: float,
-            out: Tensor | None = None) -> Tensor:
+def weights(
+    targets: Tensor, controls: Tensor, power: float, radius2: float, out: Tensor | None = None
+) -> Tensor:
     """Dense ``W`` (paper eq. (2)), row-major, in one fused pass per block of rows.
 
     Parameters
@@ -574,15 +609,23 @@ def weights(targets: Tensor, controls: Tensor, power: float, radius2: float,
     else:
         _array(out, "out", 2, targets.dtype)
         if tuple(out.shape) != shape or not out.is_contiguous():
-            raise ValueError(f"out must be a contiguous tensor of shape {shape}, got "
-                             f"{tuple(out.shape)}{'' if out.is_contiguous() else ' (strided)'}")
+            raise ValueError(
+                f"out must be a contiguous tensor of shape {shape}, got "
+                f"{tuple(out.shape)}{'' if out.is_contiguous() else ' (strided)'}"
+            )
     mode = _power_mode(power)
     params = _params(target_array.dtype, power, radius2)
     if shape[0]:
         _require_numba()
         with _threads():
-            _weights_kernel(target_array, np.ascontiguousarray(control_array.T), params,
-                            mode, _largest_integer(target_array.dtype), out.detach().numpy())
+            _weights_kernel(
+                target_array,
+                np.ascontiguousarray(control_array.T),
+                params,
+                mode,
+                _largest_integer(target_array.dtype),
+                out.detach().numpy(),
+            )
     return out
 
 
@@ -609,12 +652,17 @@ def dense_apply(weights: Tensor, values: Tensor) -> Tensor:
     weight_array = _array(weights, "weights", 2)
     if not weights.is_contiguous():
         raise ValueError("weights must be contiguous (row-major)")
-    value_array = _matrix(values, "values", weight_array.shape[1], "column of weights",
-                          weights.dtype)
+    value_array = _matrix(
+        values, "values", weight_array.shape[1], "column of weights", weights.dtype
+    )
     out = torch.empty(weight_array.shape[0], value_array.shape[1], dtype=weights.dtype)
     if weight_array.shape[0]:
         _require_numba()
         with _threads():
-            _dense_apply_kernel(weight_array, np.ascontiguousarray(value_array.T),
-                                np.zeros(1, weight_array.dtype), out.numpy())
+            _dense_apply_kernel(
+                weight_array,
+                np.ascontiguousarray(value_array.T),
+                np.zeros(1, weight_array.dtype),
+                out.numpy(),
+            )
     return out

@@ -19,14 +19,17 @@ from ._atomic import atomic_output
 if TYPE_CHECKING:
     pass
 
+
 # --------------------------------------------------------------------------- #
 # process group helpers
 # --------------------------------------------------------------------------- #
 def _group_info(group) -> tuple[int, int]:
     """(rank, world size) in ``group``, with a clear error when there is no process group."""
     if not (dist.is_available() and dist.is_initialized()):
-        raise RuntimeError("torch.distributed is not initialized: call "
-                           "torch.distributed.init_process_group first (or launch with torchrun)")
+        raise RuntimeError(
+            "torch.distributed is not initialized: call "
+            "torch.distributed.init_process_group first (or launch with torchrun)"
+        )
     return dist.get_rank(group), dist.get_world_size(group)
 
 
@@ -39,8 +42,9 @@ def _comm_device(group, like: Tensor) -> torch.device:
     return torch.device("cpu")
 
 
-def shard_rows(count: int, *, rank: int | None = None, world_size: int | None = None,
-               group=None) -> slice:
+def shard_rows(
+    count: int, *, rank: int | None = None, world_size: int | None = None, group=None
+) -> slice:
     """The contiguous slice of ``count`` rows that ``rank`` owns.
 
     Rows are split as evenly as possible: the first ``count % world_size`` ranks own
@@ -144,8 +148,7 @@ def _global_tolerance(controls: Tensor, targets: Tensor, tolerance: float, group
         dist.all_reduce(global_high, op=dist.ReduceOp.MAX, group=group)
         c_low, c_high = c.amin(0).cpu(), c.amax(0).cpu()
         local = torch.maximum(c_high, high) - torch.minimum(c_low, low)
-        whole = (torch.maximum(c_high, global_high.cpu())
-                 - torch.minimum(c_low, global_low.cpu()))
+        whole = torch.maximum(c_high, global_high.cpu()) - torch.minimum(c_low, global_low.cpu())
         local_diagonal = float(torch.linalg.vector_norm(local))
         global_diagonal = float(torch.linalg.vector_norm(whole))
     if local_diagonal == 0.0:
@@ -159,12 +162,16 @@ def _global_tolerance(controls: Tensor, targets: Tensor, tolerance: float, group
 def _as_rows(rows: Tensor | Sequence[int], name: str, count: int, num_rows: int) -> Tensor:
     rows = torch.as_tensor(rows).detach().cpu()
     if rows.ndim != 1 or rows.shape[0] != count or (rows.numel() and rows.is_floating_point()):
-        raise ValueError(f"{name} must be a 1-D integer tensor of {count} global row ids, got "
-                         f"shape {tuple(rows.shape)} and dtype {rows.dtype}")
+        raise ValueError(
+            f"{name} must be a 1-D integer tensor of {count} global row ids, got "
+            f"shape {tuple(rows.shape)} and dtype {rows.dtype}"
+        )
     rows = rows.long()
     if rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= num_rows):
-        raise ValueError(f"{name} must lie in [0, {num_rows}), got ids from {int(rows.min())} "
-                         f"to {int(rows.max())}")
+        raise ValueError(
+            f"{name} must lie in [0, {num_rows}), got ids from {int(rows.min())} "
+            f"to {int(rows.max())}"
+        )
     return rows
 
 
@@ -197,8 +204,9 @@ def gather_rows(
     rank, world = _group_info(group)
     if not isinstance(local, Tensor) or local.ndim not in (2, 3):
         shape = tuple(local.shape) if isinstance(local, Tensor) else type(local).__name__
-        raise ValueError(f"local must be a tensor of shape (n_local, K) or (B, n_local, K), "
-                         f"got {shape}")
+        raise ValueError(
+            f"local must be a tensor of shape (n_local, K) or (B, n_local, K), got {shape}"
+        )
     rows = _as_rows(rows, "rows", local.shape[-2], num_rows)
     device = _comm_device(group, local)
     with torch.no_grad():
@@ -257,15 +265,17 @@ def save_partitioned(
     rank, world = _group_info(group)
     if not isinstance(local, Tensor) or local.ndim not in (2, 3):
         shape = tuple(local.shape) if isinstance(local, Tensor) else type(local).__name__
-        raise ValueError(f"local must be a tensor of shape (n_local, K) or (B, n_local, K), "
-                         f"got {shape}")
+        raise ValueError(
+            f"local must be a tensor of shape (n_local, K) or (B, n_local, K), got {shape}"
+        )
     rows = _as_rows(rows, "rows", local.shape[-2], num_rows)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"part-{rank:05d}-of-{world:05d}.pt"
     with atomic_output(path) as temporary:
-        torch.save({"rows": rows, "values": local.detach().cpu(), "num_rows": int(num_rows)},
-                   temporary)
+        torch.save(
+            {"rows": rows, "values": local.detach().cpu(), "num_rows": int(num_rows)}, temporary
+        )
     dist.barrier(group=group)
     return path
 
@@ -281,29 +291,33 @@ def load_partitioned(directory: str | os.PathLike) -> Tensor:
         If parts are missing or come from runs with different world sizes or sizes.
     """
     directory = Path(directory)
-    parts = sorted(p for p in directory.iterdir() if _PART.search(p.name)) \
-        if directory.is_dir() else []
+    parts = (
+        sorted(p for p in directory.iterdir() if _PART.search(p.name)) if directory.is_dir() else []
+    )
     if not parts:
         raise FileNotFoundError(f"directory {str(directory)!r} holds no part-*-of-*.pt files")
     worlds = {int(_PART.search(p.name).group(2)) for p in parts}
     if len(worlds) != 1:
-        raise ValueError(f"directory {str(directory)!r} mixes parts of runs with world sizes "
-                         f"{sorted(worlds)}")
+        raise ValueError(
+            f"directory {str(directory)!r} mixes parts of runs with world sizes {sorted(worlds)}"
+        )
     (world,) = worlds
     ranks = sorted(int(_PART.search(p.name).group(1)) for p in parts)
     if ranks != list(range(world)):
         missing = sorted(set(range(world)) - set(ranks))
-        raise ValueError(f"directory {str(directory)!r}: parts of ranks {missing} are missing "
-                         f"(world size {world})")
+        raise ValueError(
+            f"directory {str(directory)!r}: parts of ranks {missing} are missing "
+            f"(world size {world})"
+        )
     pieces = [torch.load(p, weights_only=True) for p in parts]
     num_rows = {piece["num_rows"] for piece in pieces}
     if len(num_rows) != 1:
-        raise ValueError(f"directory {str(directory)!r}: parts disagree on the number of rows "
-                         f"({sorted(num_rows)})")
+        raise ValueError(
+            f"directory {str(directory)!r}: parts disagree on the number of rows "
+            f"({sorted(num_rows)})"
+        )
     first = pieces[0]["values"]
     full = first.new_zeros(*first.shape[:-2], num_rows.pop(), first.shape[-1])
     for piece in pieces:
         full.index_copy_(-2, piece["rows"], piece["values"])
     return full
-
-

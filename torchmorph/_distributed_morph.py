@@ -93,9 +93,16 @@ class ShardedIDW(nn.Module):
         if not isinstance(targets, Tensor) or not isinstance(controls, Tensor):
             raise TypeError("controls and targets must be tensors")
         tolerance = _global_tolerance(controls, targets, float(coincidence_tolerance), group)
-        self.idw = IDW(controls, targets, power=power, mode=mode, block_bytes=block_bytes,
-                       dense_bytes=dense_bytes, coincidence_tolerance=tolerance,
-                       implementation=implementation)
+        self.idw = IDW(
+            controls,
+            targets,
+            power=power,
+            mode=mode,
+            block_bytes=block_bytes,
+            dense_bytes=dense_bytes,
+            coincidence_tolerance=tolerance,
+            implementation=implementation,
+        )
         device = _comm_device(group, controls)
         counts = torch.zeros(self.world_size, dtype=torch.int64, device=device)
         counts[self.rank] = self.idw.num_targets
@@ -105,8 +112,9 @@ class ShardedIDW(nn.Module):
         if target_rows is None:
             start = int(counts[: self.rank].sum())
             target_rows = torch.arange(start, start + self.idw.num_targets)
-        target_rows = _as_rows(target_rows, "target_rows", self.idw.num_targets,
-                               self.num_global_targets)
+        target_rows = _as_rows(
+            target_rows, "target_rows", self.idw.num_targets, self.num_global_targets
+        )
         self.register_buffer("target_rows", target_rows.to(controls.device))
 
     @property
@@ -150,12 +158,15 @@ class ShardedIDW(nn.Module):
 
     def gather(self, local: Tensor, *, dst: int | None = 0) -> Tensor | None:
         """The full (N_t, 3) field on ``dst`` (all ranks if None), from each rank's rows."""
-        return gather_rows(local, self.target_rows, self.num_global_targets, dst=dst,
-                           group=self.group)
+        return gather_rows(
+            local, self.target_rows, self.num_global_targets, dst=dst, group=self.group
+        )
 
     def extra_repr(self) -> str:
-        return (f"rank={self.rank}, world_size={self.world_size}, "
-                f"num_global_targets={self.num_global_targets}")
+        return (
+            f"rank={self.rank}, world_size={self.world_size}, "
+            f"num_global_targets={self.num_global_targets}"
+        )
 
 
 # --------------------------------------------------------------------------- #
@@ -167,8 +178,9 @@ def _broadcast_ids(ids: Tensor | None, group, device: torch.device) -> Tensor:
     source = dist.get_global_rank(group, 0) if group is not None else 0
     count = torch.tensor([0 if ids is None else ids.numel()], dtype=torch.int64, device=device)
     dist.broadcast(count, src=source, group=group)
-    buffer = ids.to(device) if rank == 0 else torch.empty(int(count), dtype=torch.int64,
-                                                          device=device)
+    buffer = (
+        ids.to(device) if rank == 0 else torch.empty(int(count), dtype=torch.int64, device=device)
+    )
     dist.broadcast(buffer, src=source, group=group)
     return buffer.cpu()
 
@@ -248,28 +260,42 @@ class ShardedMeshMorph(nn.Module):
             if plan is None:
                 control_nodes = boundary
             else:
-                control_nodes = torch.as_tensor(plan.select(mesh, generator=generator),
-                                                dtype=torch.long).unique()
+                control_nodes = torch.as_tensor(
+                    plan.select(mesh, generator=generator), dtype=torch.long
+                ).unique()
         control_nodes = _broadcast_ids(control_nodes, group, device)
         if control_nodes.numel() == 0:
             raise ValueError("plan selected no control points")
         selected = torch.searchsorted(boundary, control_nodes)
         if (selected >= boundary.numel()).any() or not torch.equal(
-                boundary[selected.clamp_max(boundary.numel() - 1)], control_nodes):
+            boundary[selected.clamp_max(boundary.numel() - 1)], control_nodes
+        ):
             raise ValueError("plan selected nodes that are not boundary nodes")
 
         if owned_nodes is None:  # an even share of the interior (the work) and of the boundary
-            owned = torch.cat([boundary[shard_rows(boundary.numel(), group=group)],
-                               interior[shard_rows(interior.numel(), group=group)]]).sort().values
+            owned = (
+                torch.cat(
+                    [
+                        boundary[shard_rows(boundary.numel(), group=group)],
+                        interior[shard_rows(interior.numel(), group=group)],
+                    ]
+                )
+                .sort()
+                .values
+            )
         else:
             owned = torch.as_tensor(owned_nodes).detach().cpu()
             if owned.ndim != 1 or (owned.numel() and owned.is_floating_point()):
-                raise ValueError(f"owned_nodes must be a 1-D integer tensor of node ids, got "
-                                 f"shape {tuple(owned.shape)} and dtype {owned.dtype}")
+                raise ValueError(
+                    f"owned_nodes must be a 1-D integer tensor of node ids, got "
+                    f"shape {tuple(owned.shape)} and dtype {owned.dtype}"
+                )
             owned = owned.long()
             if owned.numel() and (int(owned.min()) < 0 or int(owned.max()) >= num_nodes):
-                raise ValueError(f"owned_nodes must lie in [0, {num_nodes}), got ids from "
-                                 f"{int(owned.min())} to {int(owned.max())}")
+                raise ValueError(
+                    f"owned_nodes must lie in [0, {num_nodes}), got ids from "
+                    f"{int(owned.min())} to {int(owned.max())}"
+                )
         owners = torch.zeros(num_nodes, dtype=torch.int32)
         owners.index_add_(0, owned, torch.ones_like(owned, dtype=torch.int32))
         owners = owners.to(device)
@@ -277,9 +303,11 @@ class ShardedMeshMorph(nn.Module):
         owners = owners.cpu()
         orphans, shared = int((owners == 0).sum()), int((owners > 1).sum())
         if orphans or shared:
-            raise ValueError(f"owned_nodes must partition the {num_nodes} mesh nodes across "
-                             f"the ranks: {orphans} nodes are owned by no rank and {shared} by "
-                             f"several")
+            raise ValueError(
+                f"owned_nodes must partition the {num_nodes} mesh nodes across "
+                f"the ranks: {orphans} nodes are owned by no rank and {shared} by "
+                f"several"
+            )
 
         is_boundary = torch.zeros(num_nodes, dtype=torch.bool)
         is_boundary[boundary] = True
@@ -295,23 +323,35 @@ class ShardedMeshMorph(nn.Module):
         self.register_buffer("local_interior", local_interior.to(target_device))
         # positions of the owned boundary / interior nodes among the output rows, and the
         # rows of the boundary displacement the owned boundary nodes take
-        self.register_buffer("_boundary_slots",
-                             torch.nonzero(owned_is_boundary).flatten().to(target_device),
-                             persistent=False)
-        self.register_buffer("_interior_slots",
-                             torch.nonzero(~owned_is_boundary).flatten().to(target_device),
-                             persistent=False)
-        self.register_buffer("_boundary_rows",
-                             torch.searchsorted(boundary, local_boundary).to(target_device),
-                             persistent=False)
+        self.register_buffer(
+            "_boundary_slots",
+            torch.nonzero(owned_is_boundary).flatten().to(target_device),
+            persistent=False,
+        )
+        self.register_buffer(
+            "_interior_slots",
+            torch.nonzero(~owned_is_boundary).flatten().to(target_device),
+            persistent=False,
+        )
+        self.register_buffer(
+            "_boundary_rows",
+            torch.searchsorted(boundary, local_boundary).to(target_device),
+            persistent=False,
+        )
         self.node_sets = {name: nodes.clone() for name, nodes in mesh.node_sets.items()}
         self.num_interior = int(interior.numel())
-        self.sharded = ShardedIDW(points[self.control_nodes], points[self.local_interior],
-                                  target_rows=torch.searchsorted(interior, local_interior),
-                                  power=power, mode=mode, block_bytes=block_bytes,
-                                  dense_bytes=dense_bytes,
-                                  coincidence_tolerance=coincidence_tolerance,
-                                  implementation=implementation, group=group)
+        self.sharded = ShardedIDW(
+            points[self.control_nodes],
+            points[self.local_interior],
+            target_rows=torch.searchsorted(interior, local_interior),
+            power=power,
+            mode=mode,
+            block_bytes=block_bytes,
+            dense_bytes=dense_bytes,
+            coincidence_tolerance=coincidence_tolerance,
+            implementation=implementation,
+            group=group,
+        )
         self.idw = self.sharded.idw
 
     # ------------------------------------------------------------------ sizes
@@ -339,8 +379,9 @@ class ShardedMeshMorph(nn.Module):
         """This rank's rows: boundary values copied, interior values from ``interior``."""
         shape = (*boundary_displacement.shape[:-2], self.num_owned, 3)
         out = boundary_displacement.new_zeros(shape)
-        out = out.index_copy(-2, self._boundary_slots,
-                             boundary_displacement.index_select(-2, self._boundary_rows))
+        out = out.index_copy(
+            -2, self._boundary_slots, boundary_displacement.index_select(-2, self._boundary_rows)
+        )
         return out.index_copy(-2, self._interior_slots, interior)
 
     def forward(self, boundary_displacement: Tensor, *, points: Tensor | None = None) -> Tensor:
@@ -360,22 +401,24 @@ class ShardedMeshMorph(nn.Module):
         -------
         Tensor, shape (n_owned, 3) or (B, n_owned, 3)
         """
-        check_vectors(boundary_displacement, "boundary_displacement", self.num_boundary,
-                      what="boundary nodes")
-        if points is not None and (not isinstance(points, Tensor)
-                                   or points.shape != self.points.shape):
+        check_vectors(
+            boundary_displacement, "boundary_displacement", self.num_boundary, what="boundary nodes"
+        )
+        if points is not None and (
+            not isinstance(points, Tensor) or points.shape != self.points.shape
+        ):
             shape = tuple(points.shape) if isinstance(points, Tensor) else type(points)
             raise ValueError(f"points must have shape {tuple(self.points.shape)}, got {shape}")
-        boundary_displacement, points = replicate(boundary_displacement, points,
-                                                  group=self.group)
+        boundary_displacement, points = replicate(boundary_displacement, points, group=self.group)
         controls = self.controls_from_boundary(boundary_displacement)
         if self.idw.num_targets == 0:
             interior = controls.new_zeros(*controls.shape[:-2], 0, 3)
         elif points is None:
             interior = self.idw(controls)
         else:
-            interior = self.idw(controls, controls=points[self.control_nodes],
-                                targets=points[self.local_interior])
+            interior = self.idw(
+                controls, controls=points[self.control_nodes], targets=points[self.local_interior]
+            )
         out = self._assemble(boundary_displacement, interior)
         return _attach(out, boundary_displacement, points)
 
@@ -385,12 +428,13 @@ class ShardedMeshMorph(nn.Module):
 
     def save(self, directory: str | os.PathLike, local: Tensor) -> Path:
         """Write this rank's rows with :func:`save_partitioned` (atomically)."""
-        return save_partitioned(directory, local, self.owned_nodes, self.num_nodes,
-                                group=self.group)
+        return save_partitioned(
+            directory, local, self.owned_nodes, self.num_nodes, group=self.group
+        )
 
     def extra_repr(self) -> str:
-        return (f"rank={self.rank}, world_size={self.world_size}, num_nodes={self.num_nodes}, "
-                f"num_owned={self.num_owned}, num_controls={self.num_controls}, "
-                f"mode={self.idw.mode!r}")
-
-
+        return (
+            f"rank={self.rank}, world_size={self.world_size}, num_nodes={self.num_nodes}, "
+            f"num_owned={self.num_owned}, num_controls={self.num_controls}, "
+            f"mode={self.idw.mode!r}"
+        )

@@ -74,18 +74,26 @@ def sharded_pod_basis(
     SVD's arbitrary signs: compare modes up to sign).
     """
     rank, world = _group_info(group)
-    if not isinstance(snapshots, Tensor) or snapshots.ndim != 3 or snapshots.shape[-1] != 3 \
-            or snapshots.shape[0] == 0:
-        shape = tuple(snapshots.shape) if isinstance(snapshots, Tensor) else \
-            type(snapshots).__name__
+    if (
+        not isinstance(snapshots, Tensor)
+        or snapshots.ndim != 3
+        or snapshots.shape[-1] != 3
+        or snapshots.shape[0] == 0
+    ):
+        shape = (
+            tuple(snapshots.shape) if isinstance(snapshots, Tensor) else type(snapshots).__name__
+        )
         raise ValueError(f"snapshots must have shape (n, m_local, 3) with n >= 1, got {shape}")
     energy_tolerance = check_energy_tolerance(energy_tolerance)
     num_modes = check_num_modes(num_modes)
     count, num_points = snapshots.shape[0], snapshots.shape[1]
     device = _comm_device(group, snapshots)
     matrix = snapshots.detach().reshape(count, 3 * num_points).double().mT.to(device)
-    stats = torch.tensor([float(num_points), float(not bool(matrix.isfinite().all()))],
-                         dtype=torch.float64, device=device)
+    stats = torch.tensor(
+        [float(num_points), float(not bool(matrix.isfinite().all()))],
+        dtype=torch.float64,
+        device=device,
+    )
     dist.all_reduce(stats, group=group)
     total_points = int(stats[0])
     if float(stats[1]):
@@ -112,23 +120,27 @@ def sharded_pod_basis(
     energy_captured = torch.cumsum(singular_values.square(), 0) / total
     singular_values = singular_values[: min(count, 3 * total_points)]
     energy_captured = energy_captured[: singular_values.shape[0]]
-    numerical_rank = _numerical_rank(singular_values, (count, 3 * total_points),
-                                     snapshots.dtype)
+    numerical_rank = _numerical_rank(singular_values, (count, 3 * total_points), snapshots.dtype)
     if num_modes is None:
         kept = _num_modes_for_energy(singular_values.square(), energy_tolerance)
     else:
         if num_modes > count:
             raise ValueError(f"num_modes={num_modes} exceeds the number of snapshots ({count})")
         if num_modes > numerical_rank:
-            raise ValueError(f"num_modes={num_modes} exceeds the numerical rank "
-                             f"{numerical_rank} of the snapshots (singular values "
-                             f"{singular_values[:num_modes].tolist()})")
+            raise ValueError(
+                f"num_modes={num_modes} exceeds the numerical rank "
+                f"{numerical_rank} of the snapshots (singular values "
+                f"{singular_values[:num_modes].tolist()})"
+            )
         kept = num_modes
     block = left[rank * count : (rank + 1) * count, :kept]
     columns = q @ block  # (3m, N)
     modes = columns.mT.reshape(kept, num_points, 3).to(snapshots.device, snapshots.dtype)
-    return (modes.contiguous(), singular_values.to(snapshots.device, snapshots.dtype),
-            energy_captured.to(snapshots.device, snapshots.dtype))
+    return (
+        modes.contiguous(),
+        singular_values.to(snapshots.device, snapshots.dtype),
+        energy_captured.to(snapshots.device, snapshots.dtype),
+    )
 
 
 class ShardedPOD(nn.Module):
@@ -197,14 +209,20 @@ class ShardedPOD(nn.Module):
         elif isinstance(morph, ShardedIDW):
             count_in, idw = morph.num_controls, morph.idw
         else:
-            raise TypeError(f"morph must be a ShardedIDW or a ShardedMeshMorph, got "
-                            f"{type(morph).__name__}")
-        if not isinstance(displacements, Tensor) or displacements.ndim != 3 or \
-                displacements.shape[1:] != (count_in, 3):
-            shape = tuple(displacements.shape) if isinstance(displacements, Tensor) else \
-                type(displacements).__name__
-            raise ValueError(f"displacements must have shape (n_train, {count_in}, 3), got "
-                             f"{shape}")
+            raise TypeError(
+                f"morph must be a ShardedIDW or a ShardedMeshMorph, got {type(morph).__name__}"
+            )
+        if (
+            not isinstance(displacements, Tensor)
+            or displacements.ndim != 3
+            or displacements.shape[1:] != (count_in, 3)
+        ):
+            shape = (
+                tuple(displacements.shape)
+                if isinstance(displacements, Tensor)
+                else type(displacements).__name__
+            )
+            raise ValueError(f"displacements must have shape (n_train, {count_in}, 3), got {shape}")
         group = morph.group
         with torch.no_grad():
             inputs = displacements.to(idw.controls.device, idw.controls.dtype)
@@ -212,8 +230,11 @@ class ShardedPOD(nn.Module):
                 inputs = morph.controls_from_boundary(inputs)
             snapshots = idw(inputs)
             modes, singular_values, energy = sharded_pod_basis(
-                snapshots, energy_tolerance=self.energy_tolerance, num_modes=self.num_modes,
-                group=group)
+                snapshots,
+                energy_tolerance=self.energy_tolerance,
+                num_modes=self.num_modes,
+                group=group,
+            )
             if idw.num_targets:
                 projection = _transpose_apply(idw, modes)
             else:
@@ -231,16 +252,15 @@ class ShardedPOD(nn.Module):
     def coefficients(self, displacement: Tensor) -> Tensor:
         """β = P d_sel, shape (N,) or (B, N), from a replicated input (no communication)."""
         if not self.is_fitted:
-            raise RuntimeError("this ShardedPOD is not fitted yet: call fit(morph, "
-                               "displacements) first")
+            raise RuntimeError(
+                "this ShardedPOD is not fitted yet: call fit(morph, displacements) first"
+            )
         morph = self.__dict__["_morph"]
         if isinstance(morph, ShardedMeshMorph):
-            check_vectors(displacement, "displacement", morph.num_boundary,
-                          what="boundary nodes")
+            check_vectors(displacement, "displacement", morph.num_boundary, what="boundary nodes")
             displacement = morph.controls_from_boundary(displacement)
         else:
-            check_vectors(displacement, "displacement", morph.num_controls,
-                          what="control points")
+            check_vectors(displacement, "displacement", morph.num_controls, what="control points")
         flat = displacement.reshape(*displacement.shape[:-2], -1)
         return flat @ self.projection_.reshape(self.num_modes_, -1).mT
 
@@ -259,15 +279,18 @@ class ShardedPOD(nn.Module):
         """
         beta = self.coefficients(displacement)
         interior = (beta @ self.modes_.reshape(self.num_modes_, -1)).reshape(
-            *beta.shape[:-1], -1, 3)
+            *beta.shape[:-1], -1, 3
+        )
         morph = self.__dict__["_morph"]
         if isinstance(morph, ShardedMeshMorph):
             return morph._assemble(displacement, interior)
         return interior
 
     def extra_repr(self) -> str:
-        return (f"energy_tolerance={self.energy_tolerance:g}, num_modes={self.num_modes}, "
-                f"num_modes_={self.num_modes_}")
+        return (
+            f"energy_tolerance={self.energy_tolerance:g}, num_modes={self.num_modes}, "
+            f"num_modes_={self.num_modes_}"
+        )
 
 
 def _transpose_apply(idw, modes: Tensor) -> Tensor:

@@ -33,13 +33,15 @@ class _TritonBackend:
         return self.kernels.nearest_squared(targets, controls)
 
     def apply(self, targets, controls, values, power, radius2, nearest2):
-        out, nearest2, sums = self.kernels.apply(targets, controls, values, power, radius2,
-                                                 nearest2)
+        out, nearest2, sums = self.kernels.apply(
+            targets, controls, values, power, radius2, nearest2
+        )
         return out, sums
 
     def apply_transposed(self, targets, controls, grad, power, radius2, nearest2, sums):
-        return self.kernels.apply_transposed(targets, controls, grad, nearest2, sums, power,
-                                             radius2)
+        return self.kernels.apply_transposed(
+            targets, controls, grad, nearest2, sums, power, radius2
+        )
 
     def weights(self, targets, controls, power, radius2, out=None):
         return self.kernels.weights(targets, controls, power, radius2, out=out)
@@ -52,10 +54,33 @@ class _TritonBackend:
         """Whether :meth:`position_gradients` handles this many dimensions and columns."""
         return dim <= 3 and columns <= self.kernels.POSITION_GRAD_COLUMNS
 
-    def position_gradients(self, targets, controls, values, grad, out, nearest2, sums, power,
-                           radius2, need_targets, need_controls):
-        return self.kernels.position_gradients(targets, controls, values, grad, out, nearest2,
-                                               sums, power, radius2, need_targets, need_controls)
+    def position_gradients(
+        self,
+        targets,
+        controls,
+        values,
+        grad,
+        out,
+        nearest2,
+        sums,
+        power,
+        radius2,
+        need_targets,
+        need_controls,
+    ):
+        return self.kernels.position_gradients(
+            targets,
+            controls,
+            values,
+            grad,
+            out,
+            nearest2,
+            sums,
+            power,
+            radius2,
+            need_targets,
+            need_controls,
+        )
 
     def dense_apply(self, weights, values):
         return self.kernels.dense_apply(weights, values)
@@ -87,8 +112,9 @@ class _NumbaBackend:
         return self.kernels.apply(targets, controls, values, power, radius2, nearest2)
 
     def apply_transposed(self, targets, controls, grad, power, radius2, nearest2, sums):
-        return self.kernels.apply_transposed(targets, controls, grad, power, radius2, nearest2,
-                                             sums)
+        return self.kernels.apply_transposed(
+            targets, controls, grad, power, radius2, nearest2, sums
+        )
 
     def weights(self, targets, controls, power, radius2, out=None):
         return self.kernels.weights(targets, controls, power, radius2, out=out)
@@ -127,13 +153,18 @@ def fused_available(device: torch.device | str = "cpu") -> bool:
 
 def _check_implementation(implementation: str) -> str:
     if implementation not in IMPLEMENTATIONS:
-        raise ValueError(f"implementation must be 'auto', 'fused' or 'torch', "
-                         f"got {implementation!r}")
+        raise ValueError(
+            f"implementation must be 'auto', 'fused' or 'torch', got {implementation!r}"
+        )
     return implementation
 
 
-def _fused_for(implementation: str, *tensors: Tensor, positions_grad: bool = False,
-               shape: tuple[int, int] = (3, 3)):
+def _fused_for(
+    implementation: str,
+    *tensors: Tensor,
+    positions_grad: bool = False,
+    shape: tuple[int, int] = (3, 3),
+):
     """The fused backend to use for ``tensors``, or None for the torch implementation.
 
     ``positions_grad``: gradients to the points are wanted, for points of dimension
@@ -150,12 +181,16 @@ def _fused_for(implementation: str, *tensors: Tensor, positions_grad: bool = Fal
     elif reference.dtype not in (torch.float32, torch.float64):
         reason = f"dtype {reference.dtype} (the kernels take float32 and float64)"
     elif _backend(reference.device) is None:
-        reason = (f"no fused kernels on device {reference.device} (Triton on CUDA; numba on "
-                  f"the CPU, installed with torchmorph)")
+        reason = (
+            f"no fused kernels on device {reference.device} (Triton on CUDA; numba on "
+            f"the CPU, installed with torchmorph)"
+        )
     elif positions_grad and not _backend(reference.device).position_gradients_for(*shape):
-        reason = (f"gradients to point positions are fused on CUDA for D <= 3 and at most "
-                  f"{_POSITION_GRAD_COLUMNS} value columns, here {reference.device}, D = "
-                  f"{shape[0]}, {shape[1]} columns: the torch implementation computes them")
+        reason = (
+            f"gradients to point positions are fused on CUDA for D <= 3 and at most "
+            f"{_POSITION_GRAD_COLUMNS} value columns, here {reference.device}, D = "
+            f"{shape[0]}, {shape[1]} columns: the torch implementation computes them"
+        )
     if reason is None:
         return _backend(reference.device)
     if implementation == "fused":
@@ -176,10 +211,12 @@ class _FusedApply(torch.autograd.Function):
         if nearest2 is None:
             nearest2 = backend.nearest(targets.detach(), controls.detach())
         values = values.contiguous()
-        out, sums = backend.apply(targets.detach(), controls.detach(), values.detach(), power,
-                                  radius2, nearest2)
-        ctx.save_for_backward(targets.detach(), controls.detach(), values.detach(), out,
-                              nearest2, sums)
+        out, sums = backend.apply(
+            targets.detach(), controls.detach(), values.detach(), power, radius2, nearest2
+        )
+        ctx.save_for_backward(
+            targets.detach(), controls.detach(), values.detach(), out, nearest2, sums
+        )
         ctx.settings = (backend, power, radius2)
         return out
 
@@ -191,12 +228,23 @@ class _FusedApply(torch.autograd.Function):
         grad = grad.contiguous()
         grad_targets = grad_controls = grad_values = None
         if ctx.needs_input_grad[2]:
-            grad_values = backend.apply_transposed(targets, controls, grad, power, radius2,
-                                                   nearest2, sums)
+            grad_values = backend.apply_transposed(
+                targets, controls, grad, power, radius2, nearest2, sums
+            )
         if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
             grad_targets, grad_controls = backend.position_gradients(
-                targets, controls, values, grad, out, nearest2, sums, power, radius2,
-                ctx.needs_input_grad[0], ctx.needs_input_grad[1])
+                targets,
+                controls,
+                values,
+                grad,
+                out,
+                nearest2,
+                sums,
+                power,
+                radius2,
+                ctx.needs_input_grad[0],
+                ctx.needs_input_grad[1],
+            )
         return grad_targets, grad_controls, grad_values, None, None, None, None
 
 

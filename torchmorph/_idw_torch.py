@@ -38,7 +38,11 @@ def _functional(*tensors: Tensor) -> bool:
 
 
 def _squared_distances(
-    targets: Tensor, controls: Tensor, out: Tensor | None = None, *, floor: float = 0.0,
+    targets: Tensor,
+    controls: Tensor,
+    out: Tensor | None = None,
+    *,
+    floor: float = 0.0,
     controls_t: Tensor | None = None,
 ) -> Tensor:
     """(n_t, n_c) squared distances from direct coordinate differences, plus ``floor``.
@@ -100,8 +104,12 @@ def _coincident_weights(dist2: Tensor, radius2: float) -> Tensor:
 
 
 def _weights_block(
-    targets: Tensor, controls: Tensor, power: float, radius2: float,
-    out: Tensor | None = None, controls_t: Tensor | None = None,
+    targets: Tensor,
+    controls: Tensor,
+    power: float,
+    radius2: float,
+    out: Tensor | None = None,
+    controls_t: Tensor | None = None,
 ) -> Tensor:
     """Rows of W for a block of (normalised) targets against all controls; in place
     into ``out`` when autograd is off.
@@ -117,8 +125,9 @@ def _weights_block(
         coincident = nearest2 <= radius2  # (n, 1)
         exact = _coincident_weights(dist2.detach(), radius2)
         safe = torch.where(coincident, torch.ones_like(dist2), dist2)
-        ratio = _ratio_powers(torch.where(coincident, torch.ones_like(nearest2), nearest2),
-                              safe, power)
+        ratio = _ratio_powers(
+            torch.where(coincident, torch.ones_like(nearest2), nearest2), safe, power
+        )
         return torch.where(coincident, exact, ratio / ratio.sum(1, keepdim=True))
     dist2 = _squared_distances(targets, controls, out, floor=tiny, controls_t=controls_t)
     nearest2 = dist2.amin(1, keepdim=True)
@@ -149,8 +158,7 @@ def _nearest_squared_distance(targets: Tensor, controls: Tensor, tiles: tuple[in
             from scipy.spatial import cKDTree
 
             with _functorch_disabled():
-                _, nearest = cKDTree(plain_c.detach().numpy()).query(
-                    plain_t.detach().numpy(), k=1)
+                _, nearest = cKDTree(plain_c.detach().numpy()).query(plain_t.detach().numpy(), k=1)
                 nearest = torch.from_numpy(nearest).long()
             return (t - c[nearest]).square().sum(1, keepdim=True)
         rows, cols = tiles
@@ -169,7 +177,9 @@ def _functorch_disabled():
     return disable() if disable is not None else contextlib.nullcontext()
 
 
-def _tile_shape(n_targets: int, n_controls: int, itemsize: int, block_bytes: int) -> tuple[int, int]:
+def _tile_shape(
+    n_targets: int, n_controls: int, itemsize: int, block_bytes: int
+) -> tuple[int, int]:
     """(rows, columns) of a tile whose two pairwise temporaries fit ``block_bytes``."""
     elements = max(1, int(block_bytes) // (2 * itemsize))
     columns = min(n_controls, max(256, elements // 256))
@@ -178,8 +188,13 @@ def _tile_shape(n_targets: int, n_controls: int, itemsize: int, block_bytes: int
 
 
 def _matrix_free_rows(
-    targets: Tensor, controls: Tensor, augmented: Tensor, nearest2: Tensor,
-    power: float, radius2: float, columns: int,
+    targets: Tensor,
+    controls: Tensor,
+    augmented: Tensor,
+    nearest2: Tensor,
+    power: float,
+    radius2: float,
+    columns: int,
 ) -> Tensor:
     """IDW at a block of targets, tiling over controls (torch implementation).
 
@@ -202,11 +217,21 @@ def _matrix_free_rows(
     return result
 
 
-def _torch_apply(targets: Tensor, controls: Tensor, values: Tensor, power: float,
-                 radius2: float, block_bytes: int | None) -> Tensor:
+def _torch_apply(
+    targets: Tensor,
+    controls: Tensor,
+    values: Tensor,
+    power: float,
+    radius2: float,
+    block_bytes: int | None,
+) -> Tensor:
     """The torch implementation of matrix-free ``W @ values`` (normalised points)."""
-    rows, columns = _tile_shape(targets.shape[0], controls.shape[0], controls.element_size(),
-                                _block_bytes(block_bytes, controls.device))
+    rows, columns = _tile_shape(
+        targets.shape[0],
+        controls.shape[0],
+        controls.element_size(),
+        _block_bytes(block_bytes, controls.device),
+    )
     nearest2 = _nearest_squared_distance(targets, controls, (rows, columns))
     inputs = (targets, controls, values)
     needs_graph = torch.is_grad_enabled() and any(x.requires_grad for x in inputs)
@@ -214,8 +239,15 @@ def _torch_apply(targets: Tensor, controls: Tensor, values: Tensor, power: float
     augmented = torch.cat([values, values.new_ones(values.shape[0], 1)], 1)
     blocks = []
     for start in range(0, targets.shape[0], rows):
-        args = (targets[start : start + rows], controls, augmented, nearest2[start : start + rows],
-                power, radius2, columns)
+        args = (
+            targets[start : start + rows],
+            controls,
+            augmented,
+            nearest2[start : start + rows],
+            power,
+            radius2,
+            columns,
+        )
         if needs_graph:
             blocks.append(checkpoint(_matrix_free_rows, *args, use_reentrant=False))
         else:

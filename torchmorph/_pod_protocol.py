@@ -44,16 +44,16 @@ ONLINE_VARIANTS = ("projection", "paper")
 
 def check_online(value: str) -> str:
     if value not in ONLINE_VARIANTS:
-        raise ValueError(f"online must be one of {', '.join(map(repr, ONLINE_VARIANTS))}, "
-                         f"got {value!r}")
+        raise ValueError(
+            f"online must be one of {', '.join(map(repr, ONLINE_VARIANTS))}, got {value!r}"
+        )
     return value
 
 
 def as_parameters(parameters: Any) -> Tensor:
     """Training parameters as a tensor (n,) or (n, P), finite."""
     if parameters is None:
-        raise ValueError("parameters must be given with family: shape (n_train,) or "
-                         "(n_train, P)")
+        raise ValueError("parameters must be given with family: shape (n_train,) or (n_train, P)")
     if not isinstance(parameters, Tensor):
         parameters = torch.as_tensor(np.asarray(parameters, dtype=np.float64))
     if parameters.ndim not in (1, 2) or parameters.shape[0] == 0:
@@ -84,24 +84,28 @@ def training_inputs(value: Any, name: str) -> Tensor:
     if not isinstance(value, Tensor):
         value = torch.as_tensor(np.asarray(value, dtype=np.float64))
     if value.ndim != 3 or value.shape[2] != 3 or value.shape[0] == 0 or value.shape[1] == 0:
-        raise ValueError(f"{name} must have shape (n_train, N_in, 3) with n_train >= 1, "
-                         f"got {tuple(value.shape)}")
+        raise ValueError(
+            f"{name} must have shape (n_train, N_in, 3) with n_train >= 1, got {tuple(value.shape)}"
+        )
     check_float_dtype(value, name)
     check_finite(value, name)
     return value.detach()
 
 
-def training_data(displacements: Any, family: Family | None, parameters: Any,
-                  batched: bool) -> tuple[Tensor, int | None]:
+def training_data(
+    displacements: Any, family: Family | None, parameters: Any, batched: bool
+) -> tuple[Tensor, int | None]:
     """Training inputs (n, N_in, 3) from displacements or a family, and the number of
     parameters P (0 for scalars, None without a family), with every argument checked."""
     if family is None:
         if parameters is not None:
-            raise ValueError("parameters given without family: pass family=callable "
-                             "or training displacements")
+            raise ValueError(
+                "parameters given without family: pass family=callable or training displacements"
+            )
         if displacements is None:
-            raise ValueError("no training data: pass displacements (n_train, N_in, 3) "
-                             "or family= and parameters=")
+            raise ValueError(
+                "no training data: pass displacements (n_train, N_in, 3) or family= and parameters="
+            )
         return training_inputs(displacements, "displacements"), None
     if displacements is not None:
         raise ValueError("pass either displacements or family= with parameters=, not both")
@@ -110,8 +114,9 @@ def training_data(displacements: Any, family: Family | None, parameters: Any,
     if not isinstance(batched, bool):
         raise ValueError(f"batched must be True or False, got {batched!r}")
     parameters = as_parameters(parameters)
-    inputs = training_inputs(evaluate_family(family, parameters, None, batched),
-                             "family(parameters)")
+    inputs = training_inputs(
+        evaluate_family(family, parameters, None, batched), "family(parameters)"
+    )
     return inputs, 0 if parameters.ndim == 1 else int(parameters.shape[1])
 
 
@@ -127,27 +132,35 @@ def is_single_value(mu: Tensor, num_parameters: int | None) -> bool:
     if mu.ndim not in (single_ndim, single_ndim + 1) or (
         num_parameters and mu.shape[-1] != num_parameters
     ):
-        expected = "() or (B,)" if num_parameters == 0 else (
-            f"({num_parameters},) or (B, {num_parameters})")
+        expected = (
+            "() or (B,)"
+            if num_parameters == 0
+            else (f"({num_parameters},) or (B, {num_parameters})")
+        )
         raise ValueError(f"mu must have shape {expected}, got {tuple(mu.shape)}")
     return mu.ndim == single_ndim
 
 
-def evaluate_family(
-    family: Family, parameters: Tensor, count: int | None, batched: bool
-) -> Tensor:
+def evaluate_family(family: Family, parameters: Tensor, count: int | None, batched: bool) -> Tensor:
     """Inputs (n, count, 3) for a batch of parameter values: one call with the whole
     batch (``batched``) or one call per value. Exceptions of the family propagate.
     ``count`` None: any number of rows, the same for every value."""
     rows = "N_in" if count is None else count
     if batched:
         out = family(parameters)
-        if not isinstance(out, Tensor) or out.ndim != 3 or out.shape[0] != parameters.shape[0] \
-                or out.shape[2] != 3 or (count is not None and out.shape[1] != count):
+        if (
+            not isinstance(out, Tensor)
+            or out.ndim != 3
+            or out.shape[0] != parameters.shape[0]
+            or out.shape[2] != 3
+            or (count is not None and out.shape[1] != count)
+        ):
             got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
-            raise ValueError(f"family(parameters) must return shape ({parameters.shape[0]}, "
-                             f"{rows}, 3) when batched=True, got {got}; for a family of one "
-                             "parameter value at a time pass batched=False")
+            raise ValueError(
+                f"family(parameters) must return shape ({parameters.shape[0]}, "
+                f"{rows}, 3) when batched=True, got {got}; for a family of one "
+                "parameter value at a time pass batched=False"
+            )
         return out
     outputs = []
     for value in parameters:
@@ -156,27 +169,35 @@ def evaluate_family(
             count = out.shape[0]
         if not isinstance(out, Tensor) or tuple(out.shape) != (count, 3):
             got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
-            raise ValueError(f"family(mu) must return a tensor of shape ({rows}, 3) for one "
-                             f"parameter value, the same for every value, got {got}")
+            raise ValueError(
+                f"family(mu) must return a tensor of shape ({rows}, 3) for one "
+                f"parameter value, the same for every value, got {got}"
+            )
         outputs.append(out)
     return torch.stack(outputs)
 
 
-def copied_rows(morph: Any, num_inputs: int, num_outputs: int,
-                 device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+def copied_rows(
+    morph: Any, num_inputs: int, num_outputs: int, device: torch.device
+) -> tuple[Tensor, Tensor, Tensor]:
     """(copied output rows, their input rows, reduced output rows) of the morph."""
     everything = torch.arange(num_outputs, device=device)
     empty = everything[:0]
     method = getattr(morph, "copied_rows", None)
     if method is None:
         return empty, empty.clone(), everything
-    output_rows, input_rows = (torch.as_tensor(rows, device=device).long().reshape(-1)
-                               for rows in method())
+    output_rows, input_rows = (
+        torch.as_tensor(rows, device=device).long().reshape(-1) for rows in method()
+    )
     if output_rows.shape != input_rows.shape:
-        raise ValueError("morph.copied_rows() must return output and input rows of one length, "
-                         f"got {tuple(output_rows.shape)} and {tuple(input_rows.shape)}")
-    for rows, size, what in ((output_rows, num_outputs, "output"),
-                             (input_rows, num_inputs, "input")):
+        raise ValueError(
+            "morph.copied_rows() must return output and input rows of one length, "
+            f"got {tuple(output_rows.shape)} and {tuple(input_rows.shape)}"
+        )
+    for rows, size, what in (
+        (output_rows, num_outputs, "output"),
+        (input_rows, num_inputs, "input"),
+    ):
         if rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= size):
             raise ValueError(f"morph.copied_rows(): {what} rows outside [0, {size})")
     keep = torch.ones(num_outputs, dtype=torch.bool, device=device)
@@ -201,8 +222,11 @@ def adjoint(morph: Any, fields: Tensor, num_inputs: int, reduced: Tensor) -> Ten
         columns = getattr(morph, "weight_columns", None)
         columns = torch.arange(num_inputs) if columns is None else torch.as_tensor(columns)
         result = fields.new_zeros(fields.shape[0], num_inputs, 3)
-        result.index_copy_(1, columns.long().to(result.device),
-                           projection_matrix(fields.index_select(1, reduced), stored))
+        result.index_copy_(
+            1,
+            columns.long().to(result.device),
+            projection_matrix(fields.index_select(1, reduced), stored),
+        )
     elif method is not None:
         result = method(fields)
     else:
@@ -211,8 +235,9 @@ def adjoint(morph: Any, fields: Tensor, num_inputs: int, reduced: Tensor) -> Ten
             (result,) = torch.autograd.grad(morph(probe), probe, grad_outputs=fields)
     if not isinstance(result, Tensor) or tuple(result.shape) != (fields.shape[0], num_inputs, 3):
         got = tuple(result.shape) if isinstance(result, Tensor) else type(result).__name__
-        raise ValueError(f"the morph's adjoint must return shape ({fields.shape[0]}, "
-                         f"{num_inputs}, 3), got {got}")
+        raise ValueError(
+            f"the morph's adjoint must return shape ({fields.shape[0]}, {num_inputs}, 3), got {got}"
+        )
     return result.detach().contiguous()
 
 
@@ -220,16 +245,19 @@ def weights_of(morph: Any, num_inputs: int, num_reduced: int) -> tuple[Tensor, T
     """(W, the input rows it reads) for online='paper'."""
     method = getattr(morph, "weights_matrix", None)
     if method is None:
-        raise ValueError("online='paper' needs the morph's matrix W: a morph with a "
-                         "weights_matrix() method (IDW, MeshMorph)")
+        raise ValueError(
+            "online='paper' needs the morph's matrix W: a morph with a "
+            "weights_matrix() method (IDW, MeshMorph)"
+        )
     weights = method()
     columns = getattr(morph, "weight_columns", None)
     columns = torch.arange(num_inputs) if columns is None else torch.as_tensor(columns).long()
-    if not isinstance(weights, Tensor) or tuple(weights.shape) != (num_reduced,
-                                                                    columns.numel()):
+    if not isinstance(weights, Tensor) or tuple(weights.shape) != (num_reduced, columns.numel()):
         got = tuple(weights.shape) if isinstance(weights, Tensor) else type(weights).__name__
-        raise ValueError(f"morph.weights_matrix() must have shape ({num_reduced}, "
-                         f"{columns.numel()}) (reduced rows x weight columns), got {got}")
+        raise ValueError(
+            f"morph.weights_matrix() must have shape ({num_reduced}, "
+            f"{columns.numel()}) (reduced rows x weight columns), got {got}"
+        )
     return weights, columns
 
 
@@ -249,8 +277,10 @@ def index_runs(rows: Tensor, sources: Tensor) -> list[tuple[int, int, int]] | No
         return None
     starts = [0, *breaks.tolist()]
     ends = [*breaks.tolist(), rows.numel()]
-    return [(int(rows[start]), int(sources[start]), end - start)
-            for start, end in zip(starts, ends, strict=True)]
+    return [
+        (int(rows[start]), int(sources[start]), end - start)
+        for start, end in zip(starts, ends, strict=True)
+    ]
 
 
 # --------------------------------------------------------------------------------------
@@ -258,8 +288,14 @@ def index_runs(rows: Tensor, sources: Tensor) -> list[tuple[int, int, int]] | No
 # --------------------------------------------------------------------------------------
 
 
-def expand(beta: Tensor, output_basis: Tensor, displacement: Tensor, copied_output_rows: Tensor,
-           copied_input_rows: Tensor, out: Tensor | None) -> Tensor:
+def expand(
+    beta: Tensor,
+    output_basis: Tensor,
+    displacement: Tensor,
+    copied_output_rows: Tensor,
+    copied_input_rows: Tensor,
+    out: Tensor | None,
+) -> Tensor:
     """(B, N) coefficients -> output fields (B, N_out, 3): ``beta @ basis`` over every
     output row (the basis is zero on the copied rows), then the copied rows."""
     count, batch = output_basis.shape[0], beta.shape[0]
@@ -280,9 +316,14 @@ def expand(beta: Tensor, output_basis: Tensor, displacement: Tensor, copied_outp
     return field
 
 
-def expand_by_runs(beta: Tensor, modes: Tensor, displacement: Tensor,
-                   runs: tuple[list[tuple[int, int, int]], list[tuple[int, int, int]]],
-                   num_outputs: int, out: Tensor | None) -> Tensor:
+def expand_by_runs(
+    beta: Tensor,
+    modes: Tensor,
+    displacement: Tensor,
+    runs: tuple[list[tuple[int, int, int]], list[tuple[int, int, int]]],
+    num_outputs: int,
+    out: Tensor | None,
+) -> Tensor:
     """:func:`expand` when the copied and reduced rows form a few contiguous runs
     (``(copied runs, reduced runs)`` of :func:`index_runs`): slice products and copies
     instead of a full-size product and an indexed scatter. No autograd."""
@@ -295,11 +336,13 @@ def expand_by_runs(beta: Tensor, modes: Tensor, displacement: Tensor,
     product = torch.mul if count == 1 else torch.matmul
     copied_runs, reduced_runs = runs
     for node, row, length in reduced_runs:
-        product(beta, modes[:, 3 * row : 3 * (row + length)],
-                out=flat_out[:, 3 * node : 3 * (node + length)])
+        product(
+            beta,
+            modes[:, 3 * row : 3 * (row + length)],
+            out=flat_out[:, 3 * node : 3 * (node + length)],
+        )
     for node, row, length in copied_runs:
-        flat_out[:, 3 * node : 3 * (node + length)].copy_(
-            flat_in[:, 3 * row : 3 * (row + length)])
+        flat_out[:, 3 * node : 3 * (node + length)].copy_(flat_in[:, 3 * row : 3 * (row + length)])
     return out
 
 
@@ -311,6 +354,7 @@ def expand_by_runs(beta: Tensor, modes: Tensor, displacement: Tensor,
 def check_reducer_state(state_dict, prefix: str, version: int) -> None:
     """Raise ``ValueError`` naming the entry if a fitted PODReducer state does not fit
     together (before anything is loaded). An unfitted state is not checked further."""
+
     def fail(name: str, message: str) -> None:
         raise ValueError(f"state_dict[{prefix + name!r}]: {message}")
 
@@ -320,11 +364,13 @@ def check_reducer_state(state_dict, prefix: str, version: int) -> None:
     if not isinstance(extra, dict):
         fail("_extra_state", f"must be a dict, got {type(extra).__name__}")
     if extra.get("version") != version:
-        fail("_extra_state", f"version {extra.get('version')!r} is not {version} (a state "
-                             "saved by another torchmorph version)")
+        fail(
+            "_extra_state",
+            f"version {extra.get('version')!r} is not {version} (a state "
+            "saved by another torchmorph version)",
+        )
     if extra.get("online") not in ("projection", "paper"):
-        fail("_extra_state", f"online must be 'projection' or 'paper', got "
-                             f"{extra.get('online')!r}")
+        fail("_extra_state", f"online must be 'projection' or 'paper', got {extra.get('online')!r}")
     count = extra.get("num_modes_")
     if count is None:
         return
@@ -343,15 +389,20 @@ def check_reducer_state(state_dict, prefix: str, version: int) -> None:
     def shape(name: str, expected: tuple[int, ...]) -> Tensor:
         value = tensor(name)
         if tuple(value.shape) != expected:
-            fail(name, f"has shape {tuple(value.shape)}, expected {expected} for "
-                       f"{count} mode(s), {num_inputs} input and {num_outputs} output rows")
+            fail(
+                name,
+                f"has shape {tuple(value.shape)}, expected {expected} for "
+                f"{count} mode(s), {num_inputs} input and {num_outputs} output rows",
+            )
         return value
 
     reduced = tensor("reduced_rows_")
     copied_out, copied_in = tensor("copied_output_rows_"), tensor("copied_input_rows_")
-    for name, value, size in (("reduced_rows_", reduced, num_outputs),
-                              ("copied_output_rows_", copied_out, num_outputs),
-                              ("copied_input_rows_", copied_in, num_inputs)):
+    for name, value, size in (
+        ("reduced_rows_", reduced, num_outputs),
+        ("copied_output_rows_", copied_out, num_outputs),
+        ("copied_input_rows_", copied_in, num_inputs),
+    ):
         if value.ndim != 1 or value.is_floating_point():
             fail(name, "must be a 1-D integer tensor")
         if value.numel() and (int(value.min()) < 0 or int(value.max()) >= size):
@@ -359,10 +410,13 @@ def check_reducer_state(state_dict, prefix: str, version: int) -> None:
     if copied_in.shape != copied_out.shape:
         fail("copied_input_rows_", "must have the length of copied_output_rows_")
     together = torch.cat([reduced, copied_out]).cpu()
-    if together.numel() != num_outputs or not torch.equal(together.sort().values,
-                                                          torch.arange(num_outputs)):
-        fail("reduced_rows_", f"reduced_rows_ and copied_output_rows_ must split the "
-                              f"{num_outputs} output rows")
+    if together.numel() != num_outputs or not torch.equal(
+        together.sort().values, torch.arange(num_outputs)
+    ):
+        fail(
+            "reduced_rows_",
+            f"reduced_rows_ and copied_output_rows_ must split the {num_outputs} output rows",
+        )
     shape("modes_", (count, reduced.numel(), 3))
     values = tensor("singular_values_")
     if values.ndim != 1 or values.numel() < count:

@@ -121,8 +121,9 @@ def select_control_points(
     _check_strategy(strategy)
     generator = _check_generator(generator)
     start_index = _check_start(start, array.shape[0], generator)
-    selected = _sidw(array, start_index, selection_radius, thickness, shell_factor,
-                     strategy, generator)
+    selected = _sidw(
+        array, start_index, selection_radius, thickness, shell_factor, strategy, generator
+    )
     return torch.as_tensor(np.asarray(selected, dtype=np.int64), device=device)
 
 
@@ -179,7 +180,7 @@ def _sidw(
             order = np.argsort(annulus.astype(_small_int_dtype(n_annuli)), kind="stable")
             members_of.extend([order, np.searchsorted(annulus[order], np.arange(n_annuli + 1))])
         order, offsets = members_of
-        members = order[offsets[m]:offsets[m + 1]]
+        members = order[offsets[m] : offsets[m + 1]]
         return members[alive[members]]
 
     def choose(beta: np.ndarray, selected: list[int]) -> int:
@@ -294,13 +295,17 @@ class _NearestSelected:
         if len(selected) - self.built > _TAIL_LIMIT:
             self.built = len(selected)
             self.tree = cKDTree(self.points[np.asarray(selected)], balanced_tree=False)
-        tail = self.points[np.asarray(selected[self.built:], dtype=np.int64)]
+        tail = self.points[np.asarray(selected[self.built :], dtype=np.int64)]
         if self.tree is not None:
             neighbours = min(_FARTHEST_NEIGHBOURS, self.built)
             _, index = self.tree.query(queries, k=neighbours)
             candidates = np.concatenate(
-                [self.tree.data[index.reshape(queries.shape[0], neighbours)],
-                 np.broadcast_to(tail, (queries.shape[0],) + tail.shape)], axis=1)
+                [
+                    self.tree.data[index.reshape(queries.shape[0], neighbours)],
+                    np.broadcast_to(tail, (queries.shape[0],) + tail.shape),
+                ],
+                axis=1,
+            )
         else:
             candidates = np.broadcast_to(tail, (queries.shape[0],) + tail.shape)
         return np.sqrt(_squared_norm(queries[:, None, :] - candidates).min(axis=1))

@@ -25,5 +25,6 @@ def resize_buffers_for_load(
         incoming = state_dict.get(key)
         if incoming is None or current is None or current.shape == incoming.shape:
             continue
-        module._buffers[name] = torch.empty(incoming.shape, dtype=current.dtype,
-                                            device=current.device)
+        module._buffers[name] = torch.empty(
+            incoming.shape, dtype=current.dtype, device=current.device
+        )

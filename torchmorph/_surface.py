@@ -73,7 +73,12 @@ class Surface:
             raise ValueError(f"vertices must have shape (V, 3) with V > 0, got {vertices.shape}")
         if not np.isfinite(vertices).all():
             raise ValueError("vertices hold NaN or infinite values")
-        if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or faces.dtype.kind not in "iu":
+        if (
+            faces.ndim != 2
+            or faces.shape[1] != 3
+            or len(faces) == 0
+            or faces.dtype.kind not in "iu"
+        ):
             raise ValueError(
                 f"faces must be integers of shape (F, 3) with F > 0, got {faces.dtype} {faces.shape}"
             )
@@ -122,22 +127,29 @@ def surface_problems(vertices: np.ndarray, faces: np.ndarray) -> list[str]:
     directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     undirected, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
     if (counts == 1).any():
-        problems.append(f"{int((counts == 1).sum())} edge(s) belong to one face only (holes, "
-                        f"e.g. the edge between vertices {tuple(int(v) for v in undirected[counts == 1][0])})")
+        problems.append(
+            f"{int((counts == 1).sum())} edge(s) belong to one face only (holes, "
+            f"e.g. the edge between vertices {tuple(int(v) for v in undirected[counts == 1][0])})"
+        )
     if (counts > 2).any():
-        problems.append(f"{int((counts > 2).sum())} edge(s) are shared by more than two faces "
-                        "(non-manifold)")
+        problems.append(
+            f"{int((counts > 2).sum())} edge(s) are shared by more than two faces (non-manifold)"
+        )
     _, directed_counts = np.unique(directed, axis=0, return_counts=True)
     if (directed_counts > 1).any():
-        problems.append(f"{int((directed_counts > 1).sum())} edge(s) are traversed in the same "
-                        "direction by two faces (inconsistent orientation)")
+        problems.append(
+            f"{int((directed_counts > 1).sum())} edge(s) are traversed in the same "
+            "direction by two faces (inconsistent orientation)"
+        )
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
     scale = float(np.ptp(vertices, axis=0).max()) or 1.0
     degenerate = area2 <= 1e-14 * scale**2
     if degenerate.any():
-        problems.append(f"{int(degenerate.sum())} face(s) have zero area (e.g. face "
-                        f"{int(np.flatnonzero(degenerate)[0])})")
+        problems.append(
+            f"{int(degenerate.sum())} face(s) have zero area (e.g. face "
+            f"{int(np.flatnonzero(degenerate)[0])})"
+        )
     return problems
 
 
@@ -172,8 +184,11 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]
                 raise ValueError(f"line {number}: {line.strip()!r}: {error}") from None
     if not faces:
         raise ValueError("no faces")
-    return (np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64),
-            {name: np.asarray(ids) for name, ids in groups.items()})
+    return (
+        np.asarray(vertices, dtype=np.float64),
+        np.asarray(faces, dtype=np.int64),
+        {name: np.asarray(ids) for name, ids in groups.items()},
+    )
 
 
 def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
@@ -222,8 +237,9 @@ def _repair(vertices, faces, labels):
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, np.int64), labels
 
 
-def load_surface(path: str | os.PathLike, *, name: str | None = None,
-                 repair: bool = False) -> Surface:
+def load_surface(
+    path: str | os.PathLike, *, name: str | None = None, repair: bool = False
+) -> Surface:
     """Read a closed triangle surface and check that it bounds a volume.
 
     Parameters
@@ -259,8 +275,10 @@ def load_surface(path: str | os.PathLike, *, name: str | None = None,
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in SURFACE_FORMATS:
-        raise ValueError(f"path: unsupported surface file extension {suffix or '(none)'!r} in "
-                         f"{str(path)!r}; supported: {', '.join(SURFACE_FORMATS)}")
+        raise ValueError(
+            f"path: unsupported surface file extension {suffix or '(none)'!r} in "
+            f"{str(path)!r}; supported: {', '.join(SURFACE_FORMATS)}"
+        )
     if not path.is_file():
         raise FileNotFoundError(f"path: surface file {str(path)!r} does not exist")
     try:
@@ -271,8 +289,9 @@ def load_surface(path: str | os.PathLike, *, name: str | None = None,
     except ImportError:
         raise
     except Exception as error:  # parsers raise anything on a corrupt file
-        raise ValueError(f"path: could not read surface file {str(path)!r}: "
-                         f"{type(error).__name__}: {error}") from error
+        raise ValueError(
+            f"path: could not read surface file {str(path)!r}: {type(error).__name__}: {error}"
+        ) from error
     if len(faces) == 0:
         raise ValueError(f"path: surface file {str(path)!r} holds no triangles")
     if faces.min() < 0 or faces.max() >= len(vertices):
@@ -286,13 +305,20 @@ def load_surface(path: str | os.PathLike, *, name: str | None = None,
         vertices, faces, labels = _repair(vertices, faces, labels)
     problems = surface_problems(vertices, faces)
     if problems:
-        hint = ("trimesh's repairs could not fix it; fix the file in a mesh editor" if repair
-                else "pass repair=True (torchmorph mesh --repair) to let trimesh try to fix it, "
-                     "or fix the file in a mesh editor")
-        raise ValueError(f"path: surface {str(path)!r} is not a closed, consistently oriented "
-                         f"surface: {'; '.join(problems)}; {hint}")
+        hint = (
+            "trimesh's repairs could not fix it; fix the file in a mesh editor"
+            if repair
+            else "pass repair=True (torchmorph mesh --repair) to let trimesh try to fix it, "
+            "or fix the file in a mesh editor"
+        )
+        raise ValueError(
+            f"path: surface {str(path)!r} is not a closed, consistently oriented "
+            f"surface: {'; '.join(problems)}; {hint}"
+        )
     groups = {group: np.flatnonzero(labels == index) for index, group in enumerate(group_names)}
-    surface = Surface(vertices, faces, name or path.stem, {k: v for k, v in groups.items() if v.size})
+    surface = Surface(
+        vertices, faces, name or path.stem, {k: v for k, v in groups.items() if v.size}
+    )
     return surface if surface.volume > 0 else surface.flipped()
 
 
@@ -313,8 +339,10 @@ def box_surface(bounds: Any, name: str = "far_field") -> Surface:
     """
     bounds = np.asarray(bounds, dtype=np.float64)
     if bounds.shape != (2, 3) or not np.isfinite(bounds).all() or not (bounds[0] < bounds[1]).all():
-        raise ValueError(f"bounds must be [[x0, y0, z0], [x1, y1, z1]] with x0 < x1, y0 < y1, "
-                         f"z0 < z1, got {bounds.tolist()}")
+        raise ValueError(
+            f"bounds must be [[x0, y0, z0], [x1, y1, z1]] with x0 < x1, y0 < y1, "
+            f"z0 < z1, got {bounds.tolist()}"
+        )
     (x0, y0, z0), (x1, y1, z1) = bounds
     vertices = np.array([[x, y, z] for z in (z0, z1) for y in (y0, y1) for x in (x0, x1)])
     # each wall as a quad (outward, counter-clockwise seen from outside): z0, z1, y0, y1, x0, x1
@@ -331,11 +359,19 @@ def box_surface(bounds: Any, name: str = "far_field") -> Surface:
 
 def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Closest point to each ``p[k]`` on triangle ``(a[k], b[k], c[k])`` (Ericson's regions)."""
+
     def dot(u, v):
         return np.einsum("ij,ij->i", u, v)
 
     ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
-    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
+    d1, d2, d3, d4, d5, d6 = (
+        dot(ab, ap),
+        dot(ac, ap),
+        dot(ab, bp),
+        dot(ac, bp),
+        dot(ab, cp),
+        dot(ac, cp),
+    )
     va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
     with np.errstate(divide="ignore", invalid="ignore"):
         total = va + vb + vc
@@ -344,13 +380,18 @@ def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nda
         result = a + ab * v[:, None] + ac * w[:, None]
         done = np.zeros(len(p), dtype=bool)
         regions = [
-            (d1 <= 0) & (d2 <= 0), (d3 >= 0) & (d4 <= d3),
-            (vc <= 0) & (d1 >= 0) & (d3 <= 0), (d6 >= 0) & (d5 <= d6),
-            (vb <= 0) & (d2 >= 0) & (d6 <= 0), (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+            (d1 <= 0) & (d2 <= 0),
+            (d3 >= 0) & (d4 <= d3),
+            (vc <= 0) & (d1 >= 0) & (d3 <= 0),
+            (d6 >= 0) & (d5 <= d6),
+            (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+            (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
         ]
         points = [
-            a, b,
-            a + ab * np.nan_to_num(d1 / (d1 - d3))[:, None], c,
+            a,
+            b,
+            a + ab * np.nan_to_num(d1 / (d1 - d3))[:, None],
+            c,
             a + ac * np.nan_to_num(d2 / (d2 - d6))[:, None],
             b + (c - b) * np.nan_to_num((d4 - d3) / ((d4 - d3) + (d5 - d6)))[:, None],
         ]
@@ -400,7 +441,7 @@ def closest_points(
     best_face = np.zeros(len(queries), dtype=np.int64)
     best_point = np.zeros_like(queries)
     for start in range(0, len(query_ids), chunk):
-        q, f = query_ids[start:start + chunk], face_ids[start:start + chunk]
+        q, f = query_ids[start : start + chunk], face_ids[start : start + chunk]
         point = _closest_on_triangles(queries[q], *(corners[f, k] for k in range(3)))
         distance = np.linalg.norm(point - queries[q], axis=1)
         order = np.lexsort((distance, q))  # per query, nearest first
@@ -421,14 +462,14 @@ def _closest_on_segments(queries: np.ndarray, starts: np.ndarray, ends: np.ndarr
     length2 = np.maximum(np.einsum("ij,ij->i", direction, direction), 1e-300)
     step = max(1, 2_000_000 // max(len(starts), 1))
     for begin in range(0, len(queries), step):
-        q = queries[begin:begin + step]
+        q = queries[begin : begin + step]
         t = np.clip(np.einsum("qsj,sj->qs", q[:, None] - starts[None], direction) / length2, 0, 1)
         point = starts[None] + t[..., None] * direction[None]
         distance = np.linalg.norm(point - q[:, None], axis=2)
         nearest = distance.argmin(1)
         rows = np.arange(len(q))
-        best[begin:begin + step] = distance[rows, nearest]
-        best_point[begin:begin + step] = point[rows, nearest]
+        best[begin : begin + step] = distance[rows, nearest]
+        best_point[begin : begin + step] = point[rows, nearest]
     return best_point, best
 
 
@@ -468,8 +509,10 @@ def feature_edges(surface: Surface, angle: float) -> tuple[np.ndarray, list[np.n
     cosine = np.einsum("ij,ij->i", normal[first], normal[second])
     sharp = cosine < np.cos(np.radians(angle))
     smooth = ~sharp
-    graph = coo_matrix((np.ones(int(smooth.sum())), (first[smooth], second[smooth])),
-                       shape=(len(faces), len(faces)))
+    graph = coo_matrix(
+        (np.ones(int(smooth.sum())), (first[smooth], second[smooth])),
+        shape=(len(faces), len(faces)),
+    )
     count, label = connected_components(graph, directed=False)
     patches = sorted((np.flatnonzero(label == k) for k in range(count)), key=len, reverse=True)
     return pairs[:-1][same][sharp], patches

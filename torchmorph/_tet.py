@@ -18,8 +18,7 @@ TET_EDGES: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3)
 
 #: The four faces, face k opposite vertex k, oriented outward when the tetrahedron's
 #: signed volume is positive.
-TET_OUTWARD_FACES: tuple[tuple[int, int, int], ...] = ((1, 2, 3), (0, 3, 2), (0, 1, 3),
-                                                       (0, 2, 1))
+TET_OUTWARD_FACES: tuple[tuple[int, int, int], ...] = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))
 
 
 def tet_vertices(points: Tensor, tets: Tensor) -> Tensor:

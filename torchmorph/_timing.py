@@ -23,8 +23,13 @@ def synchronise(device: torch.device | None) -> None:
         torch.cuda.synchronize(device)
 
 
-def wall_times(function: Callable[[], object], repeats: int, *, warmup: int = 1,
-               device: torch.device | None = None) -> list[float]:
+def wall_times(
+    function: Callable[[], object],
+    repeats: int,
+    *,
+    warmup: int = 1,
+    device: torch.device | None = None,
+) -> list[float]:
     """Wall times of ``repeats`` calls of ``function`` after ``warmup`` untimed calls."""
     if repeats < 1 or warmup < 0:
         raise ValueError(f"repeats must be >= 1 and warmup >= 0, got {repeats}, {warmup}")
@@ -40,7 +45,12 @@ def wall_times(function: Callable[[], object], repeats: int, *, warmup: int = 1,
     return times
 
 
-def median_time(function: Callable[[], object], repeats: int, *, warmup: int = 1,
-                device: torch.device | None = None) -> float:
+def median_time(
+    function: Callable[[], object],
+    repeats: int,
+    *,
+    warmup: int = 1,
+    device: torch.device | None = None,
+) -> float:
     """Median wall time of ``repeats`` calls after ``warmup`` calls (see :func:`wall_times`)."""
     return statistics.median(wall_times(function, repeats, warmup=warmup, device=device))

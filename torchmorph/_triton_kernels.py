@@ -71,8 +71,14 @@ def _divide(numerator, denominator, FAST: tl.constexpr):
     if FAST == 1:
         result = tl.fdiv(numerator, denominator, ieee_rounding=False)
     elif FAST == 2:
-        guess = tl.inline_asm_elementwise("rcp.approx.ftz.f64 $0, $1;", "=d,d", [denominator],
-                                          dtype=tl.float64, is_pure=True, pack=1)
+        guess = tl.inline_asm_elementwise(
+            "rcp.approx.ftz.f64 $0, $1;",
+            "=d,d",
+            [denominator],
+            dtype=tl.float64,
+            is_pure=True,
+            pack=1,
+        )
         guess = guess + guess * (1.0 - denominator * guess)
         guess = guess + guess * (1.0 - denominator * guess)
         # a masked column (denominator +inf) has guess 0 and a NaN correction: weight 0
@@ -98,8 +104,20 @@ def _ratio_power(nearest2, dist2, half_power, KIND: tl.constexpr, FAST: tl.const
 
 
 @triton.jit
-def _squared_distances(rows_t, n_rows, rows, row_ok, cols_t, n_cols, cols, col_ok, tiny,
-                       D: tl.constexpr, BLOCK_R: tl.constexpr, BLOCK_C: tl.constexpr):
+def _squared_distances(
+    rows_t,
+    n_rows,
+    rows,
+    row_ok,
+    cols_t,
+    n_cols,
+    cols,
+    col_ok,
+    tiny,
+    D: tl.constexpr,
+    BLOCK_R: tl.constexpr,
+    BLOCK_C: tl.constexpr,
+):
     """(BLOCK_R, BLOCK_C) squared distances between a block of rows and one of columns
     (coordinates stored axis by axis), floored at ``tiny``; ``+inf`` in masked columns."""
     dist2 = tl.zeros((BLOCK_R, BLOCK_C), dtype=cols_t.dtype.element_ty)
@@ -112,8 +130,17 @@ def _squared_distances(rows_t, n_rows, rows, row_ok, cols_t, n_cols, cols, col_o
 
 
 @triton.jit
-def _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_power,
-                 KIND: tl.constexpr, FAST: tl.constexpr, ROWWISE: tl.constexpr):
+def _weight_tile(
+    dist2,
+    nearest2,
+    coincident,
+    any_coincident,
+    radius2,
+    half_power,
+    KIND: tl.constexpr,
+    FAST: tl.constexpr,
+    ROWWISE: tl.constexpr,
+):
     """r for a tile: ratio powers, or indicators on coincident rows (ROWWISE) or
     columns (the transposed pass, where each column is a target)."""
     if ROWWISE:
@@ -130,8 +157,17 @@ def _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_powe
 
 
 @triton.jit
-def _nearest_kernel(targets_t, controls_t, nearest_out, n_t, n_c, tiny,
-                    D: tl.constexpr, BLOCK_T: tl.constexpr, BLOCK_C: tl.constexpr):
+def _nearest_kernel(
+    targets_t,
+    controls_t,
+    nearest_out,
+    n_t,
+    n_c,
+    tiny,
+    D: tl.constexpr,
+    BLOCK_T: tl.constexpr,
+    BLOCK_C: tl.constexpr,
+):
     # pass 1: m_i = min_k d²_ik, kept per tile position and reduced once at the end
     rows = tl.program_id(0) * BLOCK_T + tl.arange(0, BLOCK_T)
     row_ok = rows < n_t
@@ -140,16 +176,48 @@ def _nearest_kernel(targets_t, controls_t, nearest_out, n_t, n_c, tiny,
     for start in range(0, n_c, BLOCK_C):
         cols = start + cols0
         col_ok = cols < n_c
-        best = tl.minimum(best, _squared_distances(targets_t, n_t, rows, row_ok, controls_t, n_c,
-                                                   cols, col_ok, tiny, D, BLOCK_T, BLOCK_C))
+        best = tl.minimum(
+            best,
+            _squared_distances(
+                targets_t,
+                n_t,
+                rows,
+                row_ok,
+                controls_t,
+                n_c,
+                cols,
+                col_ok,
+                tiny,
+                D,
+                BLOCK_T,
+                BLOCK_C,
+            ),
+        )
     tl.store(nearest_out + rows, tl.min(best, axis=1), mask=row_ok)
 
 
 @triton.jit
-def _apply_kernel(targets_t, controls_t, values, nearest2_in, out, sums_out,
-                  n_t, n_c, stride_v, stride_o, radius2, tiny, half_power,
-                  D: tl.constexpr, K: tl.constexpr, KIND: tl.constexpr, FAST: tl.constexpr,
-                  BLOCK_T: tl.constexpr, BLOCK_C: tl.constexpr):
+def _apply_kernel(
+    targets_t,
+    controls_t,
+    values,
+    nearest2_in,
+    out,
+    sums_out,
+    n_t,
+    n_c,
+    stride_v,
+    stride_o,
+    radius2,
+    tiny,
+    half_power,
+    D: tl.constexpr,
+    K: tl.constexpr,
+    KIND: tl.constexpr,
+    FAST: tl.constexpr,
+    BLOCK_T: tl.constexpr,
+    BLOCK_C: tl.constexpr,
+):
     # pass 2, K <= 3 columns: ratio weights against [v, 1], accumulated per tile
     # position (no reduction inside the loop), divided at the end
     rows = tl.program_id(0) * BLOCK_T + tl.arange(0, BLOCK_T)
@@ -166,17 +234,32 @@ def _apply_kernel(targets_t, controls_t, values, nearest2_in, out, sums_out,
     for start in range(0, n_c, BLOCK_C):
         cols = start + cols0
         col_ok = cols < n_c
-        dist2 = _squared_distances(targets_t, n_t, rows, row_ok, controls_t, n_c, cols, col_ok,
-                                   tiny, D, BLOCK_T, BLOCK_C)
-        weight = _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_power,
-                              KIND, FAST, True)
+        dist2 = _squared_distances(
+            targets_t, n_t, rows, row_ok, controls_t, n_c, cols, col_ok, tiny, D, BLOCK_T, BLOCK_C
+        )
+        weight = _weight_tile(
+            dist2, nearest2, coincident, any_coincident, radius2, half_power, KIND, FAST, True
+        )
         sums += weight
         if K > 0:
-            acc0 += weight * tl.load(values + cols.to(tl.int64) * stride_v, mask=col_ok, other=0.0)[None, :]
+            acc0 += (
+                weight
+                * tl.load(values + cols.to(tl.int64) * stride_v, mask=col_ok, other=0.0)[None, :]
+            )
         if K > 1:
-            acc1 += weight * tl.load(values + cols.to(tl.int64) * stride_v + 1, mask=col_ok, other=0.0)[None, :]
+            acc1 += (
+                weight
+                * tl.load(values + cols.to(tl.int64) * stride_v + 1, mask=col_ok, other=0.0)[
+                    None, :
+                ]
+            )
         if K > 2:
-            acc2 += weight * tl.load(values + cols.to(tl.int64) * stride_v + 2, mask=col_ok, other=0.0)[None, :]
+            acc2 += (
+                weight
+                * tl.load(values + cols.to(tl.int64) * stride_v + 2, mask=col_ok, other=0.0)[
+                    None, :
+                ]
+            )
     total = tl.sum(sums, axis=1)
     tl.store(sums_out + rows, total, mask=row_ok)
     if K > 0:
@@ -188,11 +271,29 @@ def _apply_kernel(targets_t, controls_t, values, nearest2_in, out, sums_out,
 
 
 @triton.jit
-def _apply_dot_kernel(targets_t, controls_t, values, nearest2_in, out, sums_out,
-                      n_t, n_c, stride_v, stride_o, radius2, tiny, half_power,
-                      D: tl.constexpr, K: tl.constexpr, KP: tl.constexpr, KIND: tl.constexpr,
-                      FAST: tl.constexpr, PRECISION: tl.constexpr,
-                      BLOCK_T: tl.constexpr, BLOCK_C: tl.constexpr):
+def _apply_dot_kernel(
+    targets_t,
+    controls_t,
+    values,
+    nearest2_in,
+    out,
+    sums_out,
+    n_t,
+    n_c,
+    stride_v,
+    stride_o,
+    radius2,
+    tiny,
+    half_power,
+    D: tl.constexpr,
+    K: tl.constexpr,
+    KP: tl.constexpr,
+    KIND: tl.constexpr,
+    FAST: tl.constexpr,
+    PRECISION: tl.constexpr,
+    BLOCK_T: tl.constexpr,
+    BLOCK_C: tl.constexpr,
+):
     # pass 2, any K: the tile of ratio weights times [v, 1] (column K of ones gives
     # the row sums) on the matrix units, divided at the end
     rows = tl.program_id(0) * BLOCK_T + tl.arange(0, BLOCK_T)
@@ -207,12 +308,17 @@ def _apply_dot_kernel(targets_t, controls_t, values, nearest2_in, out, sums_out,
     for start in range(0, n_c, BLOCK_C):
         cols = start + cols0
         col_ok = cols < n_c
-        dist2 = _squared_distances(targets_t, n_t, rows, row_ok, controls_t, n_c, cols, col_ok,
-                                   tiny, D, BLOCK_T, BLOCK_C)
-        weight = _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_power,
-                              KIND, FAST, True)
-        v = tl.load(values + cols.to(tl.int64)[:, None] * stride_v + k_idx[None, :],
-                    mask=col_ok[:, None] & (k_idx[None, :] < K), other=0.0)
+        dist2 = _squared_distances(
+            targets_t, n_t, rows, row_ok, controls_t, n_c, cols, col_ok, tiny, D, BLOCK_T, BLOCK_C
+        )
+        weight = _weight_tile(
+            dist2, nearest2, coincident, any_coincident, radius2, half_power, KIND, FAST, True
+        )
+        v = tl.load(
+            values + cols.to(tl.int64)[:, None] * stride_v + k_idx[None, :],
+            mask=col_ok[:, None] & (k_idx[None, :] < K),
+            other=0.0,
+        )
         v = tl.where((k_idx[None, :] == K) & col_ok[:, None], 1.0, v).to(dtype)
         if PRECISION == 1:
             acc += tl.dot(weight, v, input_precision="tf32x3")
@@ -222,15 +328,34 @@ def _apply_dot_kernel(targets_t, controls_t, values, nearest2_in, out, sums_out,
             acc += tl.dot(weight, v)
     total = tl.sum(tl.where(k_idx[None, :] == K, acc, 0.0), axis=1)
     tl.store(sums_out + rows, total, mask=row_ok)
-    tl.store(out + rows.to(tl.int64)[:, None] * stride_o + k_idx[None, :], acc / total[:, None],
-             mask=row_ok[:, None] & (k_idx[None, :] < K))
+    tl.store(
+        out + rows.to(tl.int64)[:, None] * stride_o + k_idx[None, :],
+        acc / total[:, None],
+        mask=row_ok[:, None] & (k_idx[None, :] < K),
+    )
 
 
 @triton.jit
-def _transposed_kernel(controls_t, targets_t, nearest2_in, grad, out,
-                       n_c, n_t, stride_g, stride_o, radius2, tiny, half_power,
-                       D: tl.constexpr, K: tl.constexpr, KIND: tl.constexpr, FAST: tl.constexpr,
-                       BLOCK_C: tl.constexpr, BLOCK_T: tl.constexpr):
+def _transposed_kernel(
+    controls_t,
+    targets_t,
+    nearest2_in,
+    grad,
+    out,
+    n_c,
+    n_t,
+    stride_g,
+    stride_o,
+    radius2,
+    tiny,
+    half_power,
+    D: tl.constexpr,
+    K: tl.constexpr,
+    KIND: tl.constexpr,
+    FAST: tl.constexpr,
+    BLOCK_C: tl.constexpr,
+    BLOCK_T: tl.constexpr,
+):
     # Wᵀ G for K <= 3 (G already divided by the row sums s_i): parallel over controls
     rows = tl.program_id(0) * BLOCK_C + tl.arange(0, BLOCK_C)
     row_ok = rows < n_c
@@ -242,18 +367,28 @@ def _transposed_kernel(controls_t, targets_t, nearest2_in, grad, out,
     for start in range(0, n_t, BLOCK_T):
         cols = start + cols0
         col_ok = cols < n_t
-        dist2 = _squared_distances(controls_t, n_c, rows, row_ok, targets_t, n_t, cols, col_ok,
-                                   tiny, D, BLOCK_C, BLOCK_T)
+        dist2 = _squared_distances(
+            controls_t, n_c, rows, row_ok, targets_t, n_t, cols, col_ok, tiny, D, BLOCK_C, BLOCK_T
+        )
         nearest2 = tl.load(nearest2_in + cols, mask=col_ok, other=1.0)
         coincident = (nearest2 <= radius2) & col_ok
         any_coincident = tl.max(coincident.to(tl.int32), axis=0) > 0
-        weight = _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_power,
-                              KIND, FAST, False)
-        acc0 += weight * tl.load(grad + cols.to(tl.int64) * stride_g, mask=col_ok, other=0.0)[None, :]
+        weight = _weight_tile(
+            dist2, nearest2, coincident, any_coincident, radius2, half_power, KIND, FAST, False
+        )
+        acc0 += (
+            weight * tl.load(grad + cols.to(tl.int64) * stride_g, mask=col_ok, other=0.0)[None, :]
+        )
         if K > 1:
-            acc1 += weight * tl.load(grad + cols.to(tl.int64) * stride_g + 1, mask=col_ok, other=0.0)[None, :]
+            acc1 += (
+                weight
+                * tl.load(grad + cols.to(tl.int64) * stride_g + 1, mask=col_ok, other=0.0)[None, :]
+            )
         if K > 2:
-            acc2 += weight * tl.load(grad + cols.to(tl.int64) * stride_g + 2, mask=col_ok, other=0.0)[None, :]
+            acc2 += (
+                weight
+                * tl.load(grad + cols.to(tl.int64) * stride_g + 2, mask=col_ok, other=0.0)[None, :]
+            )
     tl.store(out + rows.to(tl.int64) * stride_o, tl.sum(acc0, axis=1), mask=row_ok)
     if K > 1:
         tl.store(out + rows.to(tl.int64) * stride_o + 1, tl.sum(acc1, axis=1), mask=row_ok)
@@ -262,11 +397,28 @@ def _transposed_kernel(controls_t, targets_t, nearest2_in, grad, out,
 
 
 @triton.jit
-def _transposed_dot_kernel(controls_t, targets_t, nearest2_in, grad, out,
-                           n_c, n_t, stride_g, stride_o, radius2, tiny, half_power,
-                           D: tl.constexpr, K: tl.constexpr, KP: tl.constexpr,
-                           KIND: tl.constexpr, FAST: tl.constexpr, PRECISION: tl.constexpr,
-                           BLOCK_C: tl.constexpr, BLOCK_T: tl.constexpr):
+def _transposed_dot_kernel(
+    controls_t,
+    targets_t,
+    nearest2_in,
+    grad,
+    out,
+    n_c,
+    n_t,
+    stride_g,
+    stride_o,
+    radius2,
+    tiny,
+    half_power,
+    D: tl.constexpr,
+    K: tl.constexpr,
+    KP: tl.constexpr,
+    KIND: tl.constexpr,
+    FAST: tl.constexpr,
+    PRECISION: tl.constexpr,
+    BLOCK_C: tl.constexpr,
+    BLOCK_T: tl.constexpr,
+):
     # Wᵀ G for any K on the matrix units (G already divided by the row sums s_i)
     rows = tl.program_id(0) * BLOCK_C + tl.arange(0, BLOCK_C)
     row_ok = rows < n_c
@@ -277,31 +429,58 @@ def _transposed_dot_kernel(controls_t, targets_t, nearest2_in, grad, out,
     for start in range(0, n_t, BLOCK_T):
         cols = start + cols0
         col_ok = cols < n_t
-        dist2 = _squared_distances(controls_t, n_c, rows, row_ok, targets_t, n_t, cols, col_ok,
-                                   tiny, D, BLOCK_C, BLOCK_T)
+        dist2 = _squared_distances(
+            controls_t, n_c, rows, row_ok, targets_t, n_t, cols, col_ok, tiny, D, BLOCK_C, BLOCK_T
+        )
         nearest2 = tl.load(nearest2_in + cols, mask=col_ok, other=1.0)
         coincident = (nearest2 <= radius2) & col_ok
         any_coincident = tl.max(coincident.to(tl.int32), axis=0) > 0
-        weight = _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_power,
-                              KIND, FAST, False)
-        g = tl.load(grad + cols.to(tl.int64)[:, None] * stride_g + k_idx[None, :],
-                    mask=col_ok[:, None] & (k_idx[None, :] < K), other=0.0)
+        weight = _weight_tile(
+            dist2, nearest2, coincident, any_coincident, radius2, half_power, KIND, FAST, False
+        )
+        g = tl.load(
+            grad + cols.to(tl.int64)[:, None] * stride_g + k_idx[None, :],
+            mask=col_ok[:, None] & (k_idx[None, :] < K),
+            other=0.0,
+        )
         if PRECISION == 1:
             acc += tl.dot(weight, g, input_precision="tf32x3")
         elif PRECISION == 2:
             acc += tl.dot(weight, g, input_precision="ieee")
         else:
             acc += tl.dot(weight, g)
-    tl.store(out + rows.to(tl.int64)[:, None] * stride_o + k_idx[None, :], acc,
-             mask=row_ok[:, None] & (k_idx[None, :] < K))
+    tl.store(
+        out + rows.to(tl.int64)[:, None] * stride_o + k_idx[None, :],
+        acc,
+        mask=row_ok[:, None] & (k_idx[None, :] < K),
+    )
 
 
 @triton.jit
-def _position_grad_kernel(rows_t, cols_t, rows_values, cols_values, rows_extra, cols_extra,
-                          nearest2_in, out_grad_t, n_rows, n_cols, stride_rv, stride_cv,
-                          radius2, tiny, half_power, D: tl.constexpr, K: tl.constexpr,
-                          KIND: tl.constexpr, FAST: tl.constexpr, TARGET_ROWS: tl.constexpr,
-                          BLOCK_R: tl.constexpr, BLOCK_C: tl.constexpr):
+def _position_grad_kernel(
+    rows_t,
+    cols_t,
+    rows_values,
+    cols_values,
+    rows_extra,
+    cols_extra,
+    nearest2_in,
+    out_grad_t,
+    n_rows,
+    n_cols,
+    stride_rv,
+    stride_cv,
+    radius2,
+    tiny,
+    half_power,
+    D: tl.constexpr,
+    K: tl.constexpr,
+    KIND: tl.constexpr,
+    FAST: tl.constexpr,
+    TARGET_ROWS: tl.constexpr,
+    BLOCK_R: tl.constexpr,
+    BLOCK_C: tl.constexpr,
+):
     # Gradient to point positions, one side per launch. With G the incoming gradient,
     # G~ = G / s and a = G~ . out per target, dL/dd²_ik = -(p/2) r_ik / d²_ik (G~_i . v_k - a_i)
     # on ordinary rows (0 on coincident ones), and dd²_ik/dt_i = 2 (t_i - c_k) = -dd²_ik/dc_k.
@@ -320,8 +499,9 @@ def _position_grad_kernel(rows_t, cols_t, rows_values, cols_values, rows_extra, 
     for start in range(0, n_cols, BLOCK_C):
         cols = start + cols0
         col_ok = cols < n_cols
-        dist2 = _squared_distances(rows_t, n_rows, rows, row_ok, cols_t, n_cols, cols, col_ok,
-                                   tiny, D, BLOCK_R, BLOCK_C)
+        dist2 = _squared_distances(
+            rows_t, n_rows, rows, row_ok, cols_t, n_cols, cols, col_ok, tiny, D, BLOCK_R, BLOCK_C
+        )
         products = tl.zeros((BLOCK_R, BLOCK_C), dtype=dtype)
         for j in tl.static_range(K):
             left = tl.load(rows_values + rows.to(tl.int64) * stride_rv + j, mask=row_ok, other=0.0)
@@ -359,30 +539,61 @@ def _position_grad_kernel(rows_t, cols_t, rows_values, cols_values, rows_extra, 
 
 
 @triton.jit
-def _weights_kernel(targets_t, controls_t, nearest2_in, sums_in, out, n_t, n_c, stride_o,
-                    radius2, tiny, half_power, D: tl.constexpr, KIND: tl.constexpr,
-                    FAST: tl.constexpr, BLOCK_T: tl.constexpr, BLOCK_C: tl.constexpr):
+def _weights_kernel(
+    targets_t,
+    controls_t,
+    nearest2_in,
+    sums_in,
+    out,
+    n_t,
+    n_c,
+    stride_o,
+    radius2,
+    tiny,
+    half_power,
+    D: tl.constexpr,
+    KIND: tl.constexpr,
+    FAST: tl.constexpr,
+    BLOCK_T: tl.constexpr,
+    BLOCK_C: tl.constexpr,
+):
     # one (BLOCK_T, BLOCK_C) tile of W from the row statistics m_i, s_i
     rows = tl.program_id(0) * BLOCK_T + tl.arange(0, BLOCK_T)
     cols = tl.program_id(1) * BLOCK_C + tl.arange(0, BLOCK_C)
     row_ok = rows < n_t
     col_ok = cols < n_c
-    dist2 = _squared_distances(targets_t, n_t, rows, row_ok, controls_t, n_c, cols, col_ok,
-                               tiny, D, BLOCK_T, BLOCK_C)
+    dist2 = _squared_distances(
+        targets_t, n_t, rows, row_ok, controls_t, n_c, cols, col_ok, tiny, D, BLOCK_T, BLOCK_C
+    )
     nearest2 = tl.load(nearest2_in + rows, mask=row_ok, other=1.0)
     sums = tl.load(sums_in + rows, mask=row_ok, other=1.0)
     coincident = (nearest2 <= radius2) & row_ok
     any_coincident = tl.max(coincident.to(tl.int32), axis=0) > 0
-    weight = _weight_tile(dist2, nearest2, coincident, any_coincident, radius2, half_power,
-                          KIND, FAST, True)
+    weight = _weight_tile(
+        dist2, nearest2, coincident, any_coincident, radius2, half_power, KIND, FAST, True
+    )
     # 64-bit offsets: W may hold more than 2**31 entries
-    tl.store(out + rows.to(tl.int64)[:, None] * stride_o + cols[None, :], weight / sums[:, None],
-             mask=row_ok[:, None] & col_ok[None, :])
+    tl.store(
+        out + rows.to(tl.int64)[:, None] * stride_o + cols[None, :],
+        weight / sums[:, None],
+        mask=row_ok[:, None] & col_ok[None, :],
+    )
 
 
 @triton.jit
-def _dense_apply_kernel(weights, values, out, n_t, n_c, stride_w, stride_v, stride_o,
-                        K: tl.constexpr, BLOCK_T: tl.constexpr, BLOCK_C: tl.constexpr):
+def _dense_apply_kernel(
+    weights,
+    values,
+    out,
+    n_t,
+    n_c,
+    stride_w,
+    stride_v,
+    stride_o,
+    K: tl.constexpr,
+    BLOCK_T: tl.constexpr,
+    BLOCK_C: tl.constexpr,
+):
     # out = W @ v for K <= 3 columns, W read once, tile by tile along its rows
     rows = tl.program_id(0) * BLOCK_T + tl.arange(0, BLOCK_T)
     row_ok = rows < n_t
@@ -394,13 +605,26 @@ def _dense_apply_kernel(weights, values, out, n_t, n_c, stride_w, stride_v, stri
     for start in range(0, n_c, BLOCK_C):
         cols = start + cols0
         col_ok = cols < n_c
-        w = tl.load(weights + rows.to(tl.int64)[:, None] * stride_w + cols[None, :],
-                    mask=row_ok[:, None] & col_ok[None, :], other=0.0)
+        w = tl.load(
+            weights + rows.to(tl.int64)[:, None] * stride_w + cols[None, :],
+            mask=row_ok[:, None] & col_ok[None, :],
+            other=0.0,
+        )
         acc0 += w * tl.load(values + cols.to(tl.int64) * stride_v, mask=col_ok, other=0.0)[None, :]
         if K > 1:
-            acc1 += w * tl.load(values + cols.to(tl.int64) * stride_v + 1, mask=col_ok, other=0.0)[None, :]
+            acc1 += (
+                w
+                * tl.load(values + cols.to(tl.int64) * stride_v + 1, mask=col_ok, other=0.0)[
+                    None, :
+                ]
+            )
         if K > 2:
-            acc2 += w * tl.load(values + cols.to(tl.int64) * stride_v + 2, mask=col_ok, other=0.0)[None, :]
+            acc2 += (
+                w
+                * tl.load(values + cols.to(tl.int64) * stride_v + 2, mask=col_ok, other=0.0)[
+                    None, :
+                ]
+            )
     tl.store(out + rows.to(tl.int64) * stride_o, tl.sum(acc0, axis=1), mask=row_ok)
     if K > 1:
         tl.store(out + rows.to(tl.int64) * stride_o + 1, tl.sum(acc1, axis=1), mask=row_ok)
@@ -476,13 +700,28 @@ def nearest_squared(targets_t: Tensor, controls_t: Tensor) -> Tensor:
         return out
     block_t, block_c, warps = tile_shapes("nearest", targets_t.dtype)
     _nearest_kernel[(triton.cdiv(n_t, block_t),)](
-        targets_t, controls_t, out, n_t, controls_t.shape[1], torch.finfo(targets_t.dtype).tiny,
-        D=dim, BLOCK_T=block_t, BLOCK_C=block_c, num_warps=warps)
+        targets_t,
+        controls_t,
+        out,
+        n_t,
+        controls_t.shape[1],
+        torch.finfo(targets_t.dtype).tiny,
+        D=dim,
+        BLOCK_T=block_t,
+        BLOCK_C=block_c,
+        num_warps=warps,
+    )
     return out
 
 
-def apply(targets_t: Tensor, controls_t: Tensor, values: Tensor, power: float, radius2: float,
-          nearest2: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+def apply(
+    targets_t: Tensor,
+    controls_t: Tensor,
+    values: Tensor,
+    power: float,
+    radius2: float,
+    nearest2: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
     """``W @ values`` with W never stored.
 
     Parameters
@@ -511,22 +750,66 @@ def apply(targets_t: Tensor, controls_t: Tensor, values: Tensor, power: float, r
     if columns <= SMALL_COLUMNS:
         block_t, block_c, warps = tile_shapes("apply", values.dtype)
         _apply_kernel[(triton.cdiv(n_t, block_t),)](
-            targets_t, controls_t, values, nearest2, out, sums, n_t, n_c,
-            values.stride(0) if n_c else 0, out.stride(0) if columns else 0,
-            radius2, tiny, half_power, D=dim, K=columns, KIND=kind, FAST=fast,
-            BLOCK_T=block_t, BLOCK_C=block_c, num_warps=warps)
+            targets_t,
+            controls_t,
+            values,
+            nearest2,
+            out,
+            sums,
+            n_t,
+            n_c,
+            values.stride(0) if n_c else 0,
+            out.stride(0) if columns else 0,
+            radius2,
+            tiny,
+            half_power,
+            D=dim,
+            K=columns,
+            KIND=kind,
+            FAST=fast,
+            BLOCK_T=block_t,
+            BLOCK_C=block_c,
+            num_warps=warps,
+        )
     else:
         padded, precision = _dot_layout(values.dtype, columns)
         block_t, block_c, warps = tile_shapes("apply_dot", values.dtype)
         _apply_dot_kernel[(triton.cdiv(n_t, block_t),)](
-            targets_t, controls_t, values, nearest2, out, sums, n_t, n_c, values.stride(0),
-            out.stride(0), radius2, tiny, half_power, D=dim, K=columns, KP=padded, KIND=kind,
-            FAST=fast, PRECISION=precision, BLOCK_T=block_t, BLOCK_C=block_c, num_warps=warps)
+            targets_t,
+            controls_t,
+            values,
+            nearest2,
+            out,
+            sums,
+            n_t,
+            n_c,
+            values.stride(0),
+            out.stride(0),
+            radius2,
+            tiny,
+            half_power,
+            D=dim,
+            K=columns,
+            KP=padded,
+            KIND=kind,
+            FAST=fast,
+            PRECISION=precision,
+            BLOCK_T=block_t,
+            BLOCK_C=block_c,
+            num_warps=warps,
+        )
     return out, nearest2, sums
 
 
-def apply_transposed(targets_t: Tensor, controls_t: Tensor, grad: Tensor, nearest2: Tensor,
-                     sums: Tensor, power: float, radius2: float) -> Tensor:
+def apply_transposed(
+    targets_t: Tensor,
+    controls_t: Tensor,
+    grad: Tensor,
+    nearest2: Tensor,
+    sums: Tensor,
+    power: float,
+    radius2: float,
+) -> Tensor:
     """``Wᵀ @ grad`` for grad of shape (N_t, K), from the row statistics of :func:`apply`."""
     dim, n_c = controls_t.shape
     n_t, columns = grad.shape
@@ -538,21 +821,58 @@ def apply_transposed(targets_t: Tensor, controls_t: Tensor, grad: Tensor, neares
     if columns <= SMALL_COLUMNS:
         block_c, block_t, warps = tile_shapes("transposed", grad.dtype)
         _transposed_kernel[(triton.cdiv(n_c, block_c),)](
-            controls_t, targets_t, nearest2, scaled, out, n_c, n_t, scaled.stride(0),
-            out.stride(0), radius2, tiny, half_power, D=dim, K=columns, KIND=kind, FAST=fast,
-            BLOCK_C=block_c, BLOCK_T=block_t, num_warps=warps)
+            controls_t,
+            targets_t,
+            nearest2,
+            scaled,
+            out,
+            n_c,
+            n_t,
+            scaled.stride(0),
+            out.stride(0),
+            radius2,
+            tiny,
+            half_power,
+            D=dim,
+            K=columns,
+            KIND=kind,
+            FAST=fast,
+            BLOCK_C=block_c,
+            BLOCK_T=block_t,
+            num_warps=warps,
+        )
     else:
         padded, precision = _dot_layout(grad.dtype, columns)
         block_c, block_t, warps = tile_shapes("transposed_dot", grad.dtype)
         _transposed_dot_kernel[(triton.cdiv(n_c, block_c),)](
-            controls_t, targets_t, nearest2, scaled, out, n_c, n_t, scaled.stride(0),
-            out.stride(0), radius2, tiny, half_power, D=dim, K=columns, KP=padded, KIND=kind,
-            FAST=fast, PRECISION=precision, BLOCK_C=block_c, BLOCK_T=block_t, num_warps=warps)
+            controls_t,
+            targets_t,
+            nearest2,
+            scaled,
+            out,
+            n_c,
+            n_t,
+            scaled.stride(0),
+            out.stride(0),
+            radius2,
+            tiny,
+            half_power,
+            D=dim,
+            K=columns,
+            KP=padded,
+            KIND=kind,
+            FAST=fast,
+            PRECISION=precision,
+            BLOCK_C=block_c,
+            BLOCK_T=block_t,
+            num_warps=warps,
+        )
     return out
 
 
-def weights(targets_t: Tensor, controls_t: Tensor, power: float, radius2: float,
-            out: Tensor | None = None) -> Tensor:
+def weights(
+    targets_t: Tensor, controls_t: Tensor, power: float, radius2: float, out: Tensor | None = None
+) -> Tensor:
     """Dense W (N_t, N_c), rows summing to 1, written once (into ``out`` if given)."""
     dim, n_t = targets_t.shape
     n_c = controls_t.shape[1]
@@ -565,9 +885,25 @@ def weights(targets_t: Tensor, controls_t: Tensor, power: float, radius2: float,
     radius2, tiny, half_power, kind, fast = _constants(dtype, power, radius2)
     block_t, block_c, warps = tile_shapes("weights", dtype)
     grid = (triton.cdiv(n_t, block_t), triton.cdiv(n_c, block_c))
-    _weights_kernel[grid](targets_t, controls_t, nearest2, sums, out, n_t, n_c, out.stride(0),
-                          radius2, tiny, half_power, D=dim, KIND=kind, FAST=fast,
-                          BLOCK_T=block_t, BLOCK_C=block_c, num_warps=warps)
+    _weights_kernel[grid](
+        targets_t,
+        controls_t,
+        nearest2,
+        sums,
+        out,
+        n_t,
+        n_c,
+        out.stride(0),
+        radius2,
+        tiny,
+        half_power,
+        D=dim,
+        KIND=kind,
+        FAST=fast,
+        BLOCK_T=block_t,
+        BLOCK_C=block_c,
+        num_warps=warps,
+    )
     return out
 
 
@@ -582,15 +918,35 @@ def dense_apply(weights_matrix: Tensor, values: Tensor) -> Tensor:
         return out
     block_t, block_c, warps = tile_shapes("dense_apply", values.dtype)
     _dense_apply_kernel[(triton.cdiv(n_t, block_t),)](
-        weights_matrix, values, out, n_t, n_c, weights_matrix.stride(0), values.stride(0),
-        out.stride(0), K=columns, BLOCK_T=block_t, BLOCK_C=block_c, num_warps=warps)
+        weights_matrix,
+        values,
+        out,
+        n_t,
+        n_c,
+        weights_matrix.stride(0),
+        values.stride(0),
+        out.stride(0),
+        K=columns,
+        BLOCK_T=block_t,
+        BLOCK_C=block_c,
+        num_warps=warps,
+    )
     return out
 
 
-def position_gradients(targets_t: Tensor, controls_t: Tensor, values: Tensor, grad: Tensor,
-                       out: Tensor, nearest2: Tensor, sums: Tensor, power: float, radius2: float,
-                       need_targets: bool = True, need_controls: bool = True
-                       ) -> tuple[Tensor | None, Tensor | None]:
+def position_gradients(
+    targets_t: Tensor,
+    controls_t: Tensor,
+    values: Tensor,
+    grad: Tensor,
+    out: Tensor,
+    nearest2: Tensor,
+    sums: Tensor,
+    power: float,
+    radius2: float,
+    need_targets: bool = True,
+    need_controls: bool = True,
+) -> tuple[Tensor | None, Tensor | None]:
     """Gradients of ``L`` to the target and control coordinates, in the (D, N) layout,
     given ``grad = dL/d out`` for ``out = W @ values`` (from :func:`apply`).
 
@@ -600,8 +956,10 @@ def position_gradients(targets_t: Tensor, controls_t: Tensor, values: Tensor, gr
     dim, n_t = targets_t.shape
     n_c, columns = values.shape
     if dim > 3 or columns > POSITION_GRAD_COLUMNS:
-        raise ValueError(f"position_gradients takes D <= 3 and at most {POSITION_GRAD_COLUMNS} "
-                         f"columns, got D = {dim}, {columns} columns")
+        raise ValueError(
+            f"position_gradients takes D <= 3 and at most {POSITION_GRAD_COLUMNS} "
+            f"columns, got D = {dim}, {columns} columns"
+        )
     scaled = (grad / sums[:, None]).contiguous()
     extra = (scaled * out).sum(1).contiguous()
     values = values.contiguous()
@@ -612,16 +970,56 @@ def position_gradients(targets_t: Tensor, controls_t: Tensor, values: Tensor, gr
         grad_targets = torch.zeros_like(targets_t)
         if n_t:
             _position_grad_kernel[(triton.cdiv(n_t, block_r),)](
-                targets_t, controls_t, scaled, values, extra, extra, nearest2, grad_targets,
-                n_t, n_c, scaled.stride(0), values.stride(0), radius2, tiny, half_power,
-                D=dim, K=columns, KIND=kind, FAST=fast, TARGET_ROWS=True,
-                BLOCK_R=block_r, BLOCK_C=block_c, num_warps=warps)
+                targets_t,
+                controls_t,
+                scaled,
+                values,
+                extra,
+                extra,
+                nearest2,
+                grad_targets,
+                n_t,
+                n_c,
+                scaled.stride(0),
+                values.stride(0),
+                radius2,
+                tiny,
+                half_power,
+                D=dim,
+                K=columns,
+                KIND=kind,
+                FAST=fast,
+                TARGET_ROWS=True,
+                BLOCK_R=block_r,
+                BLOCK_C=block_c,
+                num_warps=warps,
+            )
     if need_controls:
         grad_controls = torch.zeros_like(controls_t)
         if n_t:
             _position_grad_kernel[(triton.cdiv(n_c, block_r),)](
-                controls_t, targets_t, values, scaled, extra, extra, nearest2, grad_controls,
-                n_c, n_t, values.stride(0), scaled.stride(0), radius2, tiny, half_power,
-                D=dim, K=columns, KIND=kind, FAST=fast, TARGET_ROWS=False,
-                BLOCK_R=block_r, BLOCK_C=block_c, num_warps=warps)
+                controls_t,
+                targets_t,
+                values,
+                scaled,
+                extra,
+                extra,
+                nearest2,
+                grad_controls,
+                n_c,
+                n_t,
+                values.stride(0),
+                scaled.stride(0),
+                radius2,
+                tiny,
+                half_power,
+                D=dim,
+                K=columns,
+                KIND=kind,
+                FAST=fast,
+                TARGET_ROWS=False,
+                BLOCK_R=block_r,
+                BLOCK_C=block_c,
+                num_warps=warps,
+            )
     return grad_targets, grad_controls

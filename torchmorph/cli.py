@@ -115,7 +115,6 @@ _CASES = ("wing", "fluid-wing", "hull")
 _MESH_EXTRA_HINT = "install the optional mesh dependencies: pip install 'torchmorph[mesh]'"
 
 
-
 # --------------------------------------------------------------------------- parser
 
 
@@ -177,7 +176,8 @@ def _case_name(text: str) -> str:
 def _common_options() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument(
-        "--debug", action="store_true",
+        "--debug",
+        action="store_true",
         help="show the Python traceback of an error instead of a one-line message",
     )
     return common
@@ -189,11 +189,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="torchmorph",
         description="IDW / Selective IDW morphing of tetrahedral meshes (Ballarin, D'Amario, "
-                    "Perotto, Rozza 2017: A POD-Selective Inverse Distance Weighting method for "
-                    "fast parametrized shape morphing, Sections 2-3), tetrahedral meshes from "
-                    "your own surfaces, and the reproduction of the paper's test cases.",
+        "Perotto, Rozza 2017: A POD-Selective Inverse Distance Weighting method for "
+        "fast parametrized shape morphing, Sections 2-3), tetrahedral meshes from "
+        "your own surfaces, and the reproduction of the paper's test cases.",
         epilog="Run 'torchmorph COMMAND --help' for the options of a command. Exit codes: "
-               "0 ok, 1 runtime error, 2 usage error, 3 inverted tetrahedra with --strict.",
+        "0 ok, 1 runtime error, 2 usage error, 3 inverted tetrahedra with --strict.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -201,10 +201,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     # ---------------------------------------------------------------- info
     info = commands.add_parser(
-        "info", parents=[common], help="describe a tetrahedral mesh file",
+        "info",
+        parents=[common],
+        help="describe a tetrahedral mesh file",
         description="Print node and tetrahedron counts, boundary/interior node counts, the node "
-                    "sets and their sizes, the bounding box, the quality Q (edge ratio, max and "
-                    "mean) and the smallest tetrahedron volume of a mesh.",
+        "sets and their sizes, the bounding box, the quality Q (edge ratio, max and "
+        "mean) and the smallest tetrahedron volume of a mesh.",
     )
     info.add_argument("mesh", metavar="MESH", help="mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)")
     _progress_option(info)
@@ -212,100 +214,164 @@ def build_parser() -> argparse.ArgumentParser:
 
     # --------------------------------------------------------------- morph
     morph = commands.add_parser(
-        "morph", parents=[common], help="morph a mesh from a boundary displacement",
+        "morph",
+        parents=[common],
+        help="morph a mesh from a boundary displacement",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Morph a tetrahedral mesh: boundary nodes take the prescribed displacement\n"
-                    "exactly, interior nodes are interpolated by IDW from the control points (all\n"
-                    "boundary nodes, or a selection: --select / --region, with --enrich).",
+        "exactly, interior nodes are interpolated by IDW from the control points (all\n"
+        "boundary nodes, or a selection: --select / --region, with --enrich).",
         epilog=_MORPH_EPILOG,
     )
     morph.add_argument("mesh", metavar="MESH", help="mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)")
     morph.add_argument(
-        "--moving", nargs="+", action="extend", metavar="SET",
+        "--moving",
+        nargs="+",
+        action="extend",
+        metavar="SET",
         help="node sets that move (names separated by spaces or commas); every other boundary "
-             "node is fixed. Without it the file must give every boundary node",
+        "node is fixed. Without it the file must give every boundary node",
     )
     morph.add_argument(
-        "--displacement", "-d", required=True, metavar="FILE",
+        "--displacement",
+        "-d",
+        required=True,
+        metavar="FILE",
         help="displacement file (.npy, .npz, .csv, .txt, .dat); accepted shapes below",
     )
-    morph.add_argument("--output", "-o", required=True, metavar="OUT",
-                       help="output mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)")
+    morph.add_argument(
+        "--output",
+        "-o",
+        required=True,
+        metavar="OUT",
+        help="output mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)",
+    )
     selection = morph.add_argument_group(
-        "control-point selection (default: every boundary node, plain IDW)")
+        "control-point selection (default: every boundary node, plain IDW)"
+    )
     exclusive = selection.add_mutually_exclusive_group()
     exclusive.add_argument(
-        "--select", type=_selection_parameters, metavar="R[,a,b]",
+        "--select",
+        type=_selection_parameters,
+        metavar="R[,a,b]",
         help="Selective IDW on all boundary nodes as one region: radius R > 0, "
-             "0 < a < 1 (default 0.8), b > 1 (default 1.3)",
+        "0 < a < 1 (default 0.8), b > 1 (default 1.3)",
     )
     exclusive.add_argument(
-        "--region", type=_region_option, action="append", metavar="SET=R[,a,b]",
+        "--region",
+        type=_region_option,
+        action="append",
+        metavar="SET=R[,a,b]",
         help="Selective IDW per node set (repeatable; SET1+SET2=R for a union); every boundary "
-             "node must be in a region or an --enrich set unless --uncovered ignore",
+        "node must be in a region or an --enrich set unless --uncovered ignore",
     )
     selection.add_argument(
-        "--enrich", nargs="+", action="extend", metavar="SET",
+        "--enrich",
+        nargs="+",
+        action="extend",
+        metavar="SET",
         help="node sets whose nodes are always control points (ESIDW); needs --select or --region",
     )
     selection.add_argument(
-        "--strategy", choices=("random", "centroid", "farthest"), default="random",
+        "--strategy",
+        choices=("random", "centroid", "farthest"),
+        default="random",
         help="SelectControlPoint strategy (default: random, the paper's)",
     )
     selection.add_argument(
-        "--overlap", choices=("error", "first", "share"), default="error",
+        "--overlap",
+        choices=("error", "first", "share"),
+        default="error",
         help="nodes in several --region sets with different parameters: error (default), give "
-             "them to the first region, or let every region keep them",
+        "them to the first region, or let every region keep them",
     )
     selection.add_argument(
-        "--uncovered", choices=("error", "ignore"), default="error",
+        "--uncovered",
+        choices=("error", "ignore"),
+        default="error",
         help="boundary nodes in no --region and no --enrich set: error (default), or never "
-             "select them",
+        "select them",
     )
-    selection.add_argument("--seed", type=int, default=0,
-                           help="seed of the random selection (default 0)")
+    selection.add_argument(
+        "--seed", type=int, default=0, help="seed of the random selection (default 0)"
+    )
     idw = morph.add_argument_group("interpolation")
-    idw.add_argument("--power", type=_positive_float, default=4.0,
-                     help="IDW exponent p (default 4, the paper's)")
     idw.add_argument(
-        "--mode", choices=("auto", "dense", "matrix_free"), default="auto",
+        "--power", type=_positive_float, default=4.0, help="IDW exponent p (default 4, the paper's)"
+    )
+    idw.add_argument(
+        "--mode",
+        choices=("auto", "dense", "matrix_free"),
+        default="auto",
         help="store W (dense), recompute it in tiles (matrix_free), or choose by size (auto)",
     )
-    idw.add_argument("--batch-index", type=int, default=None, metavar="I",
-                     help="field to use from a batched file (B, ..., 3); negative counts from the "
-                          "end")
+    idw.add_argument(
+        "--batch-index",
+        type=int,
+        default=None,
+        metavar="I",
+        help="field to use from a batched file (B, ..., 3); negative counts from the end",
+    )
     idw.add_argument("--device", default="cpu", help="torch device (default cpu), e.g. cuda")
-    idw.add_argument("--dtype", choices=("float64", "float32"), default="float64",
-                     help="floating-point precision (default float64)")
+    idw.add_argument(
+        "--dtype",
+        choices=("float64", "float32"),
+        default="float64",
+        help="floating-point precision (default float64)",
+    )
     out = morph.add_argument_group("result")
-    out.add_argument("--write-deformed", action="store_true",
-                     help="write the deformed coordinates instead of the reference mesh")
-    out.add_argument("--strict", action="store_true",
-                     help=f"exit with code {EXIT_INVERTED} when the morph inverts tetrahedra "
-                          "(the output is written all the same)")
+    out.add_argument(
+        "--write-deformed",
+        action="store_true",
+        help="write the deformed coordinates instead of the reference mesh",
+    )
+    out.add_argument(
+        "--strict",
+        action="store_true",
+        help=f"exit with code {EXIT_INVERTED} when the morph inverts tetrahedra "
+        "(the output is written all the same)",
+    )
     _progress_option(out)
     morph.set_defaults(run=_run_morph, parser=morph)
 
     # ----------------------------------------------------------- reproduce
     reproduce = commands.add_parser(
-        "reproduce", parents=[common], help="run one of the paper's test cases",
+        "reproduce",
+        parents=[common],
+        help="run one of the paper's test cases",
         description="Reproduce a test case of the POD-Selective IDW paper: build its mesh, run "
-                    "IDW, SIDW (wing), ESIDW, POD-IDW and POD-ESIDW with the paper's parameters "
-                    "and print the results beside the paper's (with progress bars). Needs the "
-                    "optional mesh dependencies: pip install 'torchmorph[mesh]' (gmsh; with "
-                    "--mesher pytetwild: 'torchmorph[tetwild]').",
+        "IDW, SIDW (wing), ESIDW, POD-IDW and POD-ESIDW with the paper's parameters "
+        "and print the results beside the paper's (with progress bars). Needs the "
+        "optional mesh dependencies: pip install 'torchmorph[mesh]' (gmsh; with "
+        "--mesher pytetwild: 'torchmorph[tetwild]').",
     )
-    reproduce.add_argument("case", type=_case_name, metavar="CASE",
-                           help="wing (A), fluid-wing (B) or hull (C)")
-    reproduce.add_argument("--size", choices=("small", "paper"), default="paper",
-                           help="mesh size: paper (node counts near the paper's, default) or "
-                                "small (a quick run)")
-    reproduce.add_argument("--out", metavar="DIR", default=None,
-                           help="directory for the VTU and PNG files (default: none written)")
-    reproduce.add_argument("--mesher", choices=("gmsh", "pytetwild"), default="gmsh",
-                           help="mesh generator (default gmsh)")
-    reproduce.add_argument("--seed", type=int, default=0,
-                           help="seed of the random selection and training set (default 0)")
+    reproduce.add_argument(
+        "case", type=_case_name, metavar="CASE", help="wing (A), fluid-wing (B) or hull (C)"
+    )
+    reproduce.add_argument(
+        "--size",
+        choices=("small", "paper"),
+        default="paper",
+        help="mesh size: paper (node counts near the paper's, default) or small (a quick run)",
+    )
+    reproduce.add_argument(
+        "--out",
+        metavar="DIR",
+        default=None,
+        help="directory for the VTU and PNG files (default: none written)",
+    )
+    reproduce.add_argument(
+        "--mesher",
+        choices=("gmsh", "pytetwild"),
+        default="gmsh",
+        help="mesh generator (default gmsh)",
+    )
+    reproduce.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the random selection and training set (default 0)",
+    )
     reproduce.set_defaults(run=_run_reproduce, parser=reproduce)
 
     _cli_mesh.add_parser(commands, common)
@@ -363,8 +429,10 @@ def _run_info(args: argparse.Namespace) -> int:
         stages.close()
 
     _line("mesh", f"{args.mesh} (read in {_seconds(read_time)})")
-    _line("nodes", f"{mesh.num_nodes} ({boundary.numel()} boundary, "
-                   f"{mesh.interior_nodes.numel()} interior)")
+    _line(
+        "nodes",
+        f"{mesh.num_nodes} ({boundary.numel()} boundary, {mesh.interior_nodes.numel()} interior)",
+    )
     _line("tetrahedra", f"{mesh.num_tets}")
     _line("boundary faces", f"{mesh.boundary_faces.shape[0]}")
     _line("node sets", f"{len(mesh.node_sets)}" if mesh.node_sets else "none")
@@ -379,16 +447,23 @@ def _run_info(args: argparse.Namespace) -> int:
     _line("", f"{uncovered} boundary node(s) in no node set")
     low, high = box
     extent = [h - lo for lo, h in zip(low, high, strict=True)]
-    _line("bounding box", f"[{', '.join(f'{v:.6g}' for v in low)}] .. "
-                          f"[{', '.join(f'{v:.6g}' for v in high)}]")
+    _line(
+        "bounding box",
+        f"[{', '.join(f'{v:.6g}' for v in low)}] .. [{', '.join(f'{v:.6g}' for v in high)}]",
+    )
     _line("extent", " x ".join(f"{v:.6g}" for v in extent))
-    _line("quality Q", f"max {summary['max_edge_ratio']:.4g}, mean {summary['mean_edge_ratio']:.4g}"
-                       " (edge ratio, 1 is best)")
+    _line(
+        "quality Q",
+        f"max {summary['max_edge_ratio']:.4g}, mean {summary['mean_edge_ratio']:.4g}"
+        " (edge ratio, 1 is best)",
+    )
     _line("min volume", f"{summary['min_volume']:.6g}")
     for label, data in (("point data", point_data), ("cell data", cell_data)):
         if data:
-            _line(label, ", ".join(f"{name} {tuple(value.shape)}"
-                                   for name, value in sorted(data.items())))
+            _line(
+                label,
+                ", ".join(f"{name} {tuple(value.shape)}" for name, value in sorted(data.items())),
+            )
     return EXIT_OK
 
 
@@ -402,8 +477,9 @@ def _run_reproduce(args: argparse.Namespace) -> int:
     if args.out is not None:
         Path(args.out).mkdir(parents=True, exist_ok=True)
     # verbose: progress bars, the tables beside the paper's values and the files written
-    paper.reproduce(args.case, size=args.size, out=args.out, mesher=args.mesher, seed=args.seed,
-                    verbose=True)
+    paper.reproduce(
+        args.case, size=args.size, out=args.out, mesher=args.mesher, seed=args.seed, verbose=True
+    )
     return EXIT_OK
 
 
@@ -455,8 +531,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif isinstance(error, (FileNotFoundError, ValueError, TypeError, OSError)):
             print(f"{prefix} {error}", file=sys.stderr)
         else:
-            print(f"{prefix} {type(error).__name__}: {error} (run with --debug for the "
-                  "traceback)", file=sys.stderr)
+            print(
+                f"{prefix} {type(error).__name__}: {error} (run with --debug for the traceback)",
+                file=sys.stderr,
+            )
         return EXIT_ERROR
 
 

@@ -106,8 +106,9 @@ def _check_tolerance(tolerance: float) -> float:
     return tolerance
 
 
-def _normalise(targets: Tensor, controls: Tensor, tolerance: float
-               ) -> tuple[Tensor, Tensor, float | Tensor]:
+def _normalise(
+    targets: Tensor, controls: Tensor, tolerance: float
+) -> tuple[Tensor, Tensor, float | Tensor]:
     """Both clouds scaled by a power of two so that every coordinate lies in [-1, 1],
     and the squared coincidence radius ``(tolerance · bounding-box diagonal)²`` in
     those units (at least the dtype's smallest normal, so that a target exactly on a
@@ -137,24 +138,37 @@ def _normalise(targets: Tensor, controls: Tensor, tolerance: float
 
 
 def _assemble_weights(
-    targets: Tensor, controls: Tensor, power: float, radius2: float, block_bytes: int | None,
+    targets: Tensor,
+    controls: Tensor,
+    power: float,
+    radius2: float,
+    block_bytes: int | None,
     implementation: str = "auto",
 ) -> Tensor:
     """Dense W (N_t, N_c) of normalised points, row-major, without autograd: by a fused
     kernel that writes W once, or block by block in place."""
-    weights = torch.empty(targets.shape[0], controls.shape[0], dtype=controls.dtype,
-                          device=controls.device)
+    weights = torch.empty(
+        targets.shape[0], controls.shape[0], dtype=controls.dtype, device=controls.device
+    )
     backend = _fused_for(implementation, targets, controls)
     with torch.no_grad():
         if backend is not None:
-            return backend.weights(backend.layout(targets), backend.layout(controls), power,
-                                   radius2, out=weights)
-        rows = _rows_per_block(controls.shape[0], controls.element_size(),
-                               _block_bytes(block_bytes, controls.device))
+            return backend.weights(
+                backend.layout(targets), backend.layout(controls), power, radius2, out=weights
+            )
+        rows = _rows_per_block(
+            controls.shape[0], controls.element_size(), _block_bytes(block_bytes, controls.device)
+        )
         controls_t = controls.T.contiguous()
         for start in range(0, targets.shape[0], rows):
-            _weights_block(targets[start : start + rows], controls, power, radius2,
-                           out=weights[start : start + rows], controls_t=controls_t)
+            _weights_block(
+                targets[start : start + rows],
+                controls,
+                power,
+                radius2,
+                out=weights[start : start + rows],
+                controls_t=controls_t,
+            )
     return weights
 
 
@@ -171,7 +185,9 @@ def _points_arguments(function: str, positional: tuple, controls, targets, count
         warnings.warn(
             f"{function}(targets, controls, ...) with positional points is deprecated and will "
             f"be removed: pass controls=... and targets=... as keywords (the order of IDW)",
-            DeprecationWarning, stacklevel=3)
+            DeprecationWarning,
+            stacklevel=3,
+        )
         targets, controls = positional[:2]
         return (controls, targets, *positional[2:])
     if controls is None or targets is None:
@@ -232,14 +248,24 @@ def idw_weights(
     if not _functional(targets, controls):
         return _assemble_weights(targets, controls, power, radius2, block_bytes, implementation)
     if _check_implementation(implementation) == "fused":
-        raise ValueError("implementation='fused' cannot run here: a W that carries gradients to "
-                         "the points (or is traced) is built by the torch implementation")
+        raise ValueError(
+            "implementation='fused' cannot run here: a W that carries gradients to "
+            "the points (or is traced) is built by the torch implementation"
+        )
     if targets.shape[0] == 0:  # an empty W that still carries the inputs' graph
         return (targets.sum() + controls.sum()) * 0 + controls.new_zeros(0, controls.shape[0])
-    rows = _rows_per_block(controls.shape[0], controls.element_size(),
-                           _block_bytes(block_bytes, controls.device), copies=4)
-    return torch.cat([_weights_block(targets[s : s + rows], controls, power, radius2)
-                      for s in range(0, targets.shape[0], rows)])
+    rows = _rows_per_block(
+        controls.shape[0],
+        controls.element_size(),
+        _block_bytes(block_bytes, controls.device),
+        copies=4,
+    )
+    return torch.cat(
+        [
+            _weights_block(targets[s : s + rows], controls, power, radius2)
+            for s in range(0, targets.shape[0], rows)
+        ]
+    )
 
 
 def _prepare(targets, controls, power, coincidence_tolerance):
@@ -248,8 +274,9 @@ def _prepare(targets, controls, power, coincidence_tolerance):
     targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True)
     check_same_device_dtype(controls, "controls", targets, "targets")
     power = _check_power(power)
-    targets, controls, radius2 = _normalise(targets, controls,
-                                            _check_tolerance(coincidence_tolerance))
+    targets, controls, radius2 = _normalise(
+        targets, controls, _check_tolerance(coincidence_tolerance)
+    )
     return targets, controls, power, radius2
 
 
@@ -312,26 +339,34 @@ def idw_apply(
     (use dense mode there).
     """
     if points:
-        controls, targets, displacements = _points_arguments("idw_apply", points, controls,
-                                                             targets, count=3)
+        controls, targets, displacements = _points_arguments(
+            "idw_apply", points, controls, targets, count=3
+        )
     else:
         controls, targets = _points_arguments("idw_apply", points, controls, targets)
         if displacements is None:
             raise TypeError("idw_apply() needs displacements=")
     targets, controls, power, radius2 = _prepare(targets, controls, power, coincidence_tolerance)
-    batched = check_vectors(displacements, "displacements", controls.shape[0],
-                            what="control points")
+    batched = check_vectors(
+        displacements, "displacements", controls.shape[0], what="control points"
+    )
     check_same_device_dtype(controls, "controls", displacements, "displacements")
     batch = displacements.shape[0] if batched else 1
     values = (displacements.permute(1, 0, 2) if batched else displacements).reshape(
-        controls.shape[0], 3 * batch)
+        controls.shape[0], 3 * batch
+    )
     inputs = (targets, controls, displacements)
     positions_grad = torch.is_grad_enabled() and (targets.requires_grad or controls.requires_grad)
-    backend = _fused_for(implementation, *inputs, positions_grad=positions_grad,
-                         shape=(controls.shape[1], values.shape[1]))
+    backend = _fused_for(
+        implementation,
+        *inputs,
+        positions_grad=positions_grad,
+        shape=(controls.shape[1], values.shape[1]),
+    )
     if backend is not None:
-        result = _FusedApply.apply(backend.layout(targets), backend.layout(controls), values,
-                                   backend, power, radius2, None)
+        result = _FusedApply.apply(
+            backend.layout(targets), backend.layout(controls), values, backend, power, radius2, None
+        )
     else:
         result = _torch_apply(targets, controls, values, power, radius2, block_bytes)
     result = result.reshape(targets.shape[0], batch, 3)
@@ -373,8 +408,11 @@ def _free_memory(device: torch.device) -> int:
     if device.type == "cuda":
         free, _ = torch.cuda.mem_get_info(device)
         stats = torch.cuda.memory_stats(device)
-        return int(free + stats.get("reserved_bytes.all.current", 0)
-                   - stats.get("allocated_bytes.all.current", 0))
+        return int(
+            free
+            + stats.get("reserved_bytes.all.current", 0)
+            - stats.get("allocated_bytes.all.current", 0)
+        )
     try:
         with open("/proc/meminfo") as info:
             for line in info:
@@ -396,8 +434,9 @@ def _warn_duplicate_controls(controls: Tensor, tolerance: float) -> None:
     from scipy.spatial import cKDTree
 
     with torch.no_grad():
-        _, normalised, radius2 = _normalise(controls.new_zeros(0, controls.shape[1]),
-                                            controls.detach(), tolerance)
+        _, normalised, radius2 = _normalise(
+            controls.new_zeros(0, controls.shape[1]), controls.detach(), tolerance
+        )
         points = normalised.double().cpu().numpy()
     distances, _ = cKDTree(points).query(points, k=2)
     close = int((distances[:, 1] ** 2 <= radius2).sum())
@@ -405,7 +444,8 @@ def _warn_duplicate_controls(controls: Tensor, tolerance: float) -> None:
         warnings.warn(
             f"controls: {close} control points lie within the coincidence radius of another "
             f"one (duplicated points); a target there takes the mean of their displacements",
-            stacklevel=3)
+            stacklevel=3,
+        )
 
 
 class IDW(nn.Module):
@@ -495,10 +535,12 @@ class IDW(nn.Module):
         if mode not in ("auto", "dense", "matrix_free"):
             raise ValueError(f"mode must be 'auto', 'dense' or 'matrix_free', got {mode!r}")
         self.power = _check_power(power)
-        self.block_bytes = None if block_bytes is None else int(
-            check_positive(block_bytes, "block_bytes"))
-        self.dense_bytes = None if dense_bytes is None else int(
-            check_positive(dense_bytes, "dense_bytes"))
+        self.block_bytes = (
+            None if block_bytes is None else int(check_positive(block_bytes, "block_bytes"))
+        )
+        self.dense_bytes = (
+            None if dense_bytes is None else int(check_positive(dense_bytes, "dense_bytes"))
+        )
         self.coincidence_tolerance = _check_tolerance(coincidence_tolerance)
         self.implementation = _check_implementation(implementation)
         size = targets.shape[0] * controls.shape[0] * controls.element_size()
@@ -513,7 +555,8 @@ class IDW(nn.Module):
                 raise ValueError(
                     f"mode='dense': W ({targets.shape[0]:,} x {controls.shape[0]:,}, "
                     f"{size / 2**30:.1f} GiB) does not fit in the {free / 2**30:.1f} GiB free on "
-                    f"{controls.device}; use mode='matrix_free'")
+                    f"{controls.device}; use mode='matrix_free'"
+                )
         self.mode: str = mode
         _warn_duplicate_controls(controls, self.coincidence_tolerance)
         # copies, so that later in-place edits of the caller's tensors cannot leave W stale
@@ -539,10 +582,12 @@ class IDW(nn.Module):
         return self.targets.shape[0]
 
     def _assemble(self, targets: Tensor, controls: Tensor) -> Tensor:
-        targets, controls, power, radius2 = _prepare(targets, controls, self.power,
-                                                     self.coincidence_tolerance)
-        return _assemble_weights(targets, controls, power, radius2, self.block_bytes,
-                                 self.implementation)
+        targets, controls, power, radius2 = _prepare(
+            targets, controls, self.power, self.coincidence_tolerance
+        )
+        return _assemble_weights(
+            targets, controls, power, radius2, self.block_bytes, self.implementation
+        )
 
     def weights_matrix(self) -> Tensor:
         """W of shape (N_t, N_c): the stored buffer, or assembled now (matrix-free)."""
@@ -553,8 +598,11 @@ class IDW(nn.Module):
 
     # ----------------------------------------------------------------- state
     def get_extra_state(self) -> dict:
-        return {"power": self.power, "coincidence_tolerance": self.coincidence_tolerance,
-                "mode": self.mode}
+        return {
+            "power": self.power,
+            "coincidence_tolerance": self.coincidence_tolerance,
+            "mode": self.mode,
+        }
 
     def set_extra_state(self, state: dict) -> None:
         if not isinstance(state, dict):
@@ -565,34 +613,40 @@ class IDW(nn.Module):
             if float(state[field]) != getattr(self, field):
                 raise ValueError(
                     f"{field}: the state was saved with {field}={state[field]!r} but this module "
-                    f"has {field}={getattr(self, field)!r}; build the module with the saved value")
+                    f"has {field}={getattr(self, field)!r}; build the module with the saved value"
+                )
 
-    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys,
-                              unexpected_keys, error_msgs):
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ):
         key = prefix + "weights"
         has_weights = key in state_dict
         if self.mode == "matrix_free" and has_weights:  # a dense state: W is not needed
             state_dict = {k: v for k, v in state_dict.items() if k != key}
         resize_buffers_for_load(self, state_dict, prefix, ("controls", "targets", "weights"))
-        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys,
-                                      unexpected_keys, error_msgs)
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
         self._fused_cache = None
         if self.mode == "dense" and not has_weights:  # a matrix-free state: assemble W
             if key in missing_keys:
                 missing_keys.remove(key)
             with torch.no_grad():
-                self._buffers["weights"] = self._assemble(self.targets.detach(),
-                                                          self.controls.detach())
+                self._buffers["weights"] = self._assemble(
+                    self.targets.detach(), self.controls.detach()
+                )
         for name in ("controls", "targets"):
             incoming = state_dict.get(prefix + name)
             if incoming is not None and incoming.shape[-1:] != self._buffers[name].shape[-1:]:
-                error_msgs.append(f"{name}: the state holds points of shape "
-                                  f"{tuple(incoming.shape)}")
+                error_msgs.append(
+                    f"{name}: the state holds points of shape {tuple(incoming.shape)}"
+                )
         weights = self._buffers.get("weights")
         if weights is not None and weights.shape != (self.num_targets, self.num_controls):
             error_msgs.append(
                 f"weights: shape {tuple(weights.shape)} does not match "
-                f"{self.num_targets} targets x {self.num_controls} controls")
+                f"{self.num_targets} targets x {self.num_controls} controls"
+            )
 
     def _geometry_requires_grad(self) -> bool:
         return self.controls.requires_grad or self.targets.requires_grad
@@ -600,14 +654,23 @@ class IDW(nn.Module):
     def _fused_geometry(self, backend):
         """Normalised geometry in the backend's layout and the nearest distances of the
         stored points, computed once per geometry (and again after it changes)."""
-        key = (backend, self.controls.data_ptr(), self.targets.data_ptr(),
-               self.controls._version, self.targets._version, self.controls.device,
-               self.controls.dtype)
+        key = (
+            backend,
+            self.controls.data_ptr(),
+            self.targets.data_ptr(),
+            self.controls._version,
+            self.targets._version,
+            self.controls.device,
+            self.controls.dtype,
+        )
         if self._fused_cache is None or self._fused_cache[0] != key:
             with torch.no_grad():
-                targets, controls, _, radius2 = _prepare(self.targets.detach(),
-                                                         self.controls.detach(), self.power,
-                                                         self.coincidence_tolerance)
+                targets, controls, _, radius2 = _prepare(
+                    self.targets.detach(),
+                    self.controls.detach(),
+                    self.power,
+                    self.coincidence_tolerance,
+                )
                 targets, controls = backend.layout(targets), backend.layout(controls)
                 nearest2 = backend.nearest(targets, controls)
             self._fused_cache = (key, targets, controls, radius2, nearest2)
@@ -634,8 +697,9 @@ class IDW(nn.Module):
         Tensor, shape (N_t, 3) or (B, N_t, 3)
         """
         check_vectors(displacements, "displacements", self.num_controls, what="control points")
-        check_same_device_dtype(self.controls, "the module's controls", displacements,
-                                "displacements")
+        check_same_device_dtype(
+            self.controls, "the module's controls", displacements, "displacements"
+        )
         new_geometry = controls is not None or targets is not None
         if controls is not None:
             controls = self._check_moved(controls, self.controls, "controls")
@@ -644,15 +708,20 @@ class IDW(nn.Module):
         controls = self.controls if controls is None else controls
         targets = self.targets if targets is None else targets
         rebuild = new_geometry or (torch.is_grad_enabled() and self._geometry_requires_grad())
-        options = {"power": self.power, "coincidence_tolerance": self.coincidence_tolerance,
-                   "block_bytes": self.block_bytes, "implementation": self.implementation}
+        options = {
+            "power": self.power,
+            "coincidence_tolerance": self.coincidence_tolerance,
+            "block_bytes": self.block_bytes,
+            "implementation": self.implementation,
+        }
         if self.mode == "matrix_free":
             if not rebuild:
                 backend = _fused_for(self.implementation, self.controls, displacements)
                 if backend is not None and self.num_targets:
                     return self._fused_matrix_free(backend, displacements)
-            return idw_apply(controls=controls, targets=targets, displacements=displacements,
-                             **options)
+            return idw_apply(
+                controls=controls, targets=targets, displacements=displacements, **options
+            )
         if rebuild:
             return idw_weights(controls=controls, targets=targets, **options) @ displacements
         return _dense_apply(self.weights, displacements, self.implementation)
@@ -662,13 +731,16 @@ class IDW(nn.Module):
         batched = displacements.ndim == 3
         batch = displacements.shape[0] if batched else 1
         values = (displacements.permute(1, 0, 2) if batched else displacements).reshape(
-            self.num_controls, 3 * batch)
+            self.num_controls, 3 * batch
+        )
         if torch.is_grad_enabled() and values.requires_grad:
-            result = _FusedApply.apply(targets, controls, values, backend, self.power, radius2,
-                                       nearest2)
+            result = _FusedApply.apply(
+                targets, controls, values, backend, self.power, radius2, nearest2
+            )
         else:
-            result = backend.apply(targets, controls, values.contiguous(), self.power, radius2,
-                                   nearest2)[0]
+            result = backend.apply(
+                targets, controls, values.contiguous(), self.power, radius2, nearest2
+            )[0]
         result = result.reshape(self.num_targets, batch, 3)
         return result.permute(1, 0, 2) if batched else result[:, 0]
 
@@ -677,12 +749,15 @@ class IDW(nn.Module):
         if not isinstance(moved, Tensor):
             raise TypeError(f"{name} must be a torch.Tensor, got {type(moved).__name__}")
         if moved.shape != reference.shape:
-            raise ValueError(f"{name} must have shape {tuple(reference.shape)}, "
-                             f"got {tuple(moved.shape)}")
+            raise ValueError(
+                f"{name} must have shape {tuple(reference.shape)}, got {tuple(moved.shape)}"
+            )
         check_same_device_dtype(reference, f"the module's {name}", moved, name)
         return as_points(moved, name, allow_empty=True)
 
     def extra_repr(self) -> str:
-        return (f"num_controls={self.num_controls}, num_targets={self.num_targets}, "
-                f"power={self.power:g}, mode={self.mode!r}, "
-                f"implementation={self.implementation!r}")
+        return (
+            f"num_controls={self.num_controls}, num_targets={self.num_targets}, "
+            f"power={self.power:g}, mode={self.mode!r}, "
+            f"implementation={self.implementation!r}"
+        )

@@ -424,12 +424,12 @@ def _write_xdmf(path: Path, converted) -> None:
 # Characters percent-encoded in stored node-set names: the escape character itself,
 # what XML attributes (VTU, XDMF) and Gmsh's quoted strings cannot hold, and white
 # space (legacy VTK splits names on it).
-_ENCODED_CHARACTERS = frozenset('%"\'<>&')
+_ENCODED_CHARACTERS = frozenset("%\"'<>&")
 
 # Characters each format cannot hold in a field name (beyond control characters,
 # which no format holds).
 _FORBIDDEN_IN_FIELD_NAMES: dict[str, str] = {
-    "vtu": '"\'<>&',
+    "vtu": "\"'<>&",
     "vtk": "",  # and white space
     "xdmf": "",
     "gmsh": '"',
@@ -437,8 +437,7 @@ _FORBIDDEN_IN_FIELD_NAMES: dict[str, str] = {
 
 
 def _needs_encoding(character: str) -> bool:
-    return (character in _ENCODED_CHARACTERS or character.isspace()
-            or not character.isprintable())
+    return character in _ENCODED_CHARACTERS or character.isspace() or not character.isprintable()
 
 
 def encode_set_name(name: str) -> str:
@@ -466,9 +465,15 @@ def _check_field_name(name: str, file_format: str, argument: str) -> None:
     Control characters are refused everywhere; VTU refuses ``" ' < > &``
     (XML attributes), legacy VTK refuses white space, Gmsh refuses ``"``.
     """
-    bad = sorted({c for c in name if not c.isprintable()
-                  or c in _FORBIDDEN_IN_FIELD_NAMES[file_format]
-                  or (file_format == "vtk" and c.isspace())})
+    bad = sorted(
+        {
+            c
+            for c in name
+            if not c.isprintable()
+            or c in _FORBIDDEN_IN_FIELD_NAMES[file_format]
+            or (file_format == "vtk" and c.isspace())
+        }
+    )
     if bad:
         shown = ", ".join(repr(c) for c in bad)
         raise ValueError(

@@ -471,8 +471,9 @@ def _checked_faces(points: Tensor, tets: Tensor) -> Tensor:
         sides = tet_volumes(exact, torch.cat([outward[first], opposite[:, None]], 1))
         folded = torch.nonzero(sides <= 0).flatten()
     if folded.numel() > 0:
-        pairs = ", ".join(f"({int(first[k]) // 4}, {int(second[k]) // 4})"
-                          for k in folded[:5].tolist())
+        pairs = ", ".join(
+            f"({int(first[k]) // 4}, {int(second[k]) // 4})" for k in folded[:5].tolist()
+        )
         more = ", ..." if folded.numel() > 5 else ""
         raise ValueError(
             f"tets: {folded.numel()} interior face(s) have both of their tetrahedra on the same "
@@ -499,11 +500,11 @@ def _check_interior_solid_angles(points: Tensor, tets: Tensor, boundary_faces: T
             u, v, w = (vertices[:, k] - vertices[:, corner] for k in others)
             lu, lv, lw = u.norm(dim=1), v.norm(dim=1), w.norm(dim=1)
             triple = (u * torch.linalg.cross(v, w, dim=1)).sum(1).abs()
-            below = lu * lv * lw + (u * v).sum(1) * lw + (u * w).sum(1) * lv \
-                + (v * w).sum(1) * lu
+            below = lu * lv * lw + (u * v).sum(1) * lw + (u * w).sum(1) * lv + (v * w).sum(1) * lu
             angles.append(2.0 * torch.atan2(triple, below))  # Van Oosterom–Strackee
         total = exact.new_zeros(points.shape[0]).index_add_(
-            0, tets.reshape(-1), torch.stack(angles, 1).reshape(-1))
+            0, tets.reshape(-1), torch.stack(angles, 1).reshape(-1)
+        )
         interior = torch.zeros(points.shape[0], dtype=torch.bool, device=tets.device)
         interior[tets.reshape(-1)] = True
         interior[boundary_faces.reshape(-1)] = False
@@ -580,14 +581,26 @@ def box_mesh(
     unit = np.stack([g.ravel() for g in grid], 1)
     points = np.asarray(origin, dtype=np.float64) + unit * lengths
     index = np.arange(unit.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
-    corner = {(i, j, k): index[i : nx + i, j : ny + j, k : nz + k].ravel()
-              for i in (0, 1) for j in (0, 1) for k in (0, 1)}
-    paths = (((1, 0, 0), (1, 1, 0)), ((1, 0, 0), (1, 0, 1)), ((0, 1, 0), (1, 1, 0)),
-             ((0, 1, 0), (0, 1, 1)), ((0, 0, 1), (1, 0, 1)), ((0, 0, 1), (0, 1, 1)))
-    tets = np.concatenate([
-        np.stack([corner[(0, 0, 0)], corner[a], corner[b], corner[(1, 1, 1)]], 1)
-        for a, b in paths
-    ])
+    corner = {
+        (i, j, k): index[i : nx + i, j : ny + j, k : nz + k].ravel()
+        for i in (0, 1)
+        for j in (0, 1)
+        for k in (0, 1)
+    }
+    paths = (
+        ((1, 0, 0), (1, 1, 0)),
+        ((1, 0, 0), (1, 0, 1)),
+        ((0, 1, 0), (1, 1, 0)),
+        ((0, 1, 0), (0, 1, 1)),
+        ((0, 0, 1), (1, 0, 1)),
+        ((0, 0, 1), (0, 1, 1)),
+    )
+    tets = np.concatenate(
+        [
+            np.stack([corner[(0, 0, 0)], corner[a], corner[b], corner[(1, 1, 1)]], 1)
+            for a, b in paths
+        ]
+    )
     node_sets = {}
     for axis, name in enumerate("xyz"):
         node_sets[f"{name}0"] = np.nonzero(unit[:, axis] == 0.0)[0]

@@ -149,10 +149,14 @@ def tetrahedralize(
     try:
         import pytetwild  # imports pyvista
     except ImportError as error:
-        raise ImportError(f"tetrahedralising needs pytetwild (which imports pyvista): {_EXTRA}"
-                          ) from error
-    for label, value in (("edge_length", edge_length), ("epsilon", epsilon),
-                         ("stop_energy", stop_energy)):
+        raise ImportError(
+            f"tetrahedralising needs pytetwild (which imports pyvista): {_EXTRA}"
+        ) from error
+    for label, value in (
+        ("edge_length", edge_length),
+        ("epsilon", epsilon),
+        ("stop_energy", stop_energy),
+    ):
         if not (np.isfinite(value) and value > 0):
             raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
     if not (isinstance(iterations, (int, np.integer)) and iterations >= 0):
@@ -166,13 +170,19 @@ def tetrahedralize(
         "quiet": not verbose,
     }
     if sizing is not None:
-        options.update(bg_vertices=np.ascontiguousarray(sizing[0], dtype=np.float64),
-                       bg_tets=np.ascontiguousarray(sizing[1], dtype=np.int32),
-                       bg_values=np.ascontiguousarray(sizing[2], dtype=np.float64))
+        options.update(
+            bg_vertices=np.ascontiguousarray(sizing[0], dtype=np.float64),
+            bg_tets=np.ascontiguousarray(sizing[1], dtype=np.int32),
+            bg_values=np.ascontiguousarray(sizing[2], dtype=np.float64),
+        )
     if progress:
-        print(f"fTetWild: meshing {len(faces)} surface triangles (edge length {edge_length:.3g}"
-              f"{', graded' if sizing is not None else ''}, epsilon {epsilon:g}, stop energy "
-              f"{stop_energy:g}); this can take a minute ...", file=sys.stderr, flush=True)
+        print(
+            f"fTetWild: meshing {len(faces)} surface triangles (edge length {edge_length:.3g}"
+            f"{', graded' if sizing is not None else ''}, epsilon {epsilon:g}, stop energy "
+            f"{stop_energy:g}); this can take a minute ...",
+            file=sys.stderr,
+            flush=True,
+        )
     start = time.perf_counter()
     with _scratch_directory():
         points, tets = pytetwild.tetrahedralize(
@@ -183,23 +193,38 @@ def tetrahedralize(
     points = np.asarray(points, dtype=np.float64)
     tets = np.asarray(tets, dtype=np.int64)
     if progress:
-        print(f"fTetWild: {len(points)} nodes, {len(tets)} tetrahedra in "
-              f"{time.perf_counter() - start:.1f} s", file=sys.stderr, flush=True)
+        print(
+            f"fTetWild: {len(points)} nodes, {len(tets)} tetrahedra in "
+            f"{time.perf_counter() - start:.1f} s",
+            file=sys.stderr,
+            flush=True,
+        )
     if len(tets) == 0:
-        raise RuntimeError("fTetWild returned an empty mesh (is the surface closed and does it "
-                           "enclose a volume?)")
+        raise RuntimeError(
+            "fTetWild returned an empty mesh (is the surface closed and does it enclose a volume?)"
+        )
     return points, _orient(points, tets)
 
 
-def _sizing_field(bounds: np.ndarray, bodies: Sequence[Surface], far: float, near: float,
-                  grading: float, cells: int = 24):
+def _sizing_field(
+    bounds: np.ndarray,
+    bodies: Sequence[Surface],
+    far: float,
+    near: float,
+    grading: float,
+    cells: int = 24,
+):
     """A Kuhn-split grid over ``bounds``: ``min(far, near + (far - near) d / grading)``."""
     axes = [np.linspace(bounds[0, k], bounds[1, k], cells + 1) for k in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     n = cells + 1
     index = np.arange(n**3).reshape(n, n, n)
-    corner = [index[i:n - 1 + i, j:n - 1 + j, k:n - 1 + k].ravel()
-              for k in (0, 1) for j in (0, 1) for i in (0, 1)]
+    corner = [
+        index[i : n - 1 + i, j : n - 1 + j, k : n - 1 + k].ravel()
+        for k in (0, 1)
+        for j in (0, 1)
+        for i in (0, 1)
+    ]
     paths = [(1, 3), (1, 5), (2, 3), (2, 6), (4, 5), (4, 6)]
     tets = np.concatenate([np.c_[corner[0], corner[a], corner[b], corner[7]] for a, b in paths])
     vertices, faces = _merge([(body, False) for body in bodies])
@@ -226,8 +251,10 @@ def _box_bounds(bodies: Sequence[Surface], box: float | Sequence[float]) -> np.n
     if padding.size == 1:
         padding = np.repeat(padding, 6)
     if padding.size != 6 or not (np.isfinite(padding).all() and (padding >= 0).all()):
-        raise ValueError(f"box must be one padding >= 0 or six (x0, x1, y0, y1, z0, z1), as "
-                         f"multiples of the bodies' largest extent, got {np.asarray(box).tolist()}")
+        raise ValueError(
+            f"box must be one padding >= 0 or six (x0, x1, y0, y1, z0, z1), as "
+            f"multiples of the bodies' largest extent, got {np.asarray(box).tolist()}"
+        )
     low = np.min([body.bounds[0] for body in bodies], axis=0)
     high = np.max([body.bounds[1] for body in bodies], axis=0)
     extent = float((high - low).max())
@@ -246,19 +273,24 @@ def _as_surfaces(surfaces: Any, repair: bool) -> list[Surface]:
     result = []
     for name, item in items:
         if isinstance(item, Surface):
-            result.append(item if name is None else Surface(item.vertices, item.faces, name,
-                                                            item.groups))
+            result.append(
+                item if name is None else Surface(item.vertices, item.faces, name, item.groups)
+            )
         else:
             result.append(load_surface(item, name=name, repair=repair))
     names = [surface.name for surface in result]
     for duplicate in {n for n in names if names.count(n) > 1}:
-        raise ValueError(f"surfaces: two surfaces are named {duplicate!r}; name them "
-                         "(a mapping name -> file, or NAME=FILE on the command line)")
+        raise ValueError(
+            f"surfaces: two surfaces are named {duplicate!r}; name them "
+            "(a mapping name -> file, or NAME=FILE on the command line)"
+        )
     return result
 
 
 def _contains(outer: Surface, inner: Surface) -> bool:
-    return bool((outer.bounds[0] < inner.bounds[0]).all() and (inner.bounds[1] < outer.bounds[1]).all())
+    return bool(
+        (outer.bounds[0] < inner.bounds[0]).all() and (inner.bounds[1] < outer.bounds[1]).all()
+    )
 
 
 def _snap(points, tets, nodes, targets, *, sweeps: int = 30):
@@ -270,8 +302,16 @@ def _snap(points, tets, nodes, targets, *, sweeps: int = 30):
     fraction = np.ones(len(nodes))
     position = np.full(len(points), -1)
     position[nodes] = np.arange(len(nodes))
-    longest = np.sqrt(np.max([np.sum((points[tets[:, i]] - points[tets[:, j]]) ** 2, axis=1)
-                              for i in range(4) for j in range(i + 1, 4)], axis=0))
+    longest = np.sqrt(
+        np.max(
+            [
+                np.sum((points[tets[:, i]] - points[tets[:, j]]) ** 2, axis=1)
+                for i in range(4)
+                for j in range(i + 1, 4)
+            ],
+            axis=0,
+        )
+    )
     minimum = 1e-8 * longest**3
     for _ in range(sweeps):
         points[nodes] = original + fraction[:, None] * (targets - original)
@@ -393,12 +433,15 @@ def mesh_surfaces(
         walls = box_surface(bounds)
     if walls is not None:
         if any(body.name == walls.name for body in bodies):
-            raise ValueError(f"surfaces: the name {walls.name!r} is the box's; name the "
-                             "surface otherwise")
+            raise ValueError(
+                f"surfaces: the name {walls.name!r} is the box's; name the surface otherwise"
+            )
         for body in bodies:
             if not _contains(walls, body):
-                raise ValueError(f"bounds: the box {walls.bounds.tolist()} does not contain "
-                                 f"surface {body.name!r} (bounds {body.bounds.tolist()})")
+                raise ValueError(
+                    f"bounds: the box {walls.bounds.tolist()} does not contain "
+                    f"surface {body.name!r} (bounds {body.bounds.tolist()})"
+                )
         boundary = [(walls, False)] + [(body, True) for body in bodies]
     else:
         outer = [s for s in bodies if all(_contains(s, o) for o in bodies if o is not s)]
@@ -416,16 +459,25 @@ def mesh_surfaces(
         for label, value in (("body_edge_length", body_edge_length), ("grading", grading)):
             if value is not None and not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
-        body_bounds = np.stack([np.min([b.bounds[0] for b in bodies], 0),
-                                np.max([b.bounds[1] for b in bodies], 0)])
+        body_bounds = np.stack(
+            [np.min([b.bounds[0] for b in bodies], 0), np.max([b.bounds[1] for b in bodies], 0)]
+        )
         grading = grading if grading is not None else float(np.ptp(body_bounds, axis=0).max())
         sizing = _sizing_field(walls.bounds, bodies, edge_length, body_edge_length, grading)
     if feature_angle is not None and not 0 < feature_angle < 180:
         raise ValueError(f"feature_angle must be in (0, 180) degrees, got {feature_angle!r}")
 
-    points, tets = tetrahedralize(vertices, faces, edge_length=edge_length, epsilon=epsilon,
-                                  stop_energy=stop_energy, iterations=iterations, sizing=sizing,
-                                  threads=threads, progress=progress)
+    points, tets = tetrahedralize(
+        vertices,
+        faces,
+        edge_length=edge_length,
+        epsilon=epsilon,
+        stop_energy=stop_energy,
+        iterations=iterations,
+        sizing=sizing,
+        threads=threads,
+        progress=progress,
+    )
     boundary_nodes = _boundary_nodes(tets)
     tolerance = 1e-9 * diagonal
     unsnapped = 0
@@ -440,8 +492,10 @@ def mesh_surfaces(
             edges = features.get(surface.name, (np.zeros((0, 2), np.int64), []))[0]
             if len(edges):
                 on_edge, distance = _closest_on_segments(
-                    points[boundary_nodes], surface.vertices[edges[:, 0]],
-                    surface.vertices[edges[:, 1]])
+                    points[boundary_nodes],
+                    surface.vertices[edges[:, 0]],
+                    surface.vertices[edges[:, 1]],
+                )
                 # fTetWild keeps a crease within its envelope: nodes that close to a sharp
                 # edge (and closer than half their shortest edge) belong on it
                 reach = np.minimum(0.5 * shortest[boundary_nodes], 3.0 * epsilon * diagonal)
@@ -470,8 +524,9 @@ def mesh_surfaces(
     for surface_name, (edges, patches) in features.items():
         surface = next(s for s in bodies if s.name == surface_name)
         if len(edges):
-            _, distance = _closest_on_segments(query, surface.vertices[edges[:, 0]],
-                                               surface.vertices[edges[:, 1]])
+            _, distance = _closest_on_segments(
+                query, surface.vertices[edges[:, 0]], surface.vertices[edges[:, 1]]
+            )
             node_sets[f"{surface_name}_edges"] = boundary_nodes[distance <= tolerance]
         for k, patch in enumerate(patches):
             node_sets[f"{surface_name}_patch{k}"] = on(surface.vertices, surface.faces[patch])
@@ -479,15 +534,24 @@ def mesh_surfaces(
 
     inverted = int((_signed_volumes(points, tets) <= 0).sum())
     if inverted:
-        raise ValueError(f"the mesh has {inverted} inverted tetrahedra after snapping; try "
-                         "snap=False or a smaller epsilon")
+        raise ValueError(
+            f"the mesh has {inverted} inverted tetrahedra after snapping; try "
+            "snap=False or a smaller epsilon"
+        )
     mesh = TetMesh(points, tets, node_sets, name=name or bodies[0].name)
     if progress:
         report = quality_report(mesh)
-        snapped = (f"; {unsnapped} boundary node(s) kept off the surface to keep tetrahedra "
-                   "valid" if unsnapped else "")
-        print(f"mesh: {mesh.num_nodes} nodes, {mesh.num_tets} tetrahedra, {report}{snapped} "
-              f"({time.perf_counter() - start:.1f} s in all)", file=sys.stderr, flush=True)
+        snapped = (
+            f"; {unsnapped} boundary node(s) kept off the surface to keep tetrahedra valid"
+            if unsnapped
+            else ""
+        )
+        print(
+            f"mesh: {mesh.num_nodes} nodes, {mesh.num_tets} tetrahedra, {report}{snapped} "
+            f"({time.perf_counter() - start:.1f} s in all)",
+            file=sys.stderr,
+            flush=True,
+        )
     return mesh
 
 
@@ -496,6 +560,8 @@ def quality_report(mesh: TetMesh) -> str:
     from torchmorph.quality import quality_summary
 
     summary = quality_summary(mesh)
-    return (f"quality Q max {summary['max_edge_ratio']:.4g}, mean {summary['mean_edge_ratio']:.4g}"
-            f" (edge ratio, 1 is best); min volume {summary['min_volume']:.4g}; inverted "
-            f"{summary['num_inverted']}")
+    return (
+        f"quality Q max {summary['max_edge_ratio']:.4g}, mean {summary['mean_edge_ratio']:.4g}"
+        f" (edge ratio, 1 is best); min volume {summary['min_volume']:.4g}; inverted "
+        f"{summary['num_inverted']}"
+    )

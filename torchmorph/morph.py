@@ -99,8 +99,9 @@ class MeshMorph(nn.Module):
         if plan is None:
             control_nodes = boundary
         else:
-            control_nodes = torch.as_tensor(plan.select(mesh, generator=generator),
-                                            dtype=torch.long).unique()
+            control_nodes = torch.as_tensor(
+                plan.select(mesh, generator=generator), dtype=torch.long
+            ).unique()
         self.selection_time = time.perf_counter() - start
         selected = torch.searchsorted(boundary, control_nodes)
         if control_nodes.numel() == 0:
@@ -120,16 +121,32 @@ class MeshMorph(nn.Module):
         members = [mesh.node_sets[name].reshape(-1).long() for name in names]
         sizes = torch.tensor([0, *(len(nodes) for nodes in members)], dtype=torch.long)
         self._node_set_names: list[str] = names
-        self.register_buffer("node_set_members", torch.cat(
-            [boundary.new_empty(0), *(nodes.to(boundary.device) for nodes in members)]))
+        self.register_buffer(
+            "node_set_members",
+            torch.cat([boundary.new_empty(0), *(nodes.to(boundary.device) for nodes in members)]),
+        )
         self.register_buffer("node_set_offsets", torch.cumsum(sizes, 0).to(boundary.device))
-        self.idw = IDW(self.points[control_nodes], self.points[interior], power=power, mode=mode,
-                       block_bytes=block_bytes, dense_bytes=dense_bytes)
+        self.idw = IDW(
+            self.points[control_nodes],
+            self.points[interior],
+            power=power,
+            mode=mode,
+            block_bytes=block_bytes,
+            dense_bytes=dense_bytes,
+        )
         self.assembly_time = self.idw.assembly_time
 
     # ------------------------------------------------------------------ state
-    _STATE_BUFFERS = ("points", "tets", "boundary_nodes", "interior_nodes", "selected",
-                      "control_nodes", "node_set_members", "node_set_offsets")
+    _STATE_BUFFERS = (
+        "points",
+        "tets",
+        "boundary_nodes",
+        "interior_nodes",
+        "selected",
+        "control_nodes",
+        "node_set_members",
+        "node_set_offsets",
+    )
     _STATE_VERSION = 1
 
     @property
@@ -139,8 +156,10 @@ class MeshMorph(nn.Module):
         Copies: editing them does not change the morph (its state is the
         ``node_set_members`` / ``node_set_offsets`` buffers)."""
         offsets = self.node_set_offsets.tolist()
-        return {name: self.node_set_members[offsets[k] : offsets[k + 1]].clone()
-                for k, name in enumerate(self._node_set_names)}
+        return {
+            name: self.node_set_members[offsets[k] : offsets[k + 1]].clone()
+            for k, name in enumerate(self._node_set_names)
+        }
 
     def get_extra_state(self) -> dict[str, Any]:
         return {"version": self._STATE_VERSION, "node_set_names": list(self._node_set_names)}
@@ -211,11 +230,16 @@ class MeshMorph(nn.Module):
         mask = self.boundary_mask(moving)
         moved_points = self.boundary_points[mask]
         values = displacement(moved_points)
-        if not isinstance(values, Tensor) or values.shape[-2:] != moved_points.shape or \
-                values.ndim not in (2, 3):
+        if (
+            not isinstance(values, Tensor)
+            or values.shape[-2:] != moved_points.shape
+            or values.ndim not in (2, 3)
+        ):
             shape = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__
-            raise ValueError(f"displacement must return shape ({moved_points.shape[0]}, 3) or "
-                             f"(B, {moved_points.shape[0]}, 3), got {shape}")
+            raise ValueError(
+                f"displacement must return shape ({moved_points.shape[0]}, 3) or "
+                f"(B, {moved_points.shape[0]}, 3), got {shape}"
+            )
         out = values.new_zeros(*values.shape[:-2], self.num_boundary, 3)
         return out.index_copy(-2, torch.nonzero(mask).flatten(), values)
 
@@ -231,10 +255,12 @@ class MeshMorph(nn.Module):
         return field.index_copy(-2, self.interior_nodes, interior_displacement)
 
     def _check_boundary(self, boundary_displacement: Tensor) -> None:
-        check_vectors(boundary_displacement, "boundary_displacement", self.num_boundary,
-                      what="boundary nodes")
-        check_same_device_dtype(self.points, "the mesh points", boundary_displacement,
-                                "boundary_displacement")
+        check_vectors(
+            boundary_displacement, "boundary_displacement", self.num_boundary, what="boundary nodes"
+        )
+        check_same_device_dtype(
+            self.points, "the mesh points", boundary_displacement, "boundary_displacement"
+        )
 
     # ----------------------------------------------------------------- morph
     def forward(self, boundary_displacement: Tensor, *, points: Tensor | None = None) -> Tensor:
@@ -262,8 +288,9 @@ class MeshMorph(nn.Module):
             if not isinstance(points, Tensor) or points.shape != self.points.shape:
                 shape = tuple(points.shape) if isinstance(points, Tensor) else type(points)
                 raise ValueError(f"points must have shape {tuple(self.points.shape)}, got {shape}")
-            interior = self.idw(controls, controls=points[self.control_nodes],
-                                targets=points[self.interior_nodes])
+            interior = self.idw(
+                controls, controls=points[self.control_nodes], targets=points[self.interior_nodes]
+            )
         return self.assemble(boundary_displacement, interior)
 
     # ------------------------------------------------- the linear-map protocol
@@ -299,10 +326,8 @@ class MeshMorph(nn.Module):
             controls = (columns.mT @ weights).reshape(batch.shape[0], 3, -1).mT
         else:
             with torch.enable_grad():
-                probe = batch.new_zeros(batch.shape[0], self.num_controls, 3,
-                                        requires_grad=True)
-                (controls,) = torch.autograd.grad(self.idw(probe), probe,
-                                                  grad_outputs=interior)
+                probe = batch.new_zeros(batch.shape[0], self.num_controls, 3, requires_grad=True)
+                (controls,) = torch.autograd.grad(self.idw(probe), probe, grad_outputs=interior)
         result = batch.index_select(1, self.boundary_nodes)
         result = result.index_add(1, self.selected, controls)
         return result if fields.ndim == 3 else result[0]
@@ -328,14 +353,18 @@ class MeshMorph(nn.Module):
         (B, N, 3) count with ``inverted(displacement).sum(-1)``.
         """
         if isinstance(displacement, Tensor) and displacement.ndim == 3:
-            raise ValueError("displacement: count_inverted takes one field (N, 3); for a "
-                             "batch (B, N, 3) use inverted(displacement).sum(-1)")
+            raise ValueError(
+                "displacement: count_inverted takes one field (N, 3); for a "
+                "batch (B, N, 3) use inverted(displacement).sum(-1)"
+            )
         return int(self.inverted(displacement).sum())
 
     def extra_repr(self) -> str:
-        return (f"num_nodes={self.num_nodes}, num_boundary={self.num_boundary}, "
-                f"num_interior={self.num_interior}, num_controls={self.num_controls}, "
-                f"mode={self.idw.mode!r}")
+        return (
+            f"num_nodes={self.num_nodes}, num_boundary={self.num_boundary}, "
+            f"num_interior={self.num_interior}, num_controls={self.num_controls}, "
+            f"mode={self.idw.mode!r}"
+        )
 
 
 def _check_morph_state(state_dict, prefix: str) -> None:
@@ -344,6 +373,7 @@ def _check_morph_state(state_dict, prefix: str) -> None:
     Runs before anything is loaded, so a rejected state leaves the module as it was.
     Missing entries are left to ``load_state_dict``'s own missing-key report.
     """
+
     def entry(name: str) -> Any:
         return state_dict.get(prefix + name)
 
@@ -354,27 +384,43 @@ def _check_morph_state(state_dict, prefix: str) -> None:
         value = entry(name)
         if value is None:
             return None
-        if not isinstance(value, Tensor) or value.ndim != 1 or value.is_floating_point() \
-                or value.dtype == torch.bool:
+        if (
+            not isinstance(value, Tensor)
+            or value.ndim != 1
+            or value.is_floating_point()
+            or value.dtype == torch.bool
+        ):
             fail(name, "must be a 1-D integer tensor")
-        if size is not None and value.numel() and (int(value.min()) < 0
-                                                   or int(value.max()) >= size):
+        if (
+            size is not None
+            and value.numel()
+            and (int(value.min()) < 0 or int(value.max()) >= size)
+        ):
             fail(name, f"holds indices outside [0, {size})")
         return value
 
     extra = entry("_extra_state")
     if extra is not None:
-        if not isinstance(extra, dict) or not isinstance(extra.get("node_set_names"), list) \
-                or not all(isinstance(n, str) and n for n in extra["node_set_names"]):
+        if (
+            not isinstance(extra, dict)
+            or not isinstance(extra.get("node_set_names"), list)
+            or not all(isinstance(n, str) and n for n in extra["node_set_names"])
+        ):
             fail("_extra_state", "must hold 'node_set_names', a list of non-empty strings")
         if extra.get("version") != MeshMorph._STATE_VERSION:
-            fail("_extra_state", f"version {extra.get('version')!r} is not "
-                                 f"{MeshMorph._STATE_VERSION}")
+            fail(
+                "_extra_state",
+                f"version {extra.get('version')!r} is not {MeshMorph._STATE_VERSION}",
+            )
     points = entry("points")
     if points is None:
         return
-    if not isinstance(points, Tensor) or points.ndim != 2 or points.shape[1] != 3 \
-            or not points.is_floating_point():
+    if (
+        not isinstance(points, Tensor)
+        or points.ndim != 2
+        or points.shape[1] != 3
+        or not points.is_floating_point()
+    ):
         fail("points", f"must be a floating tensor (N, 3), got {getattr(points, 'shape', points)}")
     num_nodes = points.shape[0]
     tets = entry("tets")
@@ -388,26 +434,42 @@ def _check_morph_state(state_dict, prefix: str) -> None:
     if boundary is not None and interior is not None:
         together = torch.cat([boundary, interior]).cpu()
         if together.numel() != num_nodes or not torch.equal(
-                torch.sort(together).values, torch.arange(num_nodes)):
-            fail("interior_nodes", f"boundary_nodes and interior_nodes must split the "
-                                   f"{num_nodes} nodes into two sets")
+            torch.sort(together).values, torch.arange(num_nodes)
+        ):
+            fail(
+                "interior_nodes",
+                f"boundary_nodes and interior_nodes must split the {num_nodes} nodes into two sets",
+            )
     selected = index("selected", None if boundary is None else boundary.numel())
     controls = index("control_nodes", num_nodes)
-    if selected is not None and controls is not None and boundary is not None \
-            and not torch.equal(boundary.cpu()[selected.cpu()], controls.cpu()):
+    if (
+        selected is not None
+        and controls is not None
+        and boundary is not None
+        and not torch.equal(boundary.cpu()[selected.cpu()], controls.cpu())
+    ):
         fail("control_nodes", "must equal boundary_nodes[selected]")
     members = index("node_set_members", num_nodes)
     offsets = index("node_set_offsets")
     if members is not None and offsets is not None:
         steps = offsets.cpu().diff()
-        if offsets.numel() == 0 or int(offsets[0]) != 0 or int(offsets[-1]) != members.numel() \
-                or bool((steps < 0).any()):
+        if (
+            offsets.numel() == 0
+            or int(offsets[0]) != 0
+            or int(offsets[-1]) != members.numel()
+            or bool((steps < 0).any())
+        ):
             fail("node_set_offsets", "must rise from 0 to the number of node_set_members")
         if extra is not None and offsets.numel() != len(extra["node_set_names"]) + 1:
-            fail("node_set_offsets", f"holds {offsets.numel() - 1} node sets but the names are "
-                                     f"{len(extra['node_set_names'])}")
-    for name, expected in (("idw.controls", None if controls is None else controls.numel()),
-                           ("idw.targets", None if interior is None else interior.numel())):
+            fail(
+                "node_set_offsets",
+                f"holds {offsets.numel() - 1} node sets but the names are "
+                f"{len(extra['node_set_names'])}",
+            )
+    for name, expected in (
+        ("idw.controls", None if controls is None else controls.numel()),
+        ("idw.targets", None if interior is None else interior.numel()),
+    ):
         value = entry(name)
         if expected is not None and isinstance(value, Tensor) and value.shape[0] != expected:
             fail(name, f"has {value.shape[0]} rows but the morph's state needs {expected}")

@@ -153,8 +153,14 @@ class PODReducer(nn.Module):
       is not part of ``state_dict`` but is copied by ``copy.deepcopy`` / pickling.
     """
 
-    _FLOAT_BUFFERS = ("modes_", "singular_values_", "energy_captured_", "projection_",
-                      "system_matrix_", "rhs_matrix_")
+    _FLOAT_BUFFERS = (
+        "modes_",
+        "singular_values_",
+        "energy_captured_",
+        "projection_",
+        "system_matrix_",
+        "rhs_matrix_",
+    )
     _INDEX_BUFFERS = ("copied_output_rows_", "copied_input_rows_", "reduced_rows_")
     _STATE_VERSION = 2
 
@@ -238,7 +244,13 @@ class PODReducer(nn.Module):
         self.offline_time_ = dict(state["offline_time_"])
 
     def _load_from_state_dict(
-        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+        self,
+        state_dict,
+        prefix,
+        local_metadata,
+        strict,
+        missing_keys,
+        unexpected_keys,
         error_msgs,
     ) -> None:
         check_reducer_state(state_dict, prefix, self._STATE_VERSION)
@@ -251,10 +263,16 @@ class PODReducer(nn.Module):
                 continue
             dtype = incoming.dtype if incoming.is_floating_point() else current.dtype
             if incoming.shape != current.shape or dtype != current.dtype:
-                self._buffers[name] = torch.empty(incoming.shape, dtype=dtype,
-                                                  device=current.device)
+                self._buffers[name] = torch.empty(
+                    incoming.shape, dtype=dtype, device=current.device
+                )
         super()._load_from_state_dict(
-            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+            state_dict,
+            prefix,
+            local_metadata,
+            strict,
+            missing_keys,
+            unexpected_keys,
             error_msgs,
         )
         if self.is_fitted and not error_msgs:
@@ -263,27 +281,30 @@ class PODReducer(nn.Module):
     def _build_online_cache(self) -> None:
         """Spread the basis over all output rows (zeros on the copied rows) and find the
         contiguous runs of the copied and reduced rows, for the online phase."""
-        self._input_matrix = self.projection_ if self.online == "projection" \
-            else self.rhs_matrix_
+        self._input_matrix = self.projection_ if self.online == "projection" else self.rhs_matrix_
         count, reduced = self.num_modes_, self.reduced_rows_
         whole = reduced.numel() == self.num_outputs_ and self.copied_output_rows_.numel() == 0
-        if whole and bool((reduced == torch.arange(reduced.numel(),
-                                                   device=reduced.device)).all()):
+        if whole and bool((reduced == torch.arange(reduced.numel(), device=reduced.device)).all()):
             self._output_basis, self._runs = self.modes_, None
             return
         basis = self.modes_.new_zeros(count, self.num_outputs_, 3)
         self._output_basis = basis.index_copy_(1, reduced, self.modes_)
         copied_runs = index_runs(self.copied_output_rows_, self.copied_input_rows_)
         reduced_runs = index_runs(reduced, torch.arange(reduced.numel()))
-        self._runs = None if copied_runs is None or reduced_runs is None else (
-            copied_runs, reduced_runs)
+        self._runs = (
+            None if copied_runs is None or reduced_runs is None else (copied_runs, reduced_runs)
+        )
 
     def extra_repr(self) -> str:
-        text = (f"energy_tolerance={self.energy_tolerance:g}, num_modes={self.num_modes}, "
-                f"online={self.online!r}")
+        text = (
+            f"energy_tolerance={self.energy_tolerance:g}, num_modes={self.num_modes}, "
+            f"online={self.online!r}"
+        )
         if self.is_fitted:
-            text += (f", num_modes_={self.num_modes_}, num_inputs_={self.num_inputs_}, "
-                     f"num_outputs_={self.num_outputs_}")
+            text += (
+                f", num_modes_={self.num_modes_}, num_inputs_={self.num_inputs_}, "
+                f"num_outputs_={self.num_outputs_}"
+            )
         return text
 
     # ---------------------------------------------------------------- offline phase
@@ -353,15 +374,23 @@ class PODReducer(nn.Module):
 
             # (b) snapshots: one batched application of the morph
             outputs = morph(inputs)
-            if not isinstance(outputs, Tensor) or outputs.ndim != 3 or \
-                    outputs.shape[0] != inputs.shape[0] or outputs.shape[2] != 3:
-                got = tuple(outputs.shape) if isinstance(outputs, Tensor) else \
-                    type(outputs).__name__
-                raise ValueError(f"morph(displacements) must return shape "
-                                 f"({inputs.shape[0]}, N_out, 3), got {got}")
+            if (
+                not isinstance(outputs, Tensor)
+                or outputs.ndim != 3
+                or outputs.shape[0] != inputs.shape[0]
+                or outputs.shape[2] != 3
+            ):
+                got = (
+                    tuple(outputs.shape) if isinstance(outputs, Tensor) else type(outputs).__name__
+                )
+                raise ValueError(
+                    f"morph(displacements) must return shape "
+                    f"({inputs.shape[0]}, N_out, 3), got {got}"
+                )
             num_outputs = outputs.shape[1]
-            copied_out, copied_in, reduced = copied_rows(morph, num_inputs, num_outputs,
-                                                          outputs.device)
+            copied_out, copied_in, reduced = copied_rows(
+                morph, num_inputs, num_outputs, outputs.device
+            )
             snapshots = outputs if copied_out.numel() == 0 else outputs.index_select(1, reduced)
             check_finite(snapshots, "snapshots (the morph of the training data)")
             after_snapshots = time.perf_counter()
@@ -375,8 +404,13 @@ class PODReducer(nn.Module):
             # (e) online matrices
             empty = modes.new_empty(0)
             if self.online == "projection":
-                spread = modes if copied_out.numel() == 0 else modes.new_zeros(
-                    modes.shape[0], num_outputs, 3).index_copy_(1, reduced, modes)
+                spread = (
+                    modes
+                    if copied_out.numel() == 0
+                    else modes.new_zeros(modes.shape[0], num_outputs, 3).index_copy_(
+                        1, reduced, modes
+                    )
+                )
                 projection = adjoint(morph, spread, num_inputs, reduced)
                 system, rhs = empty, empty
             else:
@@ -487,13 +521,22 @@ class PODReducer(nn.Module):
             out = out if batched else out.unsqueeze(0)
         beta = self._coefficients(inputs)
         # the slice copies write into out= tensors: not for autograd, vmap, jvp or compile
-        slices = self._runs is not None and not is_traced(beta) and not (
-            torch.is_grad_enabled() and beta.requires_grad)
+        slices = (
+            self._runs is not None
+            and not is_traced(beta)
+            and not (torch.is_grad_enabled() and beta.requires_grad)
+        )
         if slices:
             result = expand_by_runs(beta, self.modes_, inputs, self._runs, self.num_outputs_, out)
         else:
-            result = expand(beta, self._output_basis, inputs, self.copied_output_rows_,
-                            self.copied_input_rows_, out)
+            result = expand(
+                beta,
+                self._output_basis,
+                inputs,
+                self.copied_output_rows_,
+                self.copied_input_rows_,
+                out,
+            )
         return result if batched else result[0]
 
     def _check_out(self, out: Tensor, displacement: Tensor) -> Tensor:
@@ -534,8 +577,10 @@ class PODReducer(nn.Module):
         self._check_fitted()
         family = self.family if family is None else family
         if family is None:
-            raise RuntimeError("no displacement family: fit with family=... or pass family= "
-                               "(a family is not saved by state_dict)")
+            raise RuntimeError(
+                "no displacement family: fit with family=... or pass family= "
+                "(a family is not saved by state_dict)"
+            )
         if not isinstance(mu, Tensor):
             mu = torch.as_tensor(mu, dtype=self.modes_.dtype, device=self.modes_.device)
         single = is_single_value(mu, self.num_parameters_)
@@ -584,11 +629,16 @@ class PODReducer(nn.Module):
         self._check_fitted()
         morph = self.__dict__.get("_morph") if morph is None else morph
         if morph is None:
-            raise RuntimeError("no full morph to compare with: pass morph= (load_state_dict "
-                               "does not restore it)")
+            raise RuntimeError(
+                "no full morph to compare with: pass morph= (load_state_dict does not restore it)"
+            )
         if norm == "l2":
-            warnings.warn("relative_error(norm='l2') is deprecated: use norm='mass' (the P1 "
-                          "mass-matrix norm) or norm='nodal'", DeprecationWarning, stacklevel=2)
+            warnings.warn(
+                "relative_error(norm='l2') is deprecated: use norm='mass' (the P1 "
+                "mass-matrix norm) or norm='nodal'",
+                DeprecationWarning,
+                stacklevel=2,
+            )
             norm = "mass"
         if norm not in ("nodal", "mass"):
             raise ValueError(f"norm must be 'nodal' or 'mass', got {norm!r}")
@@ -601,8 +651,10 @@ class PODReducer(nn.Module):
                 if mesh is None:
                     points, tets = getattr(morph, "points", None), getattr(morph, "tets", None)
                     if not isinstance(points, Tensor) or not isinstance(tets, Tensor):
-                        raise ValueError("norm='mass' needs mesh= (the mass matrix lives on a "
-                                         "mesh) for a morph without points and tets")
+                        raise ValueError(
+                            "norm='mass' needs mesh= (the mass matrix lives on a "
+                            "mesh) for a morph without points and tets"
+                        )
                     mesh = TetMesh(points, tets)
                 error = relative_l2_error(mesh, reduced, full, norm="mass").to(full.dtype)
             else:

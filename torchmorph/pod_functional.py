@@ -71,8 +71,9 @@ _SUBSPACE_TOLERANCE = 1e-10
 own eps) for which the method of snapshots is used rather than the thin SVD."""
 
 
-def _kept_modes(energies: Tensor, energy_tolerance: float, num_modes: int | None,
-                count: int) -> int:
+def _kept_modes(
+    energies: Tensor, energy_tolerance: float, num_modes: int | None, count: int
+) -> int:
     if num_modes is None:
         return _num_modes_for_energy(energies, energy_tolerance)
     if num_modes > count:
@@ -80,8 +81,9 @@ def _kept_modes(energies: Tensor, energy_tolerance: float, num_modes: int | None
     return num_modes
 
 
-def _check_rank(num_modes: int | None, singular_values: Tensor, shape: tuple[int, int],
-                dtype: torch.dtype) -> None:
+def _check_rank(
+    num_modes: int | None, singular_values: Tensor, shape: tuple[int, int], dtype: torch.dtype
+) -> None:
     if num_modes is None:
         return
     rank = _numerical_rank(singular_values, shape, dtype)
@@ -92,8 +94,9 @@ def _check_rank(num_modes: int | None, singular_values: Tensor, shape: tuple[int
         )
 
 
-def _svd_basis(matrix: Tensor, energy_tolerance: float, num_modes: int | None,
-               dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+def _svd_basis(
+    matrix: Tensor, energy_tolerance: float, num_modes: int | None, dtype: torch.dtype
+) -> tuple[Tensor, Tensor]:
     """Thin SVD of the (scaled, float64) n × 3M matrix Uᵀ: rows of modes, all σ."""
     _, singular_values, vh = torch.linalg.svd(matrix, full_matrices=False)
     kept = _kept_modes(singular_values.square(), energy_tolerance, num_modes, matrix.shape[0])
@@ -101,9 +104,13 @@ def _svd_basis(matrix: Tensor, energy_tolerance: float, num_modes: int | None,
     return vh[:kept], singular_values
 
 
-def _correlation_basis(matrix: Tensor, correlation: Tensor, energy_tolerance: float,
-                       num_modes: int | None, dtype: torch.dtype
-                       ) -> tuple[Tensor, Tensor] | None:
+def _correlation_basis(
+    matrix: Tensor,
+    correlation: Tensor,
+    energy_tolerance: float,
+    num_modes: int | None,
+    dtype: torch.dtype,
+) -> tuple[Tensor, Tensor] | None:
     """Method of snapshots on the float64 n × 3M matrix Uᵀ and its correlation
     matrix UᵀU, or None where it would lose accuracy on the kept modes.
 
@@ -195,8 +202,9 @@ def pod_basis(
     if not isinstance(snapshots, Tensor):
         raise TypeError(f"snapshots must be a torch.Tensor, got {type(snapshots).__name__}")
     if snapshots.ndim != 3 or snapshots.shape[-1] != 3 or snapshots.shape[0] == 0:
-        raise ValueError(f"snapshots must have shape (n, M, 3) with n >= 1, got "
-                         f"{tuple(snapshots.shape)}")
+        raise ValueError(
+            f"snapshots must have shape (n, M, 3) with n >= 1, got {tuple(snapshots.shape)}"
+        )
     check_float_dtype(snapshots, "snapshots")
     energy_tolerance = check_energy_tolerance(energy_tolerance)
     num_modes = check_num_modes(num_modes)
@@ -226,8 +234,7 @@ def pod_basis(
     if method == "correlation" or (
         method == "auto" and 3 * num_points >= _CORRELATION_MIN_ASPECT * count
     ):
-        result = _correlation_basis(work, correlation, energy_tolerance, num_modes,
-                                    snapshots.dtype)
+        result = _correlation_basis(work, correlation, energy_tolerance, num_modes, snapshots.dtype)
     if result is None:
         result = _svd_basis(work, energy_tolerance, num_modes, snapshots.dtype)
     rows, scaled_values = result

@@ -44,6 +44,7 @@ __all__ = [
     "select_control_points",
 ]
 
+
 class RegionOverlapError(ValueError):
     """Two regions with different parameters share nodes (``overlap="error"``).
 
@@ -282,20 +283,25 @@ class SelectionPlan:
                 continue
             node_ids = nodes.numpy()
             local = select_control_points(
-                points[node_ids], region.radius, a=region.a, b=region.b,
-                strategy=self.strategy, generator=generator,
+                points[node_ids],
+                region.radius,
+                a=region.a,
+                b=region.b,
+                strategy=self.strategy,
+                generator=generator,
             )
             chosen.append(node_ids[local.numpy()])
         control_nodes = np.unique(np.concatenate(chosen))
         return torch.as_tensor(control_nodes, dtype=torch.int64, device=mesh.points.device)
 
-    def _resolve(
-        self, mesh: Any, candidates: Any
-    ) -> tuple[list[Tensor], np.ndarray, np.ndarray]:
+    def _resolve(self, mesh: Any, candidates: Any) -> tuple[list[Tensor], np.ndarray, np.ndarray]:
         """Region node ids (after overlap rules), enrichment ids and the points array."""
         points = mesh.points
-        points = (points.detach().to("cpu", torch.float64).numpy() if isinstance(points, Tensor)
-                  else np.asarray(points, dtype=np.float64))
+        points = (
+            points.detach().to("cpu", torch.float64).numpy()
+            if isinstance(points, Tensor)
+            else np.asarray(points, dtype=np.float64)
+        )
         num_nodes = points.shape[0]
         if candidates is None:
             candidate_ids = _id_array(mesh.boundary_nodes)
@@ -322,8 +328,9 @@ class SelectionPlan:
             for region in self.regions
         ]
         enrich_ids = [nodes_of(name, "enrichment") for name in self.enrich]
-        enriched = (np.unique(np.concatenate(enrich_ids)) if enrich_ids
-                    else np.zeros(0, dtype=np.int64))
+        enriched = (
+            np.unique(np.concatenate(enrich_ids)) if enrich_ids else np.zeros(0, dtype=np.int64)
+        )
 
         if self.overlap != "share":
             owner = np.full(num_nodes, -1, dtype=np.int64)
@@ -342,7 +349,9 @@ class SelectionPlan:
                                 "have different parameters; pass overlap='first' (a shared "
                                 "node goes to the first region listing it) or overlap='share' "
                                 "(each region keeps all its nodes)",
-                                first=first, second=second, count=count,
+                                first=first,
+                                second=second,
+                                count=count,
                             )
                 owner[ids[~shared]] = position
                 region_ids[position] = ids[~shared]
@@ -358,7 +367,8 @@ class SelectionPlan:
                     f"{missing.size} of the {candidate_ids.size} {what} are in no region and "
                     f"no enrichment set (e.g. node {int(missing[0])}); add them to a region, "
                     "enrich them, or pass uncovered='ignore' to leave them out of the selection",
-                    nodes=missing, total=int(candidate_ids.size),
+                    nodes=missing,
+                    total=int(candidate_ids.size),
                 )
         return [torch.from_numpy(ids) for ids in region_ids], enriched, points
 

@@ -256,8 +256,9 @@ class CaseSpec:
         between faces are sampled at the finer face's radius.
         """
         regions = sorted(self.regions(radius, a=a, b=b), key=lambda region: region.radius)
-        return SelectionPlan(regions, enrich=self.enrich if enrich else (),
-                             strategy=strategy, overlap="first")
+        return SelectionPlan(
+            regions, enrich=self.enrich if enrich else (), strategy=strategy, overlap="first"
+        )
 
     def family(self, morph: MeshMorph) -> Callable[[Tensor | float], Tensor]:
         """The boundary displacement of ``morph`` as a function of μ.
@@ -276,9 +277,7 @@ class CaseSpec:
 
         return boundary_displacement
 
-    def training_parameters(
-        self, seed: int = 0, *, dtype: torch.dtype = torch.float64
-    ) -> Tensor:
+    def training_parameters(self, seed: int = 0, *, dtype: torch.dtype = torch.float64) -> Tensor:
         """``n_train`` values drawn uniformly in D with a seeded generator, shape (n_train,)."""
         generator = torch.Generator().manual_seed(int(seed))
         low, high = self.domain
@@ -361,9 +360,15 @@ _FLUID_WING = CaseSpec(
     radius=0.5,
     # box: R on top, bottom, front, rear; 0.5 R on left/right; wing: 0.1 R
     region_factors=(
-        (("wall_x0",), 1.0), (("wall_x1",), 1.0), (("wall_y0",), 1.0), (("wall_y1",), 1.0),
-        (("wall_z0",), 0.5), (("wall_z1",), 0.5),
-        (("upper",), 0.1), (("lower",), 0.1), (("tip",), 0.1),
+        (("wall_x0",), 1.0),
+        (("wall_x1",), 1.0),
+        (("wall_y0",), 1.0),
+        (("wall_y1",), 1.0),
+        (("wall_z0",), 0.5),
+        (("wall_z1",), 0.5),
+        (("upper",), 0.1),
+        (("lower",), 0.1),
+        (("tip",), 0.1),
     ),
     enrich=("root_profile", "tip_profile", "leading_edge", "trailing_edge"),
     a=0.8,
@@ -371,12 +376,20 @@ _FLUID_WING = CaseSpec(
     run_sidw=False,
     mesh_table=2,
     results_table=5,
-    paper_mesh=PaperMesh(tets=169598, nodes=36036, interior=21910, boundary=14126,
-                         max_q=4.31, mean_q=1.48, max_q_deformed=4.31, mean_q_deformed=1.48),
+    paper_mesh=PaperMesh(
+        tets=169598,
+        nodes=36036,
+        interior=21910,
+        boundary=14126,
+        max_q=4.31,
+        mean_q=1.48,
+        max_q_deformed=4.31,
+        mean_q_deformed=1.48,
+    ),
     paper_rows=_FLUID_WING_ROWS,
     sweep_radii=(0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 3.0, 5.0),
     sweep_note="R on the top, bottom, front and rear walls, 0.5 R on the left and right "
-               "walls, 0.1 R on the wing",
+    "walls, 0.1 R on the wing",
 )
 _HULL_WALLS = ("wall_x0", "wall_x1", "wall_y0", "wall_y1", "wall_z0", "wall_z1")
 _HULL = CaseSpec(
@@ -404,8 +417,16 @@ _HULL = CaseSpec(
     run_sidw=False,
     mesh_table=3,
     results_table=6,
-    paper_mesh=PaperMesh(tets=30265, nodes=7186, interior=3322, boundary=3864,
-                         max_q=2.47, mean_q=1.62, max_q_deformed=2.56, mean_q_deformed=1.63),
+    paper_mesh=PaperMesh(
+        tets=30265,
+        nodes=7186,
+        interior=3322,
+        boundary=3864,
+        max_q=2.47,
+        mean_q=1.62,
+        max_q_deformed=2.56,
+        mean_q_deformed=1.63,
+    ),
     paper_rows=_HULL_ROWS,
     sweep_radii=(0.05, 0.1, 0.2, 0.5, 1.0, 1.5, 2.0, 3.0, 5.0, 8.0),
     sweep_note="4/3 R on every box wall, R/30 on the hull",
@@ -451,8 +472,10 @@ def case_key(case: str) -> str:
     try:
         from data_gen.cases import canonical_case
     except ImportError as error:
-        raise ImportError(f"case aliases live in data_gen ({error}); use one of "
-                          f"{', '.join(CASES)} or install data_gen") from error
+        raise ImportError(
+            f"case aliases live in data_gen ({error}); use one of "
+            f"{', '.join(CASES)} or install data_gen"
+        ) from error
     try:
         name = canonical_case(case)
     except ValueError:
@@ -480,8 +503,9 @@ def get_case(case: str | CaseSpec, variant: str | None = None) -> CaseSpec:
     if variant is None:
         return CASES[key]
     if variant not in VARIANTS[key]:
-        raise ValueError(f"variant must be one of {', '.join(VARIANTS[key])} for case {key!r}, "
-                         f"got {variant!r}")
+        raise ValueError(
+            f"variant must be one of {', '.join(VARIANTS[key])} for case {key!r}, got {variant!r}"
+        )
     return VARIANTS[key][variant]
 
 
@@ -506,15 +530,19 @@ def load_mesh(
         message names the ``mesh`` extra.
     """
     spec = get_case(case)
-    hint = ("the paper's meshes are generated with gmsh or pytetwild: install the "
-            "'mesh' extra, e.g. pip install 'torchmorph[mesh]'")
+    hint = (
+        "the paper's meshes are generated with gmsh or pytetwild: install the "
+        "'mesh' extra, e.g. pip install 'torchmorph[mesh]'"
+    )
     try:
         import data_gen
     except ImportError as error:
         raise ImportError(f"data_gen is not importable ({error}); {hint}") from error
     if not hasattr(data_gen, "build"):  # e.g. an unrelated namespace package of that name
-        raise ImportError(f"the data_gen found at {list(getattr(data_gen, '__path__', []))} is "
-                          f"not torchmorph's mesh builder package; {hint}")
+        raise ImportError(
+            f"the data_gen found at {list(getattr(data_gen, '__path__', []))} is "
+            f"not torchmorph's mesh builder package; {hint}"
+        )
     try:
         return data_gen.build(spec.mesh_case, size, mesher, verbose=verbose)
     except ImportError as error:

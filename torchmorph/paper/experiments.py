@@ -140,10 +140,19 @@ def prepare_case(
         mu_star = torch.tensor(spec.mu_star, dtype=mesh.dtype)
         boundary_star = family(mu_star)
         reference_star = idw(boundary_star)
-    return CaseContext(spec=spec, mesh=mesh, size=size, mesher=mesher, idw=idw, family=family,
-                       mu_star=mu_star, boundary_star=boundary_star,
-                       reference_star=reference_star, reference_quality=quality_summary(mesh),
-                       mode=mode)
+    return CaseContext(
+        spec=spec,
+        mesh=mesh,
+        size=size,
+        mesher=mesher,
+        idw=idw,
+        family=family,
+        mu_star=mu_star,
+        boundary_star=boundary_star,
+        reference_star=reference_star,
+        reference_quality=quality_summary(mesh),
+        mode=mode,
+    )
 
 
 def selective_morph(
@@ -222,11 +231,21 @@ def selection_point(
         summary = quality_summary(context.mesh, displacement)
         error = float(context.error(displacement))
         error_nodal = float(context.error_nodal(displacement))
-    return SelectionPoint(radius=radius, a=a, b=b, enrich=enrich, controls=morph.num_controls,
-                          selection_s=morph.selection_time, assembly_s=morph.assembly_time,
-                          deformation_s=seconds, error=error,
-                          max_q=summary["max_edge_ratio"], mean_q=summary["mean_edge_ratio"],
-                          inverted=summary["num_inverted"], error_nodal=error_nodal)
+    return SelectionPoint(
+        radius=radius,
+        a=a,
+        b=b,
+        enrich=enrich,
+        controls=morph.num_controls,
+        selection_s=morph.selection_time,
+        assembly_s=morph.assembly_time,
+        deformation_s=seconds,
+        error=error,
+        max_q=summary["max_edge_ratio"],
+        mean_q=summary["mean_edge_ratio"],
+        inverted=summary["num_inverted"],
+        error_nodal=error_nodal,
+    )
 
 
 def _progress(iterable, *, desc: str = "", show: bool = False):
@@ -276,10 +295,10 @@ def factor_sweep(
 ) -> list[SelectionPoint]:
     """Sensitivity to the annulus factor a with b = 1/a (Fig. 7; SIDW by default)."""
     return [
-        selection_point(context, radius, enrich=enrich, a=a, b=1.0 / a, seed=seed,
-                        repeats=repeats)
-        for a in _progress(factors, desc=f"{context.spec.letter}: a sweep, R={radius:g}",
-                           show=progress)
+        selection_point(context, radius, enrich=enrich, a=a, b=1.0 / a, seed=seed, repeats=repeats)
+        for a in _progress(
+            factors, desc=f"{context.spec.letter}: a sweep, R={radius:g}", show=progress
+        )
     ]
 
 
@@ -348,8 +367,14 @@ def pod_parameter_sweep(
     mus = torch.as_tensor(mus, dtype=dtype)
     parameters = spec.training_parameters(seed, dtype=dtype)
     esidw = selective_morph(context, enrich=True, seed=seed) if esidw is None else esidw
-    result: dict[str, Any] = {"mu": mus, "error": {}, "error_nodal": {}, "max_q": {},
-                              "mean_q": {}, "inverted": {}}
+    result: dict[str, Any] = {
+        "mu": mus,
+        "error": {},
+        "error_nodal": {},
+        "max_q": {},
+        "mean_q": {},
+        "inverted": {},
+    }
     with torch.no_grad():
         boundary = context.family(mus)
         reference = context.idw(boundary)
@@ -361,17 +386,18 @@ def pod_parameter_sweep(
                 fields[label] = reducer(boundary)
         for label, displacement in fields.items():
             if label != "IDW":
-                result["error"][label] = relative_l2_error(context.mesh, displacement, reference,
-                                                           norm="mass")
-                result["error_nodal"][label] = relative_l2_error(context.mesh, displacement,
-                                                                 reference, norm="nodal")
+                result["error"][label] = relative_l2_error(
+                    context.mesh, displacement, reference, norm="mass"
+                )
+                result["error_nodal"][label] = relative_l2_error(
+                    context.mesh, displacement, reference, norm="nodal"
+                )
             deformed = context.mesh.points + displacement
             q = edge_ratio(deformed, context.mesh.tets)
             result["max_q"][label] = q.amax(-1)
             result["mean_q"][label] = q.mean(-1)
             result["inverted"][label] = inverted(context.mesh, displacement).sum(-1)
     return result
-
 
 
 # --------------------------------------------------------------------------------------
@@ -446,8 +472,12 @@ def reproduce(
     spec = get_case(case, variant)
     # mesh, IDW, [SIDW], ESIDW, POD-IDW, POD-ESIDW, [4 fixed-mode PODs], [writing]
     steps = 5 + int(spec.run_sidw) + (4 if spec.key == "hull" else 0) + int(out is not None)
-    bar = tqdm(total=steps, desc=f"case {spec.letter}", disable=not verbose,
-               bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}] {postfix}")
+    bar = tqdm(
+        total=steps,
+        desc=f"case {spec.letter}",
+        disable=not verbose,
+        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}] {postfix}",
+    )
 
     def step(text: str) -> None:
         bar.set_postfix_str(text)
@@ -466,9 +496,15 @@ def reproduce(
     morphs: dict[str, MeshMorph] = {"IDW": context.idw}
     spectra: dict[str, list[float]] = {}
 
-    def add_row(method: str, morph: MeshMorph, apply: Callable[[Tensor], Tensor], *,
-                reducer: PODReducer | None = None, error_range=None,
-                error_nodal_range=None) -> None:
+    def add_row(
+        method: str,
+        morph: MeshMorph,
+        apply: Callable[[Tensor], Tensor],
+        *,
+        reducer: PODReducer | None = None,
+        error_range=None,
+        error_nodal_range=None,
+    ) -> None:
         with torch.no_grad():
             displacement = apply(context.boundary_star)
             online_s = _median_time(lambda: apply(family(mu_star)), repeats)
@@ -483,13 +519,25 @@ def reproduce(
         if reducer is not None:
             fit_s = reducer.offline_time_["total"]
             offline_s = morph.selection_time + morph.assembly_time + fit_s
-        rows.append(MethodResult(
-            method=method, controls=morph.num_controls, online_s=online_s, error=error,
-            inverted=summary["num_inverted"], max_q=summary["max_edge_ratio"],
-            mean_q=summary["mean_edge_ratio"], selection_s=selection_s,
-            assembly_s=morph.assembly_time, offline_s=offline_s, fit_s=fit_s,
-            modes=None if reducer is None else reducer.num_modes_, error_range=error_range,
-            error_nodal=error_nodal, error_nodal_range=error_nodal_range))
+        rows.append(
+            MethodResult(
+                method=method,
+                controls=morph.num_controls,
+                online_s=online_s,
+                error=error,
+                inverted=summary["num_inverted"],
+                max_q=summary["max_edge_ratio"],
+                mean_q=summary["mean_edge_ratio"],
+                selection_s=selection_s,
+                assembly_s=morph.assembly_time,
+                offline_s=offline_s,
+                fit_s=fit_s,
+                modes=None if reducer is None else reducer.num_modes_,
+                error_range=error_range,
+                error_nodal=error_nodal,
+                error_nodal_range=error_nodal_range,
+            )
+        )
 
     add_row("IDW", context.idw, context.idw)
     bar.update()
@@ -527,29 +575,50 @@ def reproduce(
                 reduced = fixed(sweep_boundary)
                 errors = relative_l2_error(mesh, reduced, sweep_reference, norm="mass")
                 nodal = relative_l2_error(mesh, reduced, sweep_reference, norm="nodal")
-            add_row(label, morph, fixed, reducer=fixed,
-                    error_range=(float(errors.min()), float(errors.max())),
-                    error_nodal_range=(float(nodal.min()), float(nodal.max())))
+            add_row(
+                label,
+                morph,
+                fixed,
+                reducer=fixed,
+                error_range=(float(errors.min()), float(errors.max())),
+                error_nodal_range=(float(nodal.min()), float(nodal.max())),
+            )
             bar.update()
 
     quality_deformed = {
-        row.method: {"max_edge_ratio": row.max_q, "mean_edge_ratio": row.mean_q,
-                     "num_inverted": row.inverted}
-        for row in rows if row.method in ("IDW", "ESIDW")
+        row.method: {
+            "max_edge_ratio": row.max_q,
+            "mean_edge_ratio": row.mean_q,
+            "num_inverted": row.inverted,
+        }
+        for row in rows
+        if row.method in ("IDW", "ESIDW")
     }
     result = CaseResult(
-        case=spec.key, letter=spec.letter, title=spec.title, size=size, mesher=mesher,
-        seed=int(seed), mu_star=spec.mu_star,
-        mesh=_mesh_figures(mesh, context.reference_quality), paper_mesh=spec.paper_mesh,
-        rows=rows, paper_rows=spec.paper_rows, quality_reference=context.reference_quality,
-        quality_deformed=quality_deformed, singular_values=spectra,
-        mesh_table=spec.mesh_table, results_table=spec.results_table,
-        variant=spec.variant, selection_note=spec.selection_note,
+        case=spec.key,
+        letter=spec.letter,
+        title=spec.title,
+        size=size,
+        mesher=mesher,
+        seed=int(seed),
+        mu_star=spec.mu_star,
+        mesh=_mesh_figures(mesh, context.reference_quality),
+        paper_mesh=spec.paper_mesh,
+        rows=rows,
+        paper_rows=spec.paper_rows,
+        quality_reference=context.reference_quality,
+        quality_deformed=quality_deformed,
+        singular_values=spectra,
+        mesh_table=spec.mesh_table,
+        results_table=spec.results_table,
+        variant=spec.variant,
+        selection_note=spec.selection_note,
     )
     if out is not None:
         step("writing")
-        result.files = [str(path) for path in write_outputs(Path(out), context, morphs, fields,
-                                                             result)]
+        result.files = [
+            str(path) for path in write_outputs(Path(out), context, morphs, fields, result)
+        ]
         bar.update()
     bar.close()
     if verbose:
@@ -557,5 +626,3 @@ def reproduce(
         if result.files:
             print("\nWrote: " + ", ".join(result.files))
     return result
-
-

@@ -154,8 +154,11 @@ def plot_case(
 
     def section_panel(ax, polygons, colour, title, limits, label=None, scale=1.0):
         if colour is not None:  # the reference section underneath, faint, to show the motion
-            ax.add_collection(PolyCollection(list(reference), linewidths=0.3, facecolors="none",
-                                             edgecolors="0.75", zorder=0))
+            ax.add_collection(
+                PolyCollection(
+                    list(reference), linewidths=0.3, facecolors="none", edgecolors="0.75", zorder=0
+                )
+            )
         collection = PolyCollection(list(polygons), linewidths=0.3, edgecolors="0.35")
         if colour is None:
             collection.set_facecolor("white")
@@ -165,8 +168,12 @@ def plot_case(
             collection.set_cmap("viridis")
             # the colour scale spans what the panel shows, not the whole section
             centre = np.asarray(polygons).mean(1)
-            shown = ((centre[:, 0] >= limits[0][0]) & (centre[:, 0] <= limits[0][1])
-                     & (centre[:, 1] >= limits[1][0]) & (centre[:, 1] <= limits[1][1]))
+            shown = (
+                (centre[:, 0] >= limits[0][0])
+                & (centre[:, 0] <= limits[0][1])
+                & (centre[:, 1] >= limits[1][0])
+                & (centre[:, 1] <= limits[1][1])
+            )
             visible = colour[shown] if shown.any() else colour
             top = float(visible.max()) if visible.size else 1.0
             collection.set_clim(0.0, top if top > 0 else 1.0)
@@ -184,25 +191,43 @@ def plot_case(
 
     section_panel(axes[0], reference, None, f"reference mesh, section {where}", window)
     if hull:
-        section_panel(axes[1], deformed, on_section(magnitude),
-                      f"ESIDW deformed, {mu_text} (grey: reference)", window,
-                      "|displacement| [m]")
+        section_panel(
+            axes[1],
+            deformed,
+            on_section(magnitude),
+            f"ESIDW deformed, {mu_text} (grey: reference)",
+            window,
+            "|displacement| [m]",
+        )
         hull_points = points[mesh.node_set("hull").cpu().numpy()]
         (x0, y0), (x1, y1) = hull_points[:, :2].min(0), hull_points[:, :2].max(0)
         outline = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]])
         angle = math.radians(spec.mu_star)
-        rotation = np.array([[math.cos(angle), -math.sin(angle)],
-                             [math.sin(angle), math.cos(angle)]])
+        rotation = np.array(
+            [[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]]
+        )
         centre = np.asarray(HULL_CENTRE[:2])
         rotated = (outline - centre) @ rotation.T + centre
         bow = ((x1 - 0.6, x1 + 0.5), (-0.45, 0.4))
         ax = axes[2]
-        section_panel(ax, deformed, on_section(error),
-                      f"bow: ESIDW − IDW at {mu_text}", bow, "|ESIDW − IDW| [mm]", 1e3)
+        section_panel(
+            ax,
+            deformed,
+            on_section(error),
+            f"bow: ESIDW − IDW at {mu_text}",
+            bow,
+            "|ESIDW − IDW| [mm]",
+            1e3,
+        )
         for target in (axes[1], ax):
             target.plot(*outline.T, "--", color="0.3", lw=1.0, label="hull profile, reference")
-            target.plot(*rotated.T, "-", color="C3", lw=1.2,
-                        label=f"hull profile rotated by {spec.mu_star:g}°")
+            target.plot(
+                *rotated.T,
+                "-",
+                color="C3",
+                lw=1.2,
+                label=f"hull profile rotated by {spec.mu_star:g}°",
+            )
         axes[1].plot([centre[0]], [centre[1]], "k+", ms=8, label="rotation centre")
         ax.legend(loc="lower left", fontsize=7)
     else:
@@ -212,23 +237,46 @@ def plot_case(
             tunnel = ((low[0], high[0]), (low[1], high[1]))
             axes[0].set_xlim(*tunnel[0])
             axes[0].set_ylim(*tunnel[1])
-            section_panel(axes[1], deformed, on_section(magnitude),
-                          f"ESIDW deformed, {mu_text}, whole tunnel", tunnel,
-                          "|displacement| [m]")
+            section_panel(
+                axes[1],
+                deformed,
+                on_section(magnitude),
+                f"ESIDW deformed, {mu_text}, whole tunnel",
+                tunnel,
+                "|displacement| [m]",
+            )
             zoom = ((-0.3, 1.3), (-0.3, 0.45))
-            section_panel(axes[2], deformed, on_section(error),
-                          f"near the wing: ESIDW − IDW at {mu_text}", zoom,
-                          "|ESIDW − IDW| [mm]", 1e3)
+            section_panel(
+                axes[2],
+                deformed,
+                on_section(error),
+                f"near the wing: ESIDW − IDW at {mu_text}",
+                zoom,
+                "|ESIDW − IDW| [mm]",
+                1e3,
+            )
         else:
-            section_panel(axes[1], deformed, on_section(error),
-                          f"ESIDW − IDW at {mu_text} (grey: reference)", window,
-                          "|ESIDW − IDW| [mm]", 1e3)
+            section_panel(
+                axes[1],
+                deformed,
+                on_section(error),
+                f"ESIDW − IDW at {mu_text} (grey: reference)",
+                window,
+                "|ESIDW − IDW| [mm]",
+                1e3,
+            )
         ax = axes[-1]
         wing = mesh.node_set("wing").cpu().numpy()
         wing = wing[:: max(1, len(wing) // 3000)]  # enough dots to see the shape
         ax.plot(points[wing, 2], points[wing, 1], ".", ms=1.5, color="0.7", label="reference")
-        dots = ax.scatter(moved[wing, 2], moved[wing, 1], s=2, c=magnitude[wing],
-                          cmap="viridis", label=f"deformed, {mu_text}")
+        dots = ax.scatter(
+            moved[wing, 2],
+            moved[wing, 1],
+            s=2,
+            c=magnitude[wing],
+            cmap="viridis",
+            label=f"deformed, {mu_text}",
+        )
         figure.colorbar(dots, ax=ax, shrink=0.85, label="|displacement| [m]")
         ax.axvline(value, color="C3", lw=0.8, ls="--", label="section")
         ax.set_xlabel("z (span) [m]")
@@ -236,8 +284,9 @@ def plot_case(
         ax.set_title("side view of the wing (boundary nodes)", fontsize=10)
         ax.legend(loc="upper left", fontsize=8, markerscale=4)
     variant = "" if spec.variant == "paper" else f", variant {spec.variant}"
-    figure.suptitle(f"Case {spec.letter}: {spec.title} ({context.size} mesh, "
-                    f"{mesh.num_nodes:,} nodes{variant})")
+    figure.suptitle(
+        f"Case {spec.letter}: {spec.title} ({context.size} mesh, {mesh.num_nodes:,} nodes{variant})"
+    )
     path = Path(path)
     with atomic_output(path) as temporary:
         figure.savefig(temporary, dpi=100, format="png")
@@ -271,8 +320,10 @@ def plot_one_mode_bound(sweep: dict, path: str | Path, *, title: str = "") -> Pa
 
     mu = np.asarray(sweep["mu"], dtype=float)
     figure, axes = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
-    for ax, norm, name in ((axes[0], "error_nodal", "nodal ℓ2 norm (the paper's reading)"),
-                           (axes[1], "error", "P1 mass-matrix norm")):
+    for ax, norm, name in (
+        (axes[0], "error_nodal", "nodal ℓ2 norm (the paper's reading)"),
+        (axes[1], "error", "P1 mass-matrix norm"),
+    ):
         for label, values in sweep[norm].items():
             if "mode" not in label:
                 continue
@@ -282,10 +333,13 @@ def plot_one_mode_bound(sweep: dict, path: str | Path, *, title: str = "") -> Pa
         one = np.asarray(sweep[norm]["POD-IDW, 1 mode"], dtype=float)
         phi = math.radians(float(mu[np.argmin(one)])) / 2.0
         bound = np.abs(np.sin(np.radians(mu) / 2.0 - phi))
-        ax.semilogy(mu, np.maximum(bound, 1e-17), "k--", lw=1.0,
-                    label="|sin(μ/2 − φ)|, one mode")
-        ax.axhline(math.sin(math.radians(9.0)), color="0.5", lw=0.8,
-                   label="sin 9° = 15.6 %: best worst case")
+        ax.semilogy(mu, np.maximum(bound, 1e-17), "k--", lw=1.0, label="|sin(μ/2 − φ)|, one mode")
+        ax.axhline(
+            math.sin(math.radians(9.0)),
+            color="0.5",
+            lw=0.8,
+            label="sin 9° = 15.6 %: best worst case",
+        )
         ax.set_ylim(1e-17, 1.0)
         ax.set_xlabel("rotation angle μ [°]")
         ax.set_ylabel("relative error against IDW")

@@ -133,19 +133,36 @@ class CaseResult:
         for method, summary in self.quality_deformed.items():
             paper_max = paper.max_q_deformed if method in ("IDW", "ESIDW") else None
             paper_mean = paper.mean_q_deformed if method in ("IDW", "ESIDW") else None
-            rows.append((f"max Q ({method}, μ*)", f"{summary['max_edge_ratio']:.2f}",
-                         _opt(paper_max)))
-            rows.append((f"mean Q ({method}, μ*)", f"{summary['mean_edge_ratio']:.2f}",
-                         _opt(paper_mean)))
+            rows.append(
+                (f"max Q ({method}, μ*)", f"{summary['max_edge_ratio']:.2f}", _opt(paper_max))
+            )
+            rows.append(
+                (f"mean Q ({method}, μ*)", f"{summary['mean_edge_ratio']:.2f}", _opt(paper_mean))
+            )
             rows.append((f"inverted tets ({method}, μ*)", f"{summary['num_inverted']}", "–"))
         header = (f"Table {self.mesh_table}", "ours", "paper")
         return _format_table(header, rows, markdown=markdown)
 
     def result_lines(self, *, markdown: bool = False) -> list[str]:
         """The results table (Tables 4–6) beside the paper's, as text lines."""
-        header = ("method", "controls", "paper", "offline [s]", "paper", "modes", "paper",
-                  "online [s]", "paper", "paper/ours", "nodal error", "mass error", "paper",
-                  "inverted", "max Q", "mean Q")
+        header = (
+            "method",
+            "controls",
+            "paper",
+            "offline [s]",
+            "paper",
+            "modes",
+            "paper",
+            "online [s]",
+            "paper",
+            "paper/ours",
+            "nodal error",
+            "mass error",
+            "paper",
+            "inverted",
+            "max Q",
+            "mean Q",
+        )
         rows = []
         for row in self.rows:
             paper = self.paper_row(row.method)
@@ -157,39 +174,72 @@ class CaseResult:
                 low, high = row.error_nodal_range
                 nodal += f" ({_percent(low)}–{_percent(high)})"
             speedup = "–" if paper is None else f"{paper.online_s / row.online_s:,.0f}×"
-            rows.append((
-                row.method,
-                f"{row.controls:,}", "–" if paper is None else f"{paper.controls:,}",
-                _opt(row.offline_s, "{:.2f}"),
-                "–" if paper is None else _opt(paper.offline_s, "{:.2f}"),
-                _opt(row.modes, "{}"), "–" if paper is None else _opt(paper.modes, "{}"),
-                _seconds(row.online_s), "–" if paper is None else f"{paper.online_s:g}",
-                speedup, nodal, error, "–" if paper is None else paper.error,
-                f"{row.inverted}", f"{row.max_q:.2f}", f"{row.mean_q:.3f}",
-            ))
+            rows.append(
+                (
+                    row.method,
+                    f"{row.controls:,}",
+                    "–" if paper is None else f"{paper.controls:,}",
+                    _opt(row.offline_s, "{:.2f}"),
+                    "–" if paper is None else _opt(paper.offline_s, "{:.2f}"),
+                    _opt(row.modes, "{}"),
+                    "–" if paper is None else _opt(paper.modes, "{}"),
+                    _seconds(row.online_s),
+                    "–" if paper is None else f"{paper.online_s:g}",
+                    speedup,
+                    nodal,
+                    error,
+                    "–" if paper is None else paper.error,
+                    f"{row.inverted}",
+                    f"{row.max_q:.2f}",
+                    f"{row.mean_q:.3f}",
+                )
+            )
         return _format_table(header, rows, markdown=markdown)
 
     def timing_lines(self, *, markdown: bool = False) -> list[str]:
         """Selection, assembly and POD-fit seconds per method."""
-        header = ("method", "selection [s]", "assembly [s]", "POD fit [s]", "offline [s]",
-                  "online [s]")
-        rows = [(row.method, _opt(row.selection_s, "{:.3f}"), _opt(row.assembly_s, "{:.3f}"),
-                 _opt(row.fit_s, "{:.3f}"), _opt(row.offline_s, "{:.3f}"),
-                 _seconds(row.online_s)) for row in self.rows]
+        header = (
+            "method",
+            "selection [s]",
+            "assembly [s]",
+            "POD fit [s]",
+            "offline [s]",
+            "online [s]",
+        )
+        rows = [
+            (
+                row.method,
+                _opt(row.selection_s, "{:.3f}"),
+                _opt(row.assembly_s, "{:.3f}"),
+                _opt(row.fit_s, "{:.3f}"),
+                _opt(row.offline_s, "{:.3f}"),
+                _seconds(row.online_s),
+            )
+            for row in self.rows
+        ]
         return _format_table(header, rows, markdown=markdown)
 
     def report(self) -> str:
         """All tables as one printable text."""
-        title = (f"Case {self.letter} — {self.title} (size={self.size}, mesher={self.mesher}, "
-                 f"seed={self.seed}, μ* = {self.mu_star:g}, variant={self.variant})")
+        title = (
+            f"Case {self.letter} — {self.title} (size={self.size}, mesher={self.mesher}, "
+            f"seed={self.seed}, μ* = {self.mu_star:g}, variant={self.variant})"
+        )
         parts = [title]
         if self.selection_note:
             parts.append(f"Selection: {self.selection_note}")
-        parts += ["", *self.mesh_lines(), "", f"Table {self.results_table}:",
-                  *self.result_lines(),
-                  ("Errors against full IDW at μ*: 'nodal' in the nodal ℓ2 norm (the paper's "
-                  "Ω_h = {x_i}: its reading), 'mass' in the P1 mass-matrix norm; "
-                  "(a–b): min–max over D.")]
+        parts += [
+            "",
+            *self.mesh_lines(),
+            "",
+            f"Table {self.results_table}:",
+            *self.result_lines(),
+            (
+                "Errors against full IDW at μ*: 'nodal' in the nodal ℓ2 norm (the paper's "
+                "Ω_h = {x_i}: its reading), 'mass' in the P1 mass-matrix norm; "
+                "(a–b): min–max over D."
+            ),
+        ]
         parts += ["", "Times:", *self.timing_lines()]
         if self.singular_values:
             parts += ["", "Normalised singular values σ_i/σ_1 (first 5):"]
@@ -214,20 +264,24 @@ def _seconds(value: float) -> str:
     return f"{value:.2e}" if value < 1e-3 else f"{value:.4f}"
 
 
-def _format_table(header: Sequence[str], rows: Sequence[Sequence[str]], *,
-                  markdown: bool = False) -> list[str]:
+def _format_table(
+    header: Sequence[str], rows: Sequence[Sequence[str]], *, markdown: bool = False
+) -> list[str]:
     if markdown:
-        lines = ["| " + " | ".join(header) + " |",
-                 "|" + "|".join("---" if i == 0 else "---:" for i in range(len(header))) + "|"]
+        lines = [
+            "| " + " | ".join(header) + " |",
+            "|" + "|".join("---" if i == 0 else "---:" for i in range(len(header))) + "|",
+        ]
         return lines + ["| " + " | ".join(row) + " |" for row in rows]
     widths = [max(len(str(cell)) for cell in column) for column in zip(header, *rows, strict=True)]
 
     def line(cells: Sequence[str]) -> str:
         first = f"{cells[0]:<{widths[0]}}"
-        return "  ".join([first, *(f"{c:>{w}}" for c, w in zip(cells[1:], widths[1:], strict=True))])
+        return "  ".join(
+            [first, *(f"{c:>{w}}" for c, w in zip(cells[1:], widths[1:], strict=True))]
+        )
 
     return [line(header), "  ".join("-" * w for w in widths), *(line(row) for row in rows)]
-
 
 
 # --------------------------------------------------------------------------------------
@@ -239,8 +293,13 @@ def _file_label(method: str) -> str:
     return method.lower().replace(" ", "_").replace("(", "").replace(")", "").replace("-", "_")
 
 
-def write_outputs(out: Path, context: CaseContext, morphs: dict[str, MeshMorph],
-                   fields: dict[str, Tensor], result: CaseResult) -> list[Path]:
+def write_outputs(
+    out: Path,
+    context: CaseContext,
+    morphs: dict[str, MeshMorph],
+    fields: dict[str, Tensor],
+    result: CaseResult,
+) -> list[Path]:
     from ..io import write_mesh
     from .plots import plot_case
 
@@ -262,8 +321,9 @@ def write_outputs(out: Path, context: CaseContext, morphs: dict[str, MeshMorph],
     boundary[mesh.boundary_nodes.cpu()] = 1
     point_data["boundary"] = boundary
     path = out / "reference.vtu"
-    write_mesh(path, mesh, point_data=point_data,
-               cell_data={"Q": edge_ratio(mesh.points, mesh.tets)})
+    write_mesh(
+        path, mesh, point_data=point_data, cell_data={"Q": edge_ratio(mesh.points, mesh.tets)}
+    )
     files.append(path)
     for method in ("IDW", "ESIDW"):
         displacement = fields[method]
@@ -272,9 +332,15 @@ def write_outputs(out: Path, context: CaseContext, morphs: dict[str, MeshMorph],
         point_data = {"displacement": displacement}
         if method != "IDW":
             point_data["difference_from_IDW"] = displacement - fields["IDW"]
-        write_mesh(path, moved, point_data=point_data,
-                   cell_data={"Q": edge_ratio(moved.points, mesh.tets),
-                              "inverted": (moved.volumes <= 0).to(torch.uint8)})
+        write_mesh(
+            path,
+            moved,
+            point_data=point_data,
+            cell_data={
+                "Q": edge_ratio(moved.points, mesh.tets),
+                "inverted": (moved.volumes <= 0).to(torch.uint8),
+            },
+        )
         files.append(path)
     path = out / f"{context.spec.key}.png"
     plot_case(context, fields, morphs, path)
@@ -292,5 +358,3 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f"not serialisable: {type(value).__name__}")
-
-
