@@ -324,11 +324,15 @@ def test_bad_arguments_name_themselves():
 
 
 def test_without_numba_the_module_imports_and_is_unavailable(monkeypatch):
-    # a second copy of the module, imported where numba cannot be
-    spec = importlib.util.spec_from_file_location("cpu_kernels_without_numba", kernels.__file__)
-    module = importlib.util.module_from_spec(spec)
+    # fresh copies of the kernel modules, imported where numba cannot be (the originals
+    # are put back in sys.modules by monkeypatch afterwards)
+    import torchmorph
+
     monkeypatch.setitem(sys.modules, "numba", None)
-    spec.loader.exec_module(module)
+    for name in ("_cpu_jit", "_cpu_kernels"):
+        monkeypatch.delitem(sys.modules, f"torchmorph.{name}", raising=False)
+        monkeypatch.setattr(torchmorph, name, getattr(torchmorph, name, None), raising=False)
+    module = importlib.import_module("torchmorph._cpu_kernels")
     assert module.available() is False
     with pytest.raises(RuntimeError, match="the fused CPU kernels need numba: pip install numba"):
         module.nearest_squared(torch.zeros(1, 3), torch.zeros(2, 3))

@@ -9,6 +9,7 @@ and check a state before it is loaded; none of them asks which class the map is.
 from __future__ import annotations
 
 import itertools
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -16,7 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_finite, check_float_dtype, is_traced
+from ._checks import check_finite, check_float_dtype, check_same_device_dtype, is_traced
 from .pod_functional import projection_matrix
 
 __all__ = [
@@ -427,3 +428,49 @@ def check_reducer_state(state_dict, prefix: str, version: int) -> None:
     else:
         shape("system_matrix_", (count, count))
         shape("rhs_matrix_", (count, num_inputs, 3))
+
+
+def relative_field_error(reduced: Tensor, full: Tensor, norm: str, mesh: Any, morph: Any) -> Tensor:
+    """Per-sample relative error of ``reduced`` against ``full`` (B, N, 3) in the nodal
+    or the P1 mass-matrix norm (``mesh``, or the morph's own points and tets)."""
+    from .mesh import TetMesh
+    from .quality import relative_l2_error
+
+    if norm == "l2":
+        warnings.warn(
+            "relative_error(norm='l2') is deprecated: use norm='mass' (the P1 "
+            "mass-matrix norm) or norm='nodal'",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        norm = "mass"
+    if norm not in ("nodal", "mass"):
+        raise ValueError(f"norm must be 'nodal' or 'mass', got {norm!r}")
+    if norm == "mass":
+        if mesh is None:
+            points, tets = getattr(morph, "points", None), getattr(morph, "tets", None)
+            if not isinstance(points, Tensor) or not isinstance(tets, Tensor):
+                raise ValueError(
+                    "norm='mass' needs mesh= (the mass matrix lives on a "
+                    "mesh) for a morph without points and tets"
+                )
+            mesh = TetMesh(points, tets)
+        return relative_l2_error(mesh, reduced, full, norm="mass").to(full.dtype)
+    difference = (reduced - full).flatten(1).norm(dim=1)
+    scale = full.flatten(1).norm(dim=1)
+    return torch.where(difference == 0, torch.zeros_like(difference), difference / scale)
+
+
+def check_out(out: Tensor, displacement: Tensor, num_outputs: int, reference: Tensor) -> Tensor:
+    """``out=`` of a reduced morph: the output's shape, the reducer's dtype and device,
+    contiguous, and no autograd."""
+    expected = (*displacement.shape[:-2], num_outputs, 3)
+    if not isinstance(out, Tensor) or tuple(out.shape) != expected:
+        got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+        raise ValueError(f"out must have shape {expected}, got {got}")
+    check_same_device_dtype(reference, "the reducer", out, "out")
+    if not out.is_contiguous():
+        raise ValueError("out must be contiguous")
+    if torch.is_grad_enabled() and displacement.requires_grad:
+        raise ValueError("out= does not support autograd: displacement requires grad")
+    return out

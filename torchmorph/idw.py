@@ -33,10 +33,7 @@ default) takes the fused kernels where they apply and torch elsewhere.
 
 from __future__ import annotations
 
-import math
-import os
 import time
-import warnings
 from typing import Literal
 
 import torch
@@ -47,16 +44,23 @@ from ._checks import (
     check_positive,
     check_same_device_dtype,
     check_vectors,
-    is_traced,
-    plain_tensor,
 )
 from ._idw_fused import (
     IMPLEMENTATIONS,
+    _assemble_weights,
     _check_implementation,
+    _dense_apply,
     _fused_for,
     _FusedApply,
-    _FusedDenseApply,
     fused_available,
+)
+from ._idw_geometry import (
+    _check_power,
+    _check_tolerance,
+    _free_memory,
+    _points_arguments,
+    _prepare,
+    _warn_duplicate_controls,
 )
 from ._idw_torch import (
     DEFAULT_BLOCK_BYTES,
@@ -95,106 +99,9 @@ Implementation = Literal["auto", "fused", "torch"]
 # --------------------------------------------------------------------------- #
 # helpers
 # --------------------------------------------------------------------------- #
-def _check_power(power: float) -> float:
-    return check_positive(power, "power")
-
-
-def _check_tolerance(tolerance: float) -> float:
-    tolerance = float(tolerance)
-    if tolerance < 0 or not math.isfinite(tolerance):
-        raise ValueError(f"coincidence_tolerance must be finite and >= 0, got {tolerance!r}")
-    return tolerance
-
-
-def _normalise(
-    targets: Tensor, controls: Tensor, tolerance: float
-) -> tuple[Tensor, Tensor, float | Tensor]:
-    """Both clouds scaled by a power of two so that every coordinate lies in [-1, 1],
-    and the squared coincidence radius ``(tolerance · bounding-box diagonal)²`` in
-    those units (at least the dtype's smallest normal, so that a target exactly on a
-    control always counts as coincident).
-
-    Scaling by a power of two is exact, and W is invariant under it (gradients
-    included: the factor is a constant), so coordinates from 1e-30 to 1e30 give the
-    same weights; squared distances then neither overflow nor underflow. The points
-    are not translated: a translation would round the coordinates of a cloud
-    centred away from its own fine details. The radius is a Python float, or a
-    0-d tensor when the call is traced (no value is read in Python then).
-    """
-    with torch.no_grad():
-        t, c = targets.detach(), controls.detach()
-        low, high, largest = c.amin(0), c.amax(0), c.abs().amax()
-        if t.shape[0]:
-            low = torch.minimum(low, t.amin(0))
-            high = torch.maximum(high, t.amax(0))
-            largest = torch.maximum(largest, t.abs().amax())
-        _, exponent = torch.frexp(largest)
-        scale = torch.ldexp(torch.ones_like(largest), -exponent)
-        diagonal = torch.linalg.vector_norm(high * scale - low * scale)
-        radius2 = (tolerance * diagonal).square().clamp_min(torch.finfo(c.dtype).tiny)
-        if not (is_traced(t) or is_traced(c)):
-            radius2 = float(radius2)
-    return targets * scale, controls * scale, radius2
-
-
-def _assemble_weights(
-    targets: Tensor,
-    controls: Tensor,
-    power: float,
-    radius2: float,
-    block_bytes: int | None,
-    implementation: str = "auto",
-) -> Tensor:
-    """Dense W (N_t, N_c) of normalised points, row-major, without autograd: by a fused
-    kernel that writes W once, or block by block in place."""
-    weights = torch.empty(
-        targets.shape[0], controls.shape[0], dtype=controls.dtype, device=controls.device
-    )
-    backend = _fused_for(implementation, targets, controls)
-    with torch.no_grad():
-        if backend is not None:
-            return backend.weights(
-                backend.layout(targets), backend.layout(controls), power, radius2, out=weights
-            )
-        rows = _rows_per_block(
-            controls.shape[0], controls.element_size(), _block_bytes(block_bytes, controls.device)
-        )
-        controls_t = controls.T.contiguous()
-        for start in range(0, targets.shape[0], rows):
-            _weights_block(
-                targets[start : start + rows],
-                controls,
-                power,
-                radius2,
-                out=weights[start : start + rows],
-                controls_t=controls_t,
-            )
-    return weights
-
-
 # --------------------------------------------------------------------------- #
 # functional API
 # --------------------------------------------------------------------------- #
-def _points_arguments(function: str, positional: tuple, controls, targets, count: int = 2):
-    """``(controls, targets[, displacements])`` from keywords, or from the deprecated
-    positional order ``(targets, controls[, displacements])`` with a warning."""
-    if positional:
-        if len(positional) != count or controls is not None or targets is not None:
-            names = "controls=..., targets=..." + (", displacements=..." if count == 3 else "")
-            raise TypeError(f"{function}() takes its points as keywords: {function}({names})")
-        warnings.warn(
-            f"{function}(targets, controls, ...) with positional points is deprecated and will "
-            f"be removed: pass controls=... and targets=... as keywords (the order of IDW)",
-            DeprecationWarning,
-            stacklevel=3,
-        )
-        targets, controls = positional[:2]
-        return (controls, targets, *positional[2:])
-    if controls is None or targets is None:
-        raise TypeError(f"{function}() needs controls= and targets=")
-    return controls, targets
-
-
 def idw_weights(
     *points: Tensor,
     controls: Tensor | None = None,
@@ -266,25 +173,6 @@ def idw_weights(
             for s in range(0, targets.shape[0], rows)
         ]
     )
-
-
-def _prepare(targets, controls, power, coincidence_tolerance):
-    """Validated, normalised points, the power and the squared coincidence radius."""
-    controls = as_points(controls, "controls", dim=_dim_of(controls))
-    targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True)
-    check_same_device_dtype(controls, "controls", targets, "targets")
-    power = _check_power(power)
-    targets, controls, radius2 = _normalise(
-        targets, controls, _check_tolerance(coincidence_tolerance)
-    )
-    return targets, controls, power, radius2
-
-
-def _dim_of(points) -> int:
-    shape = getattr(points, "shape", None)
-    if shape is not None and len(shape) == 2 and shape[1] >= 1:
-        return int(shape[1])
-    return 3
 
 
 def idw_apply(
@@ -373,81 +261,9 @@ def idw_apply(
     return result.permute(1, 0, 2) if batched else result[:, 0]
 
 
-def _dense_apply(weights: Tensor, displacements: Tensor, implementation: str = "auto") -> Tensor:
-    """``W @ d`` for d of shape (N_c, 3) or (B, N_c, 3), as one contraction.
-
-    One displacement on a device with fused kernels goes through a kernel that
-    reads W once (a GEMM with three columns reaches a fraction of the memory
-    bandwidth). Under ``vmap`` a single (N_c, 3) displacement is a batch in
-    disguise: written as ``(dᵀ Wᵀ)ᵀ`` with a contiguous ``dᵀ`` the batch folds into
-    the rows of one GEMM, where ``W @ d`` becomes a batched product that reads W
-    once per batch entry (7x slower for 2,000 values at case-C size).
-    """
-    if displacements.ndim == 2:
-        traced = torch.compiler.is_compiling() or plain_tensor(displacements)[1]
-        backend = None if traced else _fused_for(implementation, weights, displacements)
-        if backend is not None and displacements.shape[1] <= backend.dense_columns():
-            if torch.is_grad_enabled() and displacements.requires_grad:
-                return _FusedDenseApply.apply(weights, displacements, backend)
-            return backend.dense_apply(weights, displacements.contiguous())
-        if not torch.compiler.is_compiling() and plain_tensor(displacements)[1]:
-            return (displacements.mT.contiguous() @ weights.mT).mT
-        return weights @ displacements
-    batch, n_controls, _ = displacements.shape
-    stacked = displacements.permute(1, 0, 2).reshape(n_controls, batch * 3)
-    return (weights @ stacked).reshape(-1, batch, 3).permute(1, 0, 2)
-
-
 # --------------------------------------------------------------------------- #
 # module
 # --------------------------------------------------------------------------- #
-def _free_memory(device: torch.device) -> int:
-    """Bytes the device can still allocate: CUDA's free memory plus what torch's caching
-    allocator holds unused; on the CPU the kernel's MemAvailable (physical memory if
-    unknown)."""
-    if device.type == "cuda":
-        free, _ = torch.cuda.mem_get_info(device)
-        stats = torch.cuda.memory_stats(device)
-        return int(
-            free
-            + stats.get("reserved_bytes.all.current", 0)
-            - stats.get("allocated_bytes.all.current", 0)
-        )
-    try:
-        with open("/proc/meminfo") as info:
-            for line in info:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return 2**63 - 1
-
-
-def _warn_duplicate_controls(controls: Tensor, tolerance: float) -> None:
-    """Warn when controls lie within the coincidence radius of one another: a target on
-    them takes the mean of their displacements."""
-    if controls.shape[0] < 2 or is_traced(controls):
-        return
-    from scipy.spatial import cKDTree
-
-    with torch.no_grad():
-        _, normalised, radius2 = _normalise(
-            controls.new_zeros(0, controls.shape[1]), controls.detach(), tolerance
-        )
-        points = normalised.double().cpu().numpy()
-    distances, _ = cKDTree(points).query(points, k=2)
-    close = int((distances[:, 1] ** 2 <= radius2).sum())
-    if close:
-        warnings.warn(
-            f"controls: {close} control points lie within the coincidence radius of another "
-            f"one (duplicated points); a target there takes the mean of their displacements",
-            stacklevel=3,
-        )
-
-
 class IDW(nn.Module):
     """IDW interpolation from control points to target points (the paper's eq. 1–2).
 

@@ -19,7 +19,6 @@ an output field (N_out, 3) — an :class:`~torchmorph.idw.IDW`, a
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -30,6 +29,7 @@ from ._checks import check_finite, check_same_device_dtype, is_traced
 from ._pod_protocol import (
     adjoint,
     check_online,
+    check_out,
     check_reducer_state,
     copied_rows,
     evaluate_family,
@@ -38,10 +38,10 @@ from ._pod_protocol import (
     index_runs,
     is_single_value,
     reference_tensor,
+    relative_field_error,
     training_data,
     weights_of,
 )
-from .mesh import TetMesh
 from .pod_functional import (
     check_energy_tolerance,
     check_num_modes,
@@ -49,7 +49,6 @@ from .pod_functional import (
     pod_basis,
     projection_matrix,
 )
-from .quality import relative_l2_error
 
 __all__ = [
     "PODReducer",
@@ -517,7 +516,7 @@ class PODReducer(nn.Module):
         batched = self._check_input(displacement, "displacement")
         inputs = displacement if batched else displacement.unsqueeze(0)
         if out is not None:
-            out = self._check_out(out, displacement)
+            out = check_out(out, displacement, self.num_outputs_, self.modes_)
             out = out if batched else out.unsqueeze(0)
         beta = self._coefficients(inputs)
         # the slice copies write into out= tensors: not for autograd, vmap, jvp or compile
@@ -538,18 +537,6 @@ class PODReducer(nn.Module):
                 out,
             )
         return result if batched else result[0]
-
-    def _check_out(self, out: Tensor, displacement: Tensor) -> Tensor:
-        expected = (*displacement.shape[:-2], self.num_outputs_, 3)
-        if not isinstance(out, Tensor) or tuple(out.shape) != expected:
-            got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
-            raise ValueError(f"out must have shape {expected}, got {got}")
-        check_same_device_dtype(self.modes_, "the reducer", out, "out")
-        if not out.is_contiguous():
-            raise ValueError("out must be contiguous")
-        if torch.is_grad_enabled() and displacement.requires_grad:
-            raise ValueError("out= does not support autograd: displacement requires grad")
-        return out
 
     def morph_parameters(
         self, mu: Tensor | float, *, family: Family | None = None, batched: bool | None = None
@@ -632,35 +619,8 @@ class PODReducer(nn.Module):
             raise RuntimeError(
                 "no full morph to compare with: pass morph= (load_state_dict does not restore it)"
             )
-        if norm == "l2":
-            warnings.warn(
-                "relative_error(norm='l2') is deprecated: use norm='mass' (the P1 "
-                "mass-matrix norm) or norm='nodal'",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-            norm = "mass"
-        if norm not in ("nodal", "mass"):
-            raise ValueError(f"norm must be 'nodal' or 'mass', got {norm!r}")
         batched = self._check_input(displacements, "displacements")
         inputs = displacements if batched else displacements.unsqueeze(0)
         with torch.no_grad():
-            reduced = self(inputs)
-            full = morph(inputs)
-            if norm == "mass":
-                if mesh is None:
-                    points, tets = getattr(morph, "points", None), getattr(morph, "tets", None)
-                    if not isinstance(points, Tensor) or not isinstance(tets, Tensor):
-                        raise ValueError(
-                            "norm='mass' needs mesh= (the mass matrix lives on a "
-                            "mesh) for a morph without points and tets"
-                        )
-                    mesh = TetMesh(points, tets)
-                error = relative_l2_error(mesh, reduced, full, norm="mass").to(full.dtype)
-            else:
-                difference = (reduced - full).flatten(1).norm(dim=1)
-                scale = full.flatten(1).norm(dim=1)
-                error = torch.where(
-                    difference == 0, torch.zeros_like(difference), difference / scale
-                )
+            error = relative_field_error(self(inputs), morph(inputs), norm, mesh, morph)
         return error if batched else error[0]
