@@ -40,6 +40,7 @@ import numba
 import numpy as np
 import torch
 from _timing import median_time, seconds
+from idw import point_clouds as idw_point_clouds
 from numba import njit, prange
 
 from torchmorph import _cpu_kernels as kernels
@@ -89,21 +90,9 @@ def kdtree_nearest(targets, controls, workers):
 
 
 def point_clouds(n_targets: int, n_controls: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Controls on a box's walls and an inner ellipsoid; targets in between; unit diagonal."""
-    rng = np.random.default_rng(seed)
-    n_body = n_controls // 2
-    directions = rng.normal(size=(n_body, 3))
-    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    body = directions * np.array([0.5, 0.06, 3.0])
-    n_wall = n_controls - n_body
-    walls = rng.uniform(-1, 1, size=(n_wall, 3))
-    face = rng.integers(0, 3, n_wall)
-    walls[np.arange(n_wall), face] = np.sign(rng.uniform(-1, 1, n_wall))
-    walls *= np.array([5.0, 2.5, 6.3])
-    controls = np.concatenate([body, walls])
-    targets = rng.uniform(-1, 1, size=(4 * n_targets, 3)) * np.array([5.0, 2.5, 6.3])
-    outside = ((targets / np.array([0.5, 0.06, 3.0])) ** 2).sum(1) > 1.05
-    targets = targets[outside][:n_targets]
+    """benchmarks/idw.py's clouds (controls on a box's walls and an inner ellipsoid, targets
+    in between), scaled to a unit diagonal."""
+    targets, controls = idw_point_clouds(n_targets, n_controls, seed)
     both = np.concatenate([targets, controls])
     low, diagonal = both.min(0), np.linalg.norm(both.max(0) - both.min(0))
     return (targets - low) / diagonal, (controls - low) / diagonal
