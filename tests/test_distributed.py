@@ -204,3 +204,26 @@ def test_needs_a_process_group():
     controls, targets, _, _ = worker.idw_data()
     with pytest.raises(RuntimeError, match="torch.distributed is not initialized"):
         ShardedIDW(controls, targets)
+
+
+def test_sharded_pod_state_round_trips_and_is_checked():
+    from torchmorph.distributed import ShardedPOD
+
+    generator = torch.Generator().manual_seed(0)
+    source = ShardedPOD(energy_tolerance=1e-6)
+    source.modes_ = torch.randn(2, 7, 3, generator=generator, dtype=torch.float64)
+    source.singular_values_ = torch.tensor([2.0, 1.0], dtype=torch.float64)
+    source.energy_captured_ = torch.tensor([0.8, 1.0], dtype=torch.float64)
+    source.projection_ = torch.randn(2, 5, 3, generator=generator, dtype=torch.float64)
+    source.num_modes_ = 2
+    state = source.state_dict()
+    loaded = ShardedPOD(energy_tolerance=1e-6)
+    loaded.load_state_dict(state)
+    assert loaded.num_modes_ == 2 and loaded.is_fitted
+    for name in ShardedPOD._BUFFERS:
+        assert torch.equal(getattr(loaded, name), getattr(source, name))
+    with pytest.raises(ValueError, match="energy_tolerance: the state was saved with"):
+        ShardedPOD().load_state_dict(state)
+    tampered = dict(state, projection_=state["projection_"][:1])
+    with pytest.raises(ValueError, match="do not both hold num_modes_=2 modes"):
+        ShardedPOD(energy_tolerance=1e-6).load_state_dict(tampered)

@@ -180,7 +180,7 @@ class ShardedPOD(nn.Module):
         super().__init__()
         self.energy_tolerance = check_energy_tolerance(energy_tolerance)
         self.num_modes = check_num_modes(num_modes)
-        for name in ("modes_", "singular_values_", "energy_captured_", "projection_"):
+        for name in self._BUFFERS:
             self.register_buffer(name, torch.empty(0))
         self.num_modes_: int | None = None
         self._morph: nn.Module | None = None
@@ -188,6 +188,49 @@ class ShardedPOD(nn.Module):
     @property
     def is_fitted(self) -> bool:
         return self.num_modes_ is not None
+
+    # ---------------------------------------------------------------- state
+    _BUFFERS = ("modes_", "singular_values_", "energy_captured_", "projection_")
+
+    def get_extra_state(self) -> dict:
+        return {
+            "energy_tolerance": self.energy_tolerance,
+            "num_modes": self.num_modes,
+            "num_modes_": self.num_modes_,
+        }
+
+    def set_extra_state(self, state: dict) -> None:
+        if not isinstance(state, dict) or "num_modes_" not in state:
+            raise ValueError("ShardedPOD state: the extra state is missing or not a dict")
+        for field in ("energy_tolerance", "num_modes"):
+            if state.get(field) != getattr(self, field):
+                raise ValueError(
+                    f"{field}: the state was saved with {field}={state.get(field)!r} but this "
+                    f"module has {field}={getattr(self, field)!r}"
+                )
+        self.num_modes_ = state["num_modes_"]
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        for name in self._BUFFERS:  # the state's shapes and dtype, on this module's device
+            incoming, current = state_dict.get(prefix + name), self._buffers.get(name)
+            if isinstance(incoming, Tensor) and current is not None:
+                self._buffers[name] = torch.empty(
+                    incoming.shape, dtype=incoming.dtype, device=current.device
+                )
+        modes, projection = (
+            state_dict.get(prefix + "modes_"),
+            state_dict.get(prefix + "projection_"),
+        )
+        extra = state_dict.get(prefix + "_extra_state")
+        if isinstance(modes, Tensor) and isinstance(projection, Tensor) and isinstance(extra, dict):
+            count = extra.get("num_modes_")
+            fitted = count is not None
+            if fitted and (modes.shape[:1] != (count,) or projection.shape[:1] != (count,)):
+                raise ValueError(
+                    f"ShardedPOD state: modes_ {tuple(modes.shape)} and projection_ "
+                    f"{tuple(projection.shape)} do not both hold num_modes_={count} modes"
+                )
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def fit(self, morph: ShardedIDW | ShardedMeshMorph, displacements: Tensor) -> ShardedPOD:
         """Offline phase on every rank (collective: all ranks call it).
