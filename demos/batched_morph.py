@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the demos' shared he
 
 from _common import median_seconds
 
+from torchmorph._atomic import atomic_output
 from torchmorph.mesh import TetMesh
 from torchmorph.morph import MeshMorph
 from torchmorph.paper import CASES, load_mesh
@@ -356,7 +357,8 @@ def plot(mus, reachable, ratios, losses, test, predicted, path: Path) -> None:
         axis.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     figure.tight_layout()
-    figure.savefig(path, dpi=120)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=120)
     plt.close(figure)
 
 

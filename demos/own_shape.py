@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from torchmorph import MeshMorph, quality_summary, read_mesh, relative_l2_error, write_mesh
+from torchmorph._atomic import atomic_output
 from torchmorph.selection import SelectionPlan
 
 #: Padding of the tunnel (x0, x1, y0, y1, z0, z1) in multiples of the body's largest extent.
@@ -57,7 +58,8 @@ def car_surface(path: Path) -> Path:
     nose = np.array([[-0.04, y, 0.09] for y in (-0.18, 0.18)])  # a chamfered front
     hull = trimesh.convex.convex_hull(np.concatenate([lower, cabin, nose]))
     path.parent.mkdir(parents=True, exist_ok=True)
-    hull.export(path)
+    with atomic_output(path) as temporary:
+        hull.export(temporary)
     return path
 
 
@@ -106,7 +108,8 @@ def plot(path: Path, mesh, body: str, displacement: torch.Tensor, controls: torc
     right.set_title("deformed nodes near the mid-plane y = y_c, coloured by |d|")
     figure.colorbar(scatter, ax=right, label="|d| (ESIDW)", shrink=0.85)
     path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=110)
     plt.close(figure)
 
 

@@ -58,6 +58,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the demos' shared he
 
 from _common import median_seconds, synchronise
 
+from torchmorph._atomic import atomic_output
 from torchmorph.mesh import TetMesh
 from torchmorph.morph import MeshMorph
 from torchmorph.paper import CASES, load_mesh
@@ -277,7 +278,8 @@ def plot(histories: dict[str, History], problem: Problem, path: Path) -> None:
         f"{problem.twist_target:g}° through POD-ESIDW"
     )
     figure.tight_layout()
-    figure.savefig(path, dpi=120)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=120)
     plt.close(figure)
 
 
