@@ -52,7 +52,13 @@ from data_gen._arrays import (
     untangle,
 )
 from data_gen._surfaces import finish_hull, finish_wing
-from data_gen.geometry import HULL_BOX_BOUNDS, TUNNEL_BOUNDS
+from data_gen.geometry import (
+    CHORD,
+    HULL_BOX_BOUNDS,
+    SPAN,
+    TUNNEL_BOUNDS,
+    naca_half_thickness,
+)
 
 if TYPE_CHECKING:
     from torchmorph.mesh import TetMesh
@@ -377,7 +383,14 @@ def _generate(case: str, mesher: str, params: dict, *, seed: int, verbose: bool)
     return backend.mesh_hull(params, seed=seed, verbose=verbose)
 
 
-def _finish(case: str, mesher: str, points: np.ndarray, tets: np.ndarray, patches: dict):
+def _finish(
+    case: str,
+    mesher: str,
+    points: np.ndarray,
+    tets: np.ndarray,
+    patches: dict,
+    epsilon: float | None = None,
+):
     """Orient, project the boundary onto the exact surfaces, name the node sets, check."""
     tets = orient(points, tets)
     approximate = tets if mesher == "pytetwild" else None  # surface only near the sharp edges
@@ -425,7 +438,25 @@ def _finish(case: str, mesher: str, points: np.ndarray, tets: np.ndarray, patche
     empty = [name for name, nodes in sets.items() if len(nodes) == 0]
     if empty:
         raise RuntimeError(f"{case} ({mesher}): empty node sets: {', '.join(empty)}")
+    if case == "fluid_wing" and epsilon is not None:
+        _check_wing_is_a_hole(points, epsilon)
     return points, tets, sets, repaired
+
+
+def _check_wing_is_a_hole(points: np.ndarray, epsilon: float) -> None:
+    """No fluid node strictly inside the exact wing, except within its ends thinner than
+    fTetWild's envelope (``epsilon`` times the domain's diagonal), which fTetWild may cut
+    off; fTetWild differs from run to run, so a mesh that fails is made again."""
+    x, y, z = points.T
+    inside = (x > 1e-6) & (x < CHORD - 1e-6) & (z > 1e-6) & (z < SPAN - 1e-6)
+    thickness = naca_half_thickness(x[inside])
+    envelope = epsilon * np.linalg.norm(np.ptp(points, axis=0))
+    wrong = int(np.sum((np.abs(y[inside]) < thickness - 1e-9) & (thickness > envelope)))
+    if wrong:
+        raise RuntimeError(
+            f"fluid_wing (pytetwild): {wrong} fluid nodes lie inside the wing where it is "
+            f"thicker than fTetWild's envelope ({envelope:.3g})"
+        )
 
 
 def build_arrays(
@@ -456,7 +487,8 @@ def build_arrays(
             case, mesher, record["params"], seed=seed, verbose=verbose
         )
         try:
-            points, tets, sets, repaired = _finish(case, mesher, points, tets, patches)
+            epsilon = record["params"].get("epsilon") if mesher == "pytetwild" else None
+            points, tets, sets, repaired = _finish(case, mesher, points, tets, patches, epsilon)
             break
         except RuntimeError as error:  # fTetWild differs from run to run: try again
             if attempt == attempts:
