@@ -217,3 +217,10 @@ def test_a_tampered_state_fails_to_load_and_leaves_the_module_intact(cube, key, 
         morph.load_state_dict(state)
     for name, value in before.items():
         assert torch.equal(getattr(morph, name), value), name
+
+
+def test_implementation_reaches_the_idw(cube):
+    plain = MeshMorph(cube, implementation="torch")
+    assert plain.idw.implementation == "torch"
+    with pytest.raises(ValueError, match="implementation must be 'auto', 'fused' or 'torch'"):
+        MeshMorph(cube, implementation="gpu")

@@ -18,7 +18,7 @@ from torch import Tensor, nn
 
 from ._checks import check_same_device_dtype, check_vectors
 from ._state import resize_buffers_for_load
-from .idw import DEFAULT_BLOCK_BYTES, DEFAULT_DENSE_BYTES, IDW, Mode
+from .idw import DEFAULT_DENSE_BYTES, IDW, Implementation, Mode
 from .mesh import TetMesh
 from .quality import signed_volumes
 
@@ -50,8 +50,12 @@ class MeshMorph(nn.Module):
         Passed to :class:`~torchmorph.idw.IDW`.
     generator : torch.Generator, optional
         Randomness of the selection (random start points and strategy).
-    block_bytes, dense_bytes : int
-        Passed to :class:`~torchmorph.idw.IDW`.
+    block_bytes, dense_bytes : int, optional
+        Passed to :class:`~torchmorph.idw.IDW` (defaults: sized for the device, and
+        half of the free memory).
+    implementation : {"auto", "fused", "torch"}
+        Passed to :class:`~torchmorph.idw.IDW`: fused kernels (Triton on CUDA, numba
+        on the CPU) or torch operations.
 
     Attributes
     ----------
@@ -87,8 +91,9 @@ class MeshMorph(nn.Module):
         power: float = 4.0,
         mode: Mode = "auto",
         generator: torch.Generator | None = None,
-        block_bytes: int = DEFAULT_BLOCK_BYTES,
-        dense_bytes: int = DEFAULT_DENSE_BYTES,
+        block_bytes: int | None = None,
+        dense_bytes: int | None = DEFAULT_DENSE_BYTES,
+        implementation: Implementation = "auto",
     ) -> None:
         super().__init__()
         if not isinstance(mesh, TetMesh):
@@ -133,6 +138,7 @@ class MeshMorph(nn.Module):
             mode=mode,
             block_bytes=block_bytes,
             dense_bytes=dense_bytes,
+            implementation=implementation,
         )
         self.assembly_time = self.idw.assembly_time
 
