@@ -74,6 +74,7 @@ def test_no_command_is_a_usage_error(capsys):
     assert "required" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # a fresh interpreter imports torch
 def test_console_script_help():
     executable = shutil.which("torchmorph")
     if executable is None:

@@ -212,6 +212,7 @@ def test_gmsh_leaves_a_callers_session_alone(gmsh_small):
         gmsh.finalize()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["wing", "hull"])
 def test_gmsh_paper_sizes_match_the_paper(case, tmp_path):
     pytest.importorskip("gmsh")

@@ -43,6 +43,7 @@ def _rows(split: str, rank: int) -> torch.Tensor:
 
 @pytest.mark.parametrize("mode", ["dense", "matrix_free"])
 @pytest.mark.parametrize("split", list(worker.SPLITS))
+@pytest.mark.slow  # two spawned processes
 def test_sharded_idw_forward_equals_single_process(ranks, split, mode):
     results, _ = ranks
     controls, targets, displacements, _ = worker.idw_data()
@@ -60,6 +61,7 @@ def test_sharded_idw_forward_equals_single_process(ranks, split, mode):
 
 @pytest.mark.parametrize("mode", ["dense", "matrix_free"])
 @pytest.mark.parametrize("split", list(worker.SPLITS))
+@pytest.mark.slow  # two spawned processes
 def test_sharded_idw_gradients_equal_single_process(ranks, split, mode):
     results, _ = ranks
     controls, targets, displacements, weights = worker.idw_data()
@@ -79,6 +81,7 @@ def test_sharded_idw_gradients_equal_single_process(ranks, split, mode):
 
 
 @pytest.mark.parametrize("split", list(worker.SPLITS))
+@pytest.mark.slow  # two spawned processes
 def test_sharded_pod_equals_single_process(ranks, split):
     results, _ = ranks
     controls, targets, displacements, _ = worker.idw_data()
@@ -105,6 +108,7 @@ def test_sharded_pod_equals_single_process(ranks, split):
 
 @pytest.mark.parametrize("mode", ["dense", "matrix_free"])
 @pytest.mark.parametrize("layout", ["default", "interleaved", "empty"])
+@pytest.mark.slow  # two spawned processes
 def test_sharded_mesh_morph_equals_single_process(ranks, layout, mode):
     results, _ = ranks
     mesh, boundary, node_weights = worker.mesh_data()
@@ -146,6 +150,7 @@ def test_sharded_mesh_morph_equals_single_process(ranks, layout, mode):
 
 
 @pytest.mark.parametrize("layout", ["default", "interleaved", "empty"])
+@pytest.mark.slow  # two spawned processes
 def test_sharded_mesh_pod_equals_single_process(ranks, layout):
     results, _ = ranks
     mesh, boundary, _ = worker.mesh_data()
@@ -161,6 +166,7 @@ def test_sharded_mesh_pod_equals_single_process(ranks, layout):
         )
 
 
+@pytest.mark.slow  # two spawned processes
 def test_partitioned_files_and_batched_gather(ranks):
     results, outdir = ranks
     mesh, boundary, _ = worker.mesh_data()
@@ -180,6 +186,7 @@ def test_partitioned_files_and_batched_gather(ranks):
         load_partitioned(outdir / "batched")
 
 
+@pytest.mark.slow  # two spawned processes
 def test_partition_must_cover_every_node_once(ranks):
     results, _ = ranks
     count = worker.mesh_data()[0].points.shape[0]

@@ -232,6 +232,7 @@ def test_feature_angle_puts_nodes_on_the_sharp_edges_and_names_the_patches():
         assert (np.ptp(points[patch], axis=0) < 1e-12).sum() == 1
 
 
+@pytest.mark.slow
 def test_two_files_the_outer_one_is_the_wall(tmp_path):
     pytest.importorskip("pytetwild")
     vertices, faces = icosphere(1, radius=0.3)
@@ -274,6 +275,7 @@ def test_written_mesh_reads_back_with_its_node_sets(ball_in_box, tmp_path):
         torch.testing.assert_close(again.node_sets[name], nodes)
 
 
+@pytest.mark.slow
 def test_tetrahedralize_reports_start_and_elapsed_time_on_request(capsys):
     pytest.importorskip("pytetwild")
     vertices, faces = icosphere(1)

@@ -89,7 +89,9 @@ SLOW_DEMOS = ("python demos/fluid_wing.py", "python demos/rotating_hull.py")
 
 def _marks(command: str):
     marks = []
-    if command.startswith(SLOW_DEMOS) or "own_shape.py --size" in command:
+    # the commands share a workspace built by meshing (torchmorph mesh, demos, data_gen)
+    meshes = command.startswith(("torchmorph ", "python -m data_gen", "python demos/"))
+    if command.startswith(SLOW_DEMOS) or "own_shape.py --size" in command or meshes:
         marks.append(pytest.mark.slow)
     return marks
 
