@@ -73,6 +73,7 @@ __all__ = [
     "box_surface",
     "closest_points",
     "feature_edges",
+    "is_cad_file",
     "load_surface",
     "mesh_cad",
     "mesh_surfaces",
