@@ -11,7 +11,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from conftest import structured_cube
+from conftest import structured_cube, write_step
 
 import torchmorph
 from torchmorph.cli import EXIT_ERROR, EXIT_INVERTED, EXIT_OK, EXIT_USAGE, build_parser, main
@@ -643,26 +643,13 @@ def test_mesh_without_pytetwild_names_the_tetwild_extra(tmp_path, monkeypatch, c
 WALLS = ("wall_x0", "wall_x1", "wall_y0", "wall_y1", "wall_z0", "wall_z1")
 
 
-def _holed_box_step(path):
-    """A STEP file (written by gmsh): a box with a cylindrical hole, 7 CAD faces."""
-    gmsh = pytest.importorskip("gmsh")
-    gmsh.initialize(readConfigFiles=False, interruptible=False)
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        occ = gmsh.model.occ
-        occ.cut(
-            [(3, occ.addBox(-1, -1, -0.5, 2, 2, 1))],
-            [(3, occ.addCylinder(0, 0, -0.5, 0, 0, 1, 0.4))],
-        )
-        occ.synchronize()
-        gmsh.write(str(path))
-    finally:
-        gmsh.finalize()
-    return path
+def _step(path):
+    pytest.importorskip("gmsh")
+    return write_step(path)
 
 
 def test_mesh_of_a_step_file_in_a_box(tmp_path, capsys):
-    source = _holed_box_step(tmp_path / "body.step")
+    source = _step(tmp_path / "body.step")
     out = tmp_path / "out.vtu"
     args = ["mesh", str(source), "--box", "1,2,1,1,1,1", "--edge-length", "0.8", "-o", str(out)]
     assert main([*args, "--no-progress"]) == EXIT_OK
@@ -729,7 +716,7 @@ def test_every_help_example_runs_as_printed(tmp_path, monkeypatch, capsys):
         )
     )
     car.export(tmp_path / "car.obj")
-    _holed_box_step(tmp_path / "part.step")
+    _step(tmp_path / "part.step")
     monkeypatch.chdir(tmp_path)
     for command in ("morph", "mesh"):
         for line in help_examples(command):

@@ -7,6 +7,8 @@ import pytest
 
 gmsh = pytest.importorskip("gmsh")
 
+from conftest import write_step  # noqa: E402
+
 from torchmorph import meshing  # noqa: E402
 from torchmorph.quality import count_inverted  # noqa: E402
 
@@ -14,31 +16,13 @@ RADIUS = 0.7
 CENTRE = (0.1, -0.2, 0.3)
 
 
-def _write_step(path, build) -> None:
-    """Write the OCC model made by ``build(occ)`` to a STEP file (gmsh's own writer)."""
-    gmsh.initialize(readConfigFiles=False, interruptible=False)
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.model.add("cad")
-        build(gmsh.model.occ)
-        gmsh.model.occ.synchronize()
-        gmsh.write(str(path))
-    finally:
-        gmsh.finalize()
-
-
 @pytest.fixture(scope="module")
 def cad(tmp_path_factory):
     """ball.step (an OCC sphere) and part.step (a box with a cylindrical hole: 7 faces)."""
     directory = tmp_path_factory.mktemp("cad")
     ball, part = directory / "ball.step", directory / "part.step"
-    _write_step(ball, lambda occ: occ.addSphere(*CENTRE, RADIUS))
-
-    def holed_box(occ):
-        box = occ.addBox(-1, -1, -0.5, 2, 2, 1)
-        occ.cut([(3, box)], [(3, occ.addCylinder(0, 0, -0.5, 0, 0, 1, 0.4))])
-
-    _write_step(part, holed_box)
+    write_step(ball, lambda occ: occ.addSphere(*CENTRE, RADIUS))
+    write_step(part)
     return ball, part
 
 
