@@ -670,7 +670,7 @@ def test_mesh_of_a_step_file_in_a_box(tmp_path, capsys):
     err = _error(capsys)
     assert "CAD file" in err and "none.step' does not exist" in err
     assert main([*args, "--feature-angle", "30"]) == EXIT_ERROR
-    assert "--feature-angle and --repair are for triangle surfaces" in _error(capsys)
+    assert "feature_angle and repair are for triangle surfaces" in _error(capsys)
 
 
 # --------------------------------------------------------------------------- --help examples

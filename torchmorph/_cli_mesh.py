@@ -182,11 +182,20 @@ def _run_mesh(args: argparse.Namespace) -> int:
     if (args.body_edge_length or args.grading) and args.box is None and args.bounds is None:
         args.parser.error("argument --body-edge-length/--grading: needs --box or --bounds")
     progress = sys.stderr.isatty() if args.progress is None else args.progress
-    if any(meshing.is_cad_file(_surface_argument(text)[1]) for text in args.surfaces):
-        return _run_cad(args, output, progress)
+    try:  # CAD files and triangle surfaces cannot be mixed
+        meshing._cad_input([_surface_argument(text)[1] for text in args.surfaces])
+    except ValueError as error:
+        raise CommandError(str(error).removeprefix("surfaces: ")) from error
     surfaces = {}
     for text in args.surfaces:
         name, path = _surface_argument(text)
+        if meshing.is_cad_file(path):  # gmsh reads it (mesh_surfaces -> mesh_cad)
+            name = name or Path(path).stem
+            if name in surfaces:
+                raise CommandError(f"two surfaces are named {name!r}; name them with NAME=FILE")
+            surfaces[name] = path
+            _line("CAD file", f"{name}: {path}")
+            continue
         try:
             surface = meshing.load_surface(path, name=name, repair=args.repair)
         except (ValueError, FileNotFoundError) as error:
@@ -217,47 +226,8 @@ def _run_mesh(args: argparse.Namespace) -> int:
             iterations=args.iterations,
             feature_angle=args.feature_angle,
             snap=args.snap,
+            repair=args.repair,
             threads=args.threads,
-            progress=progress,
-        )
-    except ValueError as error:
-        raise CommandError(str(error)) from error
-    _report(mesh, output, time.perf_counter() - start)
-    return EXIT_OK
-
-
-def _run_cad(args: argparse.Namespace, output: Path, progress: bool) -> int:
-    """CAD files: gmsh (:func:`torchmorph.meshing.mesh_cad`)."""
-    from torchmorph import meshing
-
-    files = {}
-    for text in args.surfaces:
-        name, path = _surface_argument(text)
-        if not meshing.is_cad_file(path):
-            raise CommandError(
-                f"{text}: CAD files (meshed with gmsh) and triangle surfaces (meshed with "
-                "fTetWild) cannot be meshed together; convert one kind"
-            )
-        name = name or Path(path).stem
-        if name in files:
-            raise CommandError(f"two surfaces are named {name!r}; name them with NAME=FILE")
-        files[name] = path
-        _line("CAD file", f"{name}: {path}")
-    if args.feature_angle is not None or args.repair:
-        raise CommandError(
-            "--feature-angle and --repair are for triangle surfaces: a CAD file's faces "
-            "and curves are node sets already"
-        )
-    bounds = None if args.bounds is None else np.reshape(args.bounds, (2, 3))
-    start = time.perf_counter()
-    try:
-        mesh = meshing.mesh_cad(
-            files,
-            box=args.box,
-            bounds=bounds,
-            mesh_size=args.edge_length,
-            body_mesh_size=args.body_edge_length,
-            grading=args.grading,
             progress=progress,
         )
     except (ValueError, FileNotFoundError) as error:
