@@ -96,8 +96,10 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
-def write_step(path: Path, build=None) -> Path:
-    """Write the OpenCASCADE model made by ``build(occ)`` to a STEP file with gmsh.
+def write_cad(path: Path, build=None) -> Path:
+    """Write the OpenCASCADE model made by ``build(occ)`` to a CAD file with gmsh.
+
+    The format follows the extension: ``.step``, ``.iges`` (faces only), ``.brep``.
 
     The default model is a box [-1, 1]^2 x [-0.5, 0.5] with a cylindrical hole of
     radius 0.4 along z: 7 CAD faces.

@@ -11,7 +11,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from conftest import structured_cube, write_step
+from conftest import structured_cube, write_cad
 
 import torchmorph
 from torchmorph.cli import EXIT_ERROR, EXIT_INVERTED, EXIT_OK, EXIT_USAGE, build_parser, main
@@ -645,7 +645,7 @@ WALLS = ("wall_x0", "wall_x1", "wall_y0", "wall_y1", "wall_z0", "wall_z1")
 
 def _step(path):
     pytest.importorskip("gmsh")
-    return write_step(path)
+    return write_cad(path)
 
 
 def test_mesh_of_a_step_file_in_a_box(tmp_path, capsys):

@@ -1,13 +1,15 @@
-"""CAD files (STEP) meshed with gmsh: validity, exact boundaries, node sets, determinism, errors."""
+"""CAD files (STEP, BREP, IGES) meshed with gmsh: validity, exact boundaries, node sets, determinism, errors."""
 
 from __future__ import annotations
+
+import sys
 
 import numpy as np
 import pytest
 
 gmsh = pytest.importorskip("gmsh")
 
-from conftest import write_step  # noqa: E402
+from conftest import write_cad  # noqa: E402
 
 from torchmorph import meshing  # noqa: E402
 from torchmorph.quality import count_inverted  # noqa: E402
@@ -21,8 +23,8 @@ def cad(tmp_path_factory):
     """ball.step (an OCC sphere) and part.step (a box with a cylindrical hole: 7 faces)."""
     directory = tmp_path_factory.mktemp("cad")
     ball, part = directory / "ball.step", directory / "part.step"
-    write_step(ball, lambda occ: occ.addSphere(*CENTRE, RADIUS))
-    write_step(part)
+    write_cad(ball, lambda occ: occ.addSphere(*CENTRE, RADIUS))
+    write_cad(part)
     return ball, part
 
 
@@ -112,6 +114,18 @@ def test_two_builds_are_identical(cad):
         assert np.array_equal(first.node_sets[key].numpy(), second.node_sets[key].numpy())
 
 
+def test_a_brep_file_meshes_like_the_step_file(cad, tmp_path):
+    _, part = cad
+    brep = write_cad(tmp_path / "part.brep")
+    from_step, from_brep = (meshing.mesh_surfaces(f, box=1, edge_length=0.8) for f in (part, brep))
+    assert from_brep.node_sets.keys() == from_step.node_sets.keys()
+    # the box [-3, 3]^2 x [-2.5, 2.5] less the holed box (4 - 0.4^2 pi), the hole polygonal
+    exact = 180 - (4 - 0.16 * np.pi)
+    for mesh in (from_step, from_brep):
+        assert count_inverted(mesh) == 0
+        assert abs(_volumes(mesh).sum() / exact - 1) < 1e-3
+
+
 def test_bad_input_is_refused(cad, tmp_path):
     ball, _ = cad
     with pytest.raises(ValueError, match=r"files: unsupported CAD file extension '.stpx'"):
@@ -130,7 +144,22 @@ def test_bad_input_is_refused(cad, tmp_path):
         meshing.mesh_cad(ball, body_mesh_size=0.1)
     with pytest.raises(ValueError, match=r"mesh_size must be a finite number > 0, got -1"):
         meshing.mesh_cad(ball, mesh_size=-1)
+    faces_only = tmp_path / "faces.iges"  # gmsh writes IGES faces, not solids
+    write_cad(faces_only, lambda occ: occ.addBox(0, 0, 0, 1, 1, 1))
+    with pytest.raises(
+        ValueError, match=r"faces.iges' holds no solid, only entities of dimension \[2\]"
+    ):
+        meshing.mesh_cad(faces_only)
     broken = tmp_path / "broken.step"
     broken.write_text("not a STEP file\n")
     with pytest.raises(ValueError, match=r"files: .*broken.step"):
         meshing.mesh_cad(broken)
+
+
+def test_without_gmsh_the_error_names_the_mesh_extra(cad, monkeypatch):
+    ball, _ = cad
+    monkeypatch.setitem(sys.modules, "gmsh", None)  # import gmsh -> ImportError
+    with pytest.raises(
+        ImportError, match=r"CAD files needs gmsh: pip install 'torchmorph\[mesh\]'"
+    ):
+        meshing.mesh_surfaces(ball)

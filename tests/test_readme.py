@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import write_step
+from conftest import write_cad
 
 from torchmorph.cli import EXIT_OK, main
 
@@ -84,7 +84,7 @@ def workspace(tmp_path_factory):
     np.save(directory / "d.npy", np.array([0.02, 0.0, 0.01]))
     (directory / "demos").symlink_to(ROOT / "demos")
     with contextlib.suppress(ImportError):  # part.step: a box with a cylindrical hole
-        write_step(directory / "part.step")
+        write_cad(directory / "part.step")
     return directory
 
 

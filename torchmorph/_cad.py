@@ -84,8 +84,9 @@ def _import_bodies(gmsh, files):
         volumes = [tag for dim, tag in shapes if dim == 3]
         if not volumes:
             raise ValueError(
-                f"files: {str(path)!r} holds no solid (only entities of dimension "
-                f"{sorted({dim for dim, _ in shapes})}); a CAD file needs a closed volume"
+                f"files: {str(path)!r} holds no solid, only entities of dimension "
+                f"{sorted({dim for dim, _ in shapes})} (IGES files often hold faces only); "
+                "export the body as a solid, e.g. to STEP or BREP"
             )
         bodies[name] = volumes
     occ.synchronize()
