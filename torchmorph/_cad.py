@@ -102,7 +102,7 @@ def _import_bodies(gmsh, files):
     return result
 
 
-def _match_faces(gmsh, bodies, bounds, tolerance):
+def _match_faces(gmsh, bodies, bounds, diagonal: float, tolerance: float = 1e-9):
     """Name every surface of the model after the boolean: box wall or body face."""
     from data_gen.geometry import BOX_WALLS
 
@@ -114,24 +114,26 @@ def _match_faces(gmsh, bodies, bounds, tolerance):
         for k, (_, centre, area) in enumerate(b[1])
     ]
     for _, tag in gmsh.model.getEntities(2):
-        box = gmsh.model.getBoundingBox(2, tag)
+        centre, area = np.array(occ.getCenterOfMass(2, tag)), occ.getMass(2, tag)
         wall = None
-        if bounds is not None:
+        if bounds is not None:  # the bodies are strictly inside: a centre on a wall is a wall's
             for label, axis, side in BOX_WALLS:
-                flat = box[axis + 3] - box[axis] < tolerance
-                if flat and abs(box[axis] - bounds[side][axis]) < tolerance:
+                if abs(centre[axis] - bounds[side][axis]) <= tolerance * diagonal:
                     wall = label
         if wall is not None:
             names.setdefault(wall, []).append(tag)
             names.setdefault("far_field", []).append(tag)
             continue
-        centre, area = np.array(occ.getCenterOfMass(2, tag)), occ.getMass(2, tag)
-        distance = [np.linalg.norm(centre - c) + abs(area - a) ** 0.5 for _, _, c, a in faces]
+        # a body's face, unchanged by the boolean: the same centre and area
+        distance = [
+            np.linalg.norm(centre - c) / diagonal + abs(area - a) / max(area, a)
+            for _, _, c, a in faces
+        ]
         best = int(np.argmin(distance))
         if distance[best] > tolerance:
-            raise RuntimeError(
-                f"gmsh's boolean changed CAD surface {tag} (centre {centre.tolist()}); "
-                "do the bodies touch the box or each other?"
+            raise ValueError(
+                f"files: gmsh's boolean changed CAD surface {tag} (centre {centre.tolist()}): "
+                "do the bodies touch or overlap each other?"
             )
         body, k, _, _ = faces[best]
         names.setdefault(body, []).append(tag)
@@ -287,8 +289,7 @@ def mesh_cad(
         occ.synchronize()
         domain = walls if walls is not None else np.stack([low, high])
         diagonal = float(np.linalg.norm(domain[1] - domain[0]))
-        tolerance = 1e-6 * diagonal
-        names = _match_faces(gmsh, bodies, walls, tolerance)
+        names = _match_faces(gmsh, bodies, walls, diagonal)
         size = float(mesh_size) if mesh_size is not None else diagonal / 20.0
         gmsh.option.setNumber("Mesh.MeshSizeMax", size)
         if body_mesh_size is not None:
