@@ -104,6 +104,23 @@ def _on_cylinder(points, each=False):
     return close if each else close.all()
 
 
+def test_a_body_inside_another_is_a_hole_in_it(cad, tmp_path):
+    _, part = cad
+    shell = write_cad(tmp_path / "shell.step", lambda occ: occ.addSphere(0, 0, 0, 2.0))
+    mesh = meshing.mesh_surfaces({"shell": shell, "part": part}, edge_length=0.5)
+    assert count_inverted(mesh) == 0
+    sets = {k: set(v.tolist()) for k, v in mesh.node_sets.items()}
+    faces = [f"part_face{k}" for k in range(7)]
+    assert list(sets) == ["shell", "part", *faces, "part_edges"]
+    assert not sets["shell"] & sets["part"]
+    assert sets["shell"] | sets["part"] == set(mesh.boundary_nodes.tolist())
+    radius = np.linalg.norm(mesh.points[mesh.node_sets["shell"]].numpy(), axis=1)
+    np.testing.assert_allclose(radius, 2.0, rtol=1e-9)
+    # the ball of radius 2 less the holed box: the polygonal sphere loses a little volume
+    exact = 4 / 3 * np.pi * 2.0**3 - (4 - 0.16 * np.pi)
+    assert -0.03 < _volumes(mesh).sum() / exact - 1 < 0
+
+
 def test_two_builds_are_identical(cad):
     _, part = cad
     first, second = (meshing.mesh_cad(part, box=1, mesh_size=0.8) for _ in range(2))

@@ -181,7 +181,8 @@ def mesh_cad(
         ``.step``/``.stp``, ``.iges``/``.igs`` or ``.brep`` files, each with
         one or more solids (a body). Without ``box``/``bounds`` the solids are
         meshed; when one body's bounding box contains all the others, the
-        others are cut out of it (bodies in a tunnel).
+        others are cut out of it (bodies in a tunnel). Bodies must not touch
+        or overlap each other.
     box, bounds
         The far-field box, as in :func:`torchmorph.meshing.mesh_surfaces`:
         the bodies are cut out of it (OpenCASCADE boolean).
@@ -213,7 +214,8 @@ def mesh_cad(
     Raises
     ------
     ValueError
-        For a bad file or argument (named in the message).
+        For a bad file or argument (named in the message), a file without a
+        solid, or bodies that touch (the boolean changes their faces).
     FileNotFoundError
         For a missing file.
     ImportError
