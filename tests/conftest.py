@@ -94,3 +94,29 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+def write_cad(path: Path, build=None) -> Path:
+    """Write the OpenCASCADE model made by ``build(occ)`` to a CAD file with gmsh.
+
+    The format follows the extension: ``.step``, ``.iges`` (faces only), ``.brep``.
+
+    The default model is a box [-1, 1]^2 x [-0.5, 0.5] with a cylindrical hole of
+    radius 0.4 along z: 7 CAD faces.
+    """
+    import gmsh
+
+    def holed_box(occ):
+        box = occ.addBox(-1, -1, -0.5, 2, 2, 1)
+        occ.cut([(3, box)], [(3, occ.addCylinder(0, 0, -0.5, 0, 0, 1, 0.4))])
+
+    gmsh.initialize(readConfigFiles=False, interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("cad")
+        (build or holed_box)(gmsh.model.occ)
+        gmsh.model.occ.synchronize()
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+    return path

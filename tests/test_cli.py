@@ -11,7 +11,7 @@ import types
 import numpy as np
 import pytest
 import torch
-from conftest import structured_cube
+from conftest import structured_cube, write_cad
 
 import torchmorph
 from torchmorph.cli import EXIT_ERROR, EXIT_INVERTED, EXIT_OK, EXIT_USAGE, build_parser, main
@@ -641,6 +641,39 @@ def test_mesh_without_pytetwild_names_the_tetwild_extra(tmp_path, monkeypatch, c
     assert not (tmp_path / "ball.vtu").exists()
 
 
+WALLS = ("wall_x0", "wall_x1", "wall_y0", "wall_y1", "wall_z0", "wall_z1")
+
+
+def _step(path):
+    pytest.importorskip("gmsh")
+    return write_cad(path)
+
+
+def test_mesh_of_a_step_file_in_a_box(tmp_path, capsys):
+    source = _step(tmp_path / "body.step")
+    out = tmp_path / "out.vtu"
+    args = ["mesh", str(source), "--box", "1,2,1,1,1,1", "--edge-length", "0.8", "-o", str(out)]
+    assert main([*args, "--no-progress"]) == EXIT_OK
+    printed = capsys.readouterr().out
+    assert "CAD file        body:" in printed and "inverted tets   0" in printed
+    assert re.search(r"quality Q\s+max \d+(\.\d+)?, mean \d", printed)
+    mesh = read_mesh(out)
+    faces = [f"body_face{k}" for k in range(7)]
+    assert list(mesh.node_sets) == ["body", "far_field", *WALLS, *faces, "body_edges"]
+    for name, nodes in mesh.node_sets.items():
+        assert f"  {name}" in printed and f"{nodes.numel()} nodes" in printed
+    x = mesh.points[mesh.node_set("wall_x1"), 0]
+    torch.testing.assert_close(x, torch.full_like(x, 1 + 2 * 2.0), rtol=0, atol=1e-6)
+    mixed = ["mesh", str(source), str(tmp_path / "ball.stl"), "-o", str(out)]
+    assert main(mixed) == EXIT_ERROR
+    assert "cannot be meshed together" in _error(capsys)
+    assert main(["mesh", str(tmp_path / "none.step"), "-o", str(out)]) == EXIT_ERROR
+    err = _error(capsys)
+    assert "CAD file" in err and "none.step' does not exist" in err
+    assert main([*args, "--feature-angle", "30"]) == EXIT_ERROR
+    assert "feature_angle and repair are for triangle surfaces" in _error(capsys)
+
+
 # --------------------------------------------------------------------------- --help examples
 
 
@@ -660,7 +693,7 @@ def help_examples(command: str) -> list[str]:
 
 
 def test_help_examples_are_found():
-    assert len(help_examples("morph")) == 2 and len(help_examples("mesh")) == 3
+    assert len(help_examples("morph")) == 2 and len(help_examples("mesh")) == 4
     assert all(line.startswith("torchmorph ") for line in help_examples("mesh"))
 
 
@@ -684,9 +717,10 @@ def test_every_help_example_runs_as_printed(tmp_path, monkeypatch, capsys):
         )
     )
     car.export(tmp_path / "car.obj")
+    _step(tmp_path / "part.step")
     monkeypatch.chdir(tmp_path)
     for command in ("morph", "mesh"):
         for line in help_examples(command):
             assert main(shlex.split(line)[1:]) == EXIT_OK, (line, capsys.readouterr().err)
     out = capsys.readouterr().out
-    assert "car_edges" in out and "wall_z0" in out
+    assert "car_edges" in out and "wall_z0" in out and "part_face6" in out

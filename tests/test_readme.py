@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shlex
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import write_cad
 
 from torchmorph.cli import EXIT_OK, main
 
@@ -81,6 +83,8 @@ def workspace(tmp_path_factory):
     trimesh.creation.icosphere(subdivisions=2, radius=0.5).export(directory / "body.stl")
     np.save(directory / "d.npy", np.array([0.02, 0.0, 0.01]))
     (directory / "demos").symlink_to(ROOT / "demos")
+    with contextlib.suppress(ImportError):  # part.step: a box with a cylindrical hole
+        write_cad(directory / "part.step")
     return directory
 
 
@@ -102,7 +106,9 @@ def _marks(command: str):
 def test_readme_command_runs_as_printed(command, workspace, monkeypatch, capsys):
     """Commands run in README order in one directory (the mesh one writes body.vtu first)."""
     words = shlex.split(command)
-    if words[:2] == ["torchmorph", "mesh"] or "own_shape.py" in command:
+    if any(word.endswith(".step") for word in words):
+        pytest.importorskip("gmsh")
+    elif words[:2] == ["torchmorph", "mesh"] or "own_shape.py" in command:
         pytest.importorskip("pytetwild")
     if words[0] == "torchmorph":
         if words[1] in ("info", "morph") and not (workspace / "body.vtu").exists():

@@ -25,7 +25,7 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
     mesh = commands.add_parser(
         "mesh",
         parents=[common],
-        help="tetrahedralise your own closed surface (STL, OBJ, PLY)",
+        help="tetrahedralise your own closed surface (STL, OBJ, PLY) or CAD solid (STEP, IGES, BREP)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Tetrahedralise the volume inside closed triangle surfaces (or around them, in\n"
         "a box) with fTetWild, snap the boundary nodes back onto the surfaces and\n"
@@ -33,14 +33,21 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         "per face group of a file (OBJ g/o groups, PLY face labels), the box walls\n"
         "wall_x0 ... wall_z1, and with --feature-angle the sharp edges\n"
         "(<surface>_edges) and the smooth patches between them (<surface>_patch<k>).\n"
-        "Prints the mesh's quality. Needs: pip install 'torchmorph[tetwild]'.",
+        "The solids of CAD files (.step/.stp, .iges/.igs, .brep) are meshed with gmsh on\n"
+        "the exact CAD geometry instead (no snapping; --edge-length, --body-edge-length\n"
+        "and --grading are its sizes, the fTetWild options do not apply), with one node\n"
+        "set per CAD face (<surface>_face<k>) and the nodes on the curves between faces\n"
+        "(<surface>_edges). CAD and triangle files cannot be mixed in one call.\n"
+        "Prints the mesh's quality. Needs: pip install 'torchmorph[tetwild]' (triangle\n"
+        "surfaces) or 'torchmorph[mesh]' (CAD files).",
         epilog=_MESH_EPILOG,
     )
     mesh.add_argument(
         "surfaces",
         nargs="+",
         metavar="SURFACE",
-        help="closed surface file (.stl, .obj, .ply, .off), or NAME=FILE",
+        help="closed surface file (.stl, .obj, .ply, .off) or CAD file (.step, .stp, "
+        ".iges, .igs, .brep), or NAME=FILE",
     )
     mesh.add_argument(
         "--output",
@@ -138,12 +145,14 @@ examples:
   torchmorph mesh body.stl --box 2 --feature-angle 30 -o body.vtu
   torchmorph mesh car=car.obj --box 1,2.5,1,1,0.1,1 --body-edge-length 0.08 \\
       --edge-length 0.6 --feature-angle 30 -o car.vtu
+  torchmorph mesh part.step --box 1 --edge-length 0.8 --body-edge-length 0.3 -o part.vtu
   torchmorph morph body.vtu --moving body -d d.npy -o out.vtu
 (the first: a body in a box padded by twice its size, node sets body, far_field,
 wall_x0 ... wall_z1 and, if the body has sharp edges, body_edges, body_patch0 ...;
-the second: a tunnel 1 length upstream, 2.5
-downstream, 0.1 below the body, graded from 0.08 on the car to 0.6; the third morphs
-the result by a displacement of the body, see 'torchmorph morph --help')
+the second: a tunnel 1 length upstream, 2.5 downstream, 0.1 below the body, graded
+from 0.08 on the car to 0.6; the third: a CAD part in a box, meshed with gmsh, node
+sets part, far_field, the walls, part_face0 ... and part_edges; the fourth morphs
+the first result by a displacement of the body, see 'torchmorph morph --help')
 """
 
 
@@ -157,8 +166,7 @@ def _surface_argument(text: str) -> tuple[str | None, str]:
 
 def _run_mesh(args: argparse.Namespace) -> int:
     from torchmorph import meshing
-    from torchmorph.io import MESH_FORMATS, write_mesh
-    from torchmorph.quality import quality_summary
+    from torchmorph.io import MESH_FORMATS
 
     output = Path(args.output)
     if output.suffix.lower() not in MESH_FORMATS:
@@ -174,9 +182,20 @@ def _run_mesh(args: argparse.Namespace) -> int:
     if (args.body_edge_length or args.grading) and args.box is None and args.bounds is None:
         args.parser.error("argument --body-edge-length/--grading: needs --box or --bounds")
     progress = sys.stderr.isatty() if args.progress is None else args.progress
+    try:  # CAD files and triangle surfaces cannot be mixed
+        meshing._cad_input([_surface_argument(text)[1] for text in args.surfaces])
+    except ValueError as error:
+        raise CommandError(str(error).removeprefix("surfaces: ")) from error
     surfaces = {}
     for text in args.surfaces:
         name, path = _surface_argument(text)
+        if meshing.is_cad_file(path):  # gmsh reads it (mesh_surfaces -> mesh_cad)
+            name = name or Path(path).stem
+            if name in surfaces:
+                raise CommandError(f"two surfaces are named {name!r}; name them with NAME=FILE")
+            surfaces[name] = path
+            _line("CAD file", f"{name}: {path}")
+            continue
         try:
             surface = meshing.load_surface(path, name=name, repair=args.repair)
         except (ValueError, FileNotFoundError) as error:
@@ -207,12 +226,21 @@ def _run_mesh(args: argparse.Namespace) -> int:
             iterations=args.iterations,
             feature_angle=args.feature_angle,
             snap=args.snap,
+            repair=args.repair,
             threads=args.threads,
             progress=progress,
         )
-    except ValueError as error:
-        raise CommandError(str(error)) from error
-    elapsed = time.perf_counter() - start
+    except (ValueError, FileNotFoundError) as error:
+        raise CommandError(str(error).removeprefix("files: ")) from error
+    _report(mesh, output, time.perf_counter() - start)
+    return EXIT_OK
+
+
+def _report(mesh, output: Path, elapsed: float) -> None:
+    """Write the mesh and print its size, quality and node sets."""
+    from torchmorph.io import write_mesh
+    from torchmorph.quality import quality_summary
+
     summary = quality_summary(mesh)
     output.parent.mkdir(parents=True, exist_ok=True)
     write_mesh(output, mesh)
@@ -233,4 +261,3 @@ def _run_mesh(args: argparse.Namespace) -> int:
     for name in mesh.node_sets:
         print(f"  {name:<{width}}  {mesh.node_sets[name].numel()} nodes")
     _line("wrote", f"{output}")
-    return EXIT_OK

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "CAD_FORMATS",
     "PLY_LABELS",
     "SURFACE_FORMATS",
     "WALL_NAMES",
@@ -27,6 +28,8 @@ __all__ = [
 
 #: File extensions :func:`load_surface` reads.
 SURFACE_FORMATS = (".stl", ".obj", ".ply", ".off")
+#: CAD file extensions (meshed with gmsh by :func:`torchmorph.meshing.mesh_cad`).
+CAD_FORMATS = (".step", ".stp", ".iges", ".igs", ".brep")
 #: Node-set names of the box walls (the face of the box at the low / high end of x, y, z).
 WALL_NAMES = ("wall_x0", "wall_x1", "wall_y0", "wall_y1", "wall_z0", "wall_z1")
 #: PLY face properties read as face labels (the first one present is used).
@@ -277,7 +280,8 @@ def load_surface(
     if suffix not in SURFACE_FORMATS:
         raise ValueError(
             f"path: unsupported surface file extension {suffix or '(none)'!r} in "
-            f"{str(path)!r}; supported: {', '.join(SURFACE_FORMATS)}"
+            f"{str(path)!r}; supported: {', '.join(SURFACE_FORMATS)} (and CAD files, "
+            f"{', '.join(CAD_FORMATS)}, in mesh_surfaces)"
         )
     if not path.is_file():
         raise FileNotFoundError(f"path: surface file {str(path)!r} does not exist")

@@ -22,8 +22,16 @@ The path from a surface file to a :class:`~torchmorph.mesh.TetMesh` that
 
 This module is not part of the morphing core (which never imports it). It needs
 the ``tetwild`` extra: ``pip install 'torchmorph[tetwild]'`` (pytetwild, which
-imports pyvista, and trimesh). For surfaces that come from CAD, gmsh on the CAD
-model gives exact boundaries; this path is for triangle surfaces.
+imports pyvista, and trimesh).
+
+CAD files (STEP ``.step``/``.stp``, IGES ``.iges``/``.igs``, BREP ``.brep``)
+take the gmsh path instead (:func:`mesh_cad`, which :func:`mesh_surfaces`
+dispatches to by extension; the ``mesh`` extra, ``pip install
+'torchmorph[mesh]'``): gmsh's OpenCASCADE kernel imports the solids, cuts them
+out of the same far-field box, and meshes the exact CAD geometry (boundary
+nodes lie on it, no snapping); the node sets are named the same way, with one
+set per CAD face (``<surface>_face<k>``) and the nodes on the curves between
+faces (``<surface>_edges``).
 """
 
 from __future__ import annotations
@@ -38,6 +46,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from torchmorph._cad import CAD_FORMATS, is_cad_file, mesh_cad
 from torchmorph._surface import (
     _EXTRA,
     PLY_LABELS,
@@ -56,6 +65,7 @@ if TYPE_CHECKING:
     from torchmorph.mesh import TetMesh
 
 __all__ = [
+    "CAD_FORMATS",
     "PLY_LABELS",
     "SURFACE_FORMATS",
     "WALL_NAMES",
@@ -63,7 +73,9 @@ __all__ = [
     "box_surface",
     "closest_points",
     "feature_edges",
+    "is_cad_file",
     "load_surface",
+    "mesh_cad",
     "mesh_surfaces",
     "quality_report",
     "surface_problems",
@@ -287,6 +299,19 @@ def _as_surfaces(surfaces: Any, repair: bool) -> list[Surface]:
     return result
 
 
+def _cad_input(surfaces: Any) -> bool:
+    """Whether ``surfaces`` are CAD files (all of them); mixing them with triangle surfaces is refused."""
+    items = [surfaces] if isinstance(surfaces, (str, os.PathLike, Surface)) else surfaces
+    items = list(items.values() if isinstance(items, Mapping) else items)
+    cad = [is_cad_file(item) for item in items]
+    if any(cad) and not all(cad):
+        raise ValueError(
+            f"surfaces: CAD files ({', '.join(CAD_FORMATS)}, meshed with gmsh) and triangle "
+            "surfaces (meshed with fTetWild) cannot be meshed together; convert one kind"
+        )
+    return bool(cad) and all(cad)
+
+
 def _contains(outer: Surface, inner: Surface) -> bool:
     return bool(
         (outer.bounds[0] < inner.bounds[0]).all() and (inner.bounds[1] < outer.bounds[1]).all()
@@ -368,7 +393,10 @@ def mesh_surfaces(
         one whose bounding box contains all the others is the outer wall and
         the others are holes in it (bodies in a tunnel), otherwise each is
         meshed as a solid. With ``box``/``bounds`` every surface is a body
-        in the box.
+        in the box. CAD files (:data:`CAD_FORMATS`: STEP, IGES, BREP) go to
+        :func:`mesh_cad` (gmsh on the exact CAD geometry; ``edge_length``,
+        ``body_edge_length`` and ``grading`` are its sizes, the fTetWild and
+        snapping options do not apply); CAD and triangle files cannot be mixed.
     box : float or 6 floats, optional
         Place the bodies in an axis-aligned box padded by this multiple of
         their largest extent on every side, or per side ``(x0, x1, y0, y1,
@@ -420,6 +448,22 @@ def mesh_surfaces(
     """
     from torchmorph.mesh import TetMesh
 
+    if _cad_input(surfaces):
+        if feature_angle is not None or repair:
+            raise ValueError(
+                "feature_angle and repair are for triangle surfaces: a CAD file's faces and "
+                "curves are node sets already"
+            )
+        return mesh_cad(
+            surfaces,
+            box=box,
+            bounds=bounds,
+            mesh_size=edge_length,
+            body_mesh_size=body_edge_length,
+            grading=grading,
+            progress=progress,
+            name=name,
+        )
     start = time.perf_counter()
     bodies = _as_surfaces(surfaces, repair)
     if box is not None and bounds is not None:
