@@ -55,9 +55,12 @@ from data_gen._surfaces import finish_hull, finish_wing
 from data_gen.geometry import (
     CHORD,
     HULL_BOX_BOUNDS,
+    HULL_DRAFT,
+    HULL_LENGTH,
     SPAN,
     TUNNEL_BOUNDS,
     naca_half_thickness,
+    wigley_half_breadth,
 )
 
 if TYPE_CHECKING:
@@ -438,23 +441,30 @@ def _finish(
     empty = [name for name, nodes in sets.items() if len(nodes) == 0]
     if empty:
         raise RuntimeError(f"{case} ({mesher}): empty node sets: {', '.join(empty)}")
-    if case == "fluid_wing" and epsilon is not None:
-        _check_wing_is_a_hole(points, epsilon)
+    if case in ("fluid_wing", "hull") and epsilon is not None:
+        _check_body_is_a_hole(case, points, epsilon)
     return points, tets, sets, repaired
 
 
-def _check_wing_is_a_hole(points: np.ndarray, epsilon: float) -> None:
-    """No fluid node strictly inside the exact wing, except within its ends thinner than
-    fTetWild's envelope (``epsilon`` times the domain's diagonal), which fTetWild may cut
-    off; fTetWild differs from run to run, so a mesh that fails is made again."""
+def _check_body_is_a_hole(case: str, points: np.ndarray, epsilon: float) -> None:
+    """No fluid node strictly inside the exact wing (case B) or hull (case C), except
+    within their ends thinner than fTetWild's envelope (``epsilon`` times the domain's
+    diagonal), which fTetWild may cut off; fTetWild differs from run to run, so a mesh
+    that fails is made again."""
     x, y, z = points.T
-    inside = (x > 1e-6) & (x < CHORD - 1e-6) & (z > 1e-6) & (z < SPAN - 1e-6)
-    thickness = naca_half_thickness(x[inside])
+    if case == "fluid_wing":
+        inside = (x > 1e-6) & (x < CHORD - 1e-6) & (z > 1e-6) & (z < SPAN - 1e-6)
+        distance, thickness = np.abs(y[inside]), naca_half_thickness(x[inside])
+        body = "wing"
+    else:
+        inside = (np.abs(x) < HULL_LENGTH / 2.0 - 1e-6) & (np.abs(y) < HULL_DRAFT - 1e-6)
+        distance, thickness = np.abs(z[inside]), wigley_half_breadth(x[inside], y[inside])
+        body = "hull"
     envelope = epsilon * np.linalg.norm(np.ptp(points, axis=0))
-    wrong = int(np.sum((np.abs(y[inside]) < thickness - 1e-9) & (thickness > envelope)))
+    wrong = int(np.sum((distance < thickness - 1e-9) & (thickness > envelope)))
     if wrong:
         raise RuntimeError(
-            f"fluid_wing (pytetwild): {wrong} fluid nodes lie inside the wing where it is "
+            f"{case} (pytetwild): {wrong} fluid nodes lie inside the {body} where it is "
             f"thicker than fTetWild's envelope ({envelope:.3g})"
         )
 

@@ -497,6 +497,47 @@ def test_read_only_cache_still_returns_the_built_mesh(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize(
+    ("case", "inside", "on_surface", "thin_end"),
+    [
+        # case B: the wing's thickness is along y; its thin end is the trailing edge
+        ("fluid_wing", [0.3, 0, 0.5], [0.3, naca_half_thickness(0.3), 0.5], [CHORD - 1e-4, 0, 0.5]),
+        # case C: the hull's breadth is along z; its thin ends are the stem and the stern
+        ("hull", [0.0, 0.0, 0.0], [0.0, 0.0, HULL_BEAM / 2.0], [HULL_LENGTH / 2.0 - 1e-4, 0, 0]),
+    ],
+)
+def test_a_fluid_node_inside_the_body_fails_the_pytetwild_check(case, inside, on_surface, thin_end):
+    box = np.array(
+        [[x, y, z] for x in (-3.0, 3.0) for y in (-2.0, 2.0) for z in (-1.0, 2.0)], dtype=float
+    )
+    epsilon = 1e-3  # envelope = 1e-3 * the box's diagonal ~ 7.8e-3
+    cases._check_body_is_a_hole(case, np.vstack([box, on_surface, thin_end]), epsilon)
+    with pytest.raises(RuntimeError, match=rf"^{case} \(pytetwild\): 1 fluid nodes lie inside"):
+        cases._check_body_is_a_hole(case, np.vstack([box, on_surface, inside]), epsilon)
+
+
+def test_a_pytetwild_mesh_that_fails_a_check_is_made_again(tmp_path, monkeypatch):
+    calls = []
+
+    def finish(*args, failures):
+        calls.append(args[1])
+        if len(calls) <= failures:
+            raise RuntimeError("hull (pytetwild): 1 fluid nodes lie inside the hull")
+        return np.eye(4, 3), np.array([[0, 1, 2, 3]]), {"all": np.arange(4)}, 0
+
+    monkeypatch.setattr(cases, "_generate", lambda *a, **k: (None, None, None))
+    monkeypatch.setattr(cases, "mesh_figures", lambda points, tets: {})
+    attempts = cases._TETWILD_ATTEMPTS
+    monkeypatch.setattr(cases, "_finish", lambda *a: finish(*a, failures=attempts - 1))
+    mesh = data_gen.build_arrays("hull", "small", "pytetwild", cache_dir=tmp_path)
+    assert calls == ["pytetwild"] * attempts and mesh.info["attempts"] == attempts
+    calls.clear()
+    monkeypatch.setattr(cases, "_finish", lambda *a: finish(*a, failures=attempts))
+    with pytest.raises(RuntimeError, match="fluid nodes lie inside the hull"):
+        data_gen.build_arrays("hull", "small", "pytetwild", cache=False)
+    assert len(calls) == attempts
+
+
+@pytest.mark.parametrize(
     ("arguments", "message"),
     [
         (["D"], r"^error: case: case must be one of"),
