@@ -89,6 +89,30 @@ def test_nearest_squared_is_zero_on_a_control():
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("extra", [0, 1])
+def test_the_cpu_backend_finds_the_nearest_control_by_brute_force_or_a_kd_tree(
+    dtype, extra, monkeypatch
+):
+    from torchmorph import _idw_fused, _idw_torch
+
+    n_controls = _idw_fused.KD_TREE_BYTES // torch.empty(0, dtype=dtype).element_size() + extra
+    targets, controls = cloud(40, n_controls, 3, dtype)
+    targets[5] = controls[-1]  # on a control: exactly 0, floored at tiny
+    used = []
+    for module, name in ((kernels, "nearest_squared"), (_idw_torch, "_nearest_squared_distance")):
+        original = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, f=original, n=name: used.append(n) or f(*a))
+    nearest = _idw_fused._NumbaBackend().nearest(targets, controls)
+    assert used == ["nearest_squared" if extra == 0 else "_nearest_squared_distance"]
+    exact = (targets.double()[:, None] - controls.double()[None]).square().sum(-1).amin(1)
+    exact = exact.clamp_min(torch.finfo(dtype).tiny)
+    assert nearest.dtype == dtype and nearest[5] == torch.finfo(dtype).tiny
+    torch.testing.assert_close(
+        nearest.double(), exact, rtol=1e-6 if dtype == torch.float32 else 1e-14, atol=0
+    )
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("power", POWERS)
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("columns", [1, 3, 48])

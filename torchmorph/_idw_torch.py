@@ -144,8 +144,9 @@ def _weights_block(
 def _nearest_squared_distance(targets: Tensor, controls: Tensor, tiles: tuple[int, int]) -> Tensor:
     """Squared distance from each target to its nearest control, shape (N_t, 1).
 
-    On the CPU a KD-tree finds the nearest control and the distance is recomputed
-    with the same arithmetic as the tiles; elsewhere a tiled min pass is used.
+    On the CPU a KD-tree (queried on torch's threads) finds the nearest control and the
+    distance is recomputed with the same arithmetic as the tiles; elsewhere a tiled min
+    pass is used.
     Inside ``torch.func`` transforms the KD-tree runs on the plain tensors under the
     wrappers (positions batched by ``vmap`` take the tiled pass, which does not
     support them: matrix-free mode does not ``vmap`` over positions).
@@ -158,7 +159,9 @@ def _nearest_squared_distance(targets: Tensor, controls: Tensor, tiles: tuple[in
             from scipy.spatial import cKDTree
 
             with _functorch_disabled():
-                _, nearest = cKDTree(plain_c.detach().numpy()).query(plain_t.detach().numpy(), k=1)
+                tree = cKDTree(plain_c.detach().numpy())
+                workers = torch.get_num_threads()
+                _, nearest = tree.query(plain_t.detach().numpy(), k=1, workers=workers)
                 nearest = torch.from_numpy(nearest).long()
             return (t - c[nearest]).square().sum(1, keepdim=True)
         rows, cols = tiles
