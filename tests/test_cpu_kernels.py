@@ -112,6 +112,54 @@ def test_the_cpu_backend_finds_the_nearest_control_by_brute_force_or_a_kd_tree(
     )
 
 
+@pytest.fixture
+def small_gemm_blocks(monkeypatch):
+    """Blocks of 7 rows of W (ragged at the end) for the many-column path."""
+    from torchmorph import _idw_fused
+
+    monkeypatch.setattr(_idw_fused, "GEMM_BLOCK_BYTES", 7 * 30 * 8)
+    return _idw_fused
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("power", [1.0, 4.0, 7.5])
+def test_many_columns_go_through_blocks_of_w_and_gemm(dtype, power, small_gemm_blocks):
+    fused = small_gemm_blocks
+    targets, controls = cloud(45, 30, 3, dtype)
+    controls[4] = controls[3]
+    targets[10], targets[20] = controls[3], controls[9]  # on two duplicates; on one control
+    backend = fused._NumbaBackend()
+    expected_w = reference_weights(targets, controls, power)
+    tolerance = {"rtol": 1e-5, "atol": 1e-6} if dtype == torch.float32 else {}
+    for columns in (fused.GEMM_COLUMNS, fused.GEMM_COLUMNS + 1, 3 * 16):
+        values = random_values(30, columns, dtype)
+        nearest2 = None if columns > fused.GEMM_COLUMNS else backend.nearest(targets, controls)
+        assert backend.needs_nearest(columns) == (columns <= fused.GEMM_COLUMNS)
+        out, sums = backend.apply(targets, controls, values, power, RADIUS2, nearest2)
+        assert (sums is None) == (columns > fused.GEMM_COLUMNS)
+        assert out.dtype == dtype and out.shape == (45, columns)
+        torch.testing.assert_close(out.double(), expected_w @ values.double(), **tolerance)
+        torch.testing.assert_close(out[10], (values[3] + values[4]) / 2, **tolerance)
+        torch.testing.assert_close(out[20], values[9], **tolerance)
+        grad = random_values(45, columns, dtype, seed=2)
+        back = backend.apply_transposed(targets, controls, grad, power, RADIUS2, nearest2, sums)
+        torch.testing.assert_close(back.double(), expected_w.T @ grad.double(), **tolerance)
+
+
+def test_a_batch_of_many_displacements_differentiates_through_the_blocks(small_gemm_blocks):
+    from torch.autograd import gradcheck
+
+    from torchmorph import IDW
+
+    targets, controls = cloud(20, 30, 3, torch.float64)
+    batch = small_gemm_blocks.GEMM_COLUMNS // 3 + 1
+    displacements = random_values(batch * 30, 3, torch.float64).reshape(batch, 30, 3)
+    fused = IDW(controls, targets, mode="matrix_free", implementation="fused")
+    plain = IDW(controls, targets, mode="matrix_free", implementation="torch")
+    torch.testing.assert_close(fused(displacements), plain(displacements))
+    assert gradcheck(fused, (displacements.requires_grad_(True),))
+
+
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("power", POWERS)
 @pytest.mark.parametrize("dim", [2, 3])

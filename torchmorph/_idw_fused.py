@@ -33,6 +33,10 @@ class _TritonBackend:
     def nearest(self, targets, controls):
         return self.kernels.nearest_squared(targets, controls)
 
+    @staticmethod
+    def needs_nearest(columns: int) -> bool:
+        return True
+
     def apply(self, targets, controls, values, power, radius2, nearest2):
         out, nearest2, sums = self.kernels.apply(
             targets, controls, values, power, radius2, nearest2
@@ -96,6 +100,15 @@ class _TritonBackend:
 #: more controls the KD-tree was 1.3-2.6x faster (3e3-1e6 targets, meshes and clouds).
 KD_TREE_BYTES = 16 * 1024
 
+#: value columns beyond which the CPU's matrix-free apply and its transpose assemble W
+#: in blocks of GEMM_BLOCK_BYTES and multiply each by torch's GEMM: the fused kernel's
+#: cost grows with every column (one dot product per column and chunk), a GEMM's
+#: hardly. Measured at case-B counts (14,126 x 21,910), 1 and 2 threads, p = 4: the
+#: fused kernel was faster up to 12 columns (1.1-3.7x), about even at 24, and the blocks
+#: 1.5-3.5x faster at 48 columns (a batch of 16) and 2.2-5x at 300.
+GEMM_COLUMNS = 24
+GEMM_BLOCK_BYTES = 16 << 20
+
 
 class _NumbaBackend:
     """numba kernels on the CPU; geometry as given, (N, D) rows."""
@@ -120,13 +133,43 @@ class _NumbaBackend:
             nearest2 = _nearest_squared_distance(targets, controls, (1, 1)).flatten()
         return nearest2.clamp_min(torch.finfo(targets.dtype).tiny)
 
+    @staticmethod
+    def needs_nearest(columns: int) -> bool:
+        return columns <= GEMM_COLUMNS  # the blocks of W find it themselves
+
     def apply(self, targets, controls, values, power, radius2, nearest2):
+        """(W @ values, the row sums s_i, or None where W came in blocks)."""
+        if values.shape[1] > GEMM_COLUMNS:
+            return self._by_blocks(targets, controls, values, power, radius2), None
         return self.kernels.apply(targets, controls, values, power, radius2, nearest2)
 
     def apply_transposed(self, targets, controls, grad, power, radius2, nearest2, sums):
+        if sums is None or grad.shape[1] > GEMM_COLUMNS:
+            return self._by_blocks(targets, controls, grad, power, radius2, transposed=True)
         return self.kernels.apply_transposed(
             targets, controls, grad, power, radius2, nearest2, sums
         )
+
+    def _by_blocks(self, targets, controls, values, power, radius2, transposed=False):
+        """W @ values (or Wᵀ @ values): blocks of rows of W from the fused assembly kernel,
+        each multiplied by torch's GEMM while it is in cache; W is never stored whole."""
+        n_targets, n_controls = targets.shape[0], controls.shape[0]
+        rows = max(1, GEMM_BLOCK_BYTES // max(1, n_controls * controls.element_size()))
+        buffer = targets.new_empty(min(rows, n_targets), n_controls)
+        if transposed:
+            out = targets.new_zeros(n_controls, values.shape[1])
+        else:
+            out = targets.new_empty(n_targets, values.shape[1])
+        for start in range(0, n_targets, rows):
+            block = targets[start : start + rows]
+            weights = self.kernels.weights(
+                block, controls, power, radius2, out=buffer[: block.shape[0]]
+            )
+            if transposed:
+                out.addmm_(weights.mT, values[start : start + rows])
+            else:
+                torch.mm(weights, values, out=out[start : start + rows])
+        return out
 
     def weights(self, targets, controls, power, radius2, out=None):
         return self.kernels.weights(targets, controls, power, radius2, out=out)
@@ -220,7 +263,7 @@ class _FusedApply(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, targets, controls, values, backend, power, radius2, nearest2):
-        if nearest2 is None:
+        if nearest2 is None and backend.needs_nearest(values.shape[1]):
             nearest2 = backend.nearest(targets.detach(), controls.detach())
         values = values.contiguous()
         out, sums = backend.apply(

@@ -25,8 +25,11 @@ Implementations
 ---------------
 ``implementation="fused"`` runs kernels that compute the weights in registers and
 never store a pairwise tile: Triton on CUDA devices (:mod:`torchmorph._triton_kernels`)
-and numba on the CPU (:mod:`torchmorph._cpu_kernels`, when numba is installed).
-``"torch"`` runs the same arithmetic in blocks of torch operations, which works
+and numba on the CPU (:mod:`torchmorph._cpu_kernels`, when numba is installed). On
+the CPU a batch of more than 24 value columns (nine displacements or more) is applied
+by blocks of W rows from the fused assembly kernel, each multiplied by torch's GEMM
+while in cache (W is never stored whole): the GEMM's cost hardly grows with the
+columns. ``"torch"`` runs the same arithmetic in blocks of torch operations, which works
 everywhere and under ``torch.compile`` and ``torch.func``. ``"auto"`` (the
 default) takes the fused kernels where they apply and torch elsewhere.
 """
