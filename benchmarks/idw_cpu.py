@@ -17,13 +17,15 @@ against a baseline measured in the same run):
    GB/s of W read;
 3. shared cores, two threads: each path timed quiet and with a competing busy
    process (a Python subprocess spinning, started before and killed after each
-   timed block, bounded in time); the busy / quiet ratio.
+   timed block, bounded in time); the busy / quiet ratio. Includes a batch of 16
+   displacements (48 columns): blocks of W times GEMM (the default) and the fused kernel.
 
 Point clouds: controls on a box's walls and on an inner thin ellipsoid, targets in
 between (as in ``benchmarks/idw.py``), normalised to a unit bounding-box diagonal.
 p = 4 throughout.
 
-Usage: ``python benchmarks/idw_cpu.py [--repeats 5] [--sizes 0 1] [--tables 1 2 3]``
+Usage: ``python benchmarks/idw_cpu.py [--repeats 5] [--sizes 0 1] [--tables 1 2 3]
+[--shared-paths "48 columns"]``
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from idw import point_clouds as idw_point_clouds
 from numba import njit, prange
 
 from torchmorph import _cpu_kernels as kernels
+from torchmorph._idw_fused import _NumbaBackend
 from torchmorph.idw import idw_apply, idw_weights
 
 SIZES = [(21910, 14126), (5000, 10000)]  # (N_t, N_c): case-B counts, and a rounder one
@@ -271,7 +274,7 @@ def dense_table(sizes, repeats) -> None:
                         )
 
 
-def shared_table(size, repeats) -> None:
+def shared_table(size, repeats, only: str = "") -> None:
     print(
         f"\n## Shared cores: 2 threads, quiet and beside a busy process, "
         f"{size[0]:,} × {size[1]:,}, p = 4\n"
@@ -286,6 +289,9 @@ def shared_table(size, repeats) -> None:
         out = torch.empty_like(dense)
         grad = torch.randn(
             targets.shape[0], 3, dtype=dtype, generator=torch.Generator().manual_seed(2)
+        )
+        batch = torch.randn(  # a batch of 16 displacements: 48 value columns
+            controls.shape[0], 48, dtype=dtype, generator=torch.Generator().manual_seed(3)
         )
         paths = {
             "dense build, fused weights": partial(
@@ -302,6 +308,12 @@ def shared_table(size, repeats) -> None:
             "matrix-free, fused apply_transposed": partial(
                 kernels.apply_transposed, targets, controls, grad, POWER, 0.0, nearest2, sums
             ),
+            "matrix-free, 48 columns, blocks of W and GEMM (the default)": partial(
+                _NumbaBackend().apply, targets, controls, batch, POWER, 0.0, None
+            ),
+            "matrix-free, 48 columns, fused kernel": partial(
+                kernels.apply, targets, controls, batch, POWER, 0.0, nearest2
+            ),
             "matrix-free, torch idw_apply": partial(
                 idw_apply,
                 controls=controls,
@@ -313,6 +325,8 @@ def shared_table(size, repeats) -> None:
         }
         with threads(2):
             for name, function in paths.items():
+                if only not in name:
+                    continue
                 reps = max(1, repeats // 2) if "torch idw" in name else repeats
                 quiet = median_time(function, reps)
                 with busy_process():
@@ -336,6 +350,9 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--tables", type=int, nargs="*", default=[1, 2, 3])
     parser.add_argument("--shared-size", type=int, default=1, help="index into SIZES")
+    parser.add_argument(
+        "--shared-paths", default="", help="only the shared-core paths whose name holds this"
+    )
     args = parser.parse_args(argv)
     if not kernels.available():
         sys.exit("numba is not installed: pip install numba")
@@ -352,7 +369,7 @@ def main(argv=None) -> None:
     if 2 in args.tables:
         dense_table(sizes, args.repeats)
     if 3 in args.tables:
-        shared_table(SIZES[args.shared_size], args.repeats)
+        shared_table(SIZES[args.shared_size], args.repeats, args.shared_paths)
 
 
 if __name__ == "__main__":

@@ -130,6 +130,7 @@ def test_many_columns_go_through_blocks_of_w_and_gemm(dtype, power, small_gemm_b
     targets[10], targets[20] = controls[3], controls[9]  # on two duplicates; on one control
     backend = fused._NumbaBackend()
     expected_w = reference_weights(targets, controls, power)
+    threads = torch.get_num_threads()
     tolerance = {"rtol": 1e-5, "atol": 1e-6} if dtype == torch.float32 else {}
     for columns in (fused.GEMM_COLUMNS, fused.GEMM_COLUMNS + 1, 3 * 16):
         values = random_values(30, columns, dtype)
@@ -144,6 +145,7 @@ def test_many_columns_go_through_blocks_of_w_and_gemm(dtype, power, small_gemm_b
         grad = random_values(45, columns, dtype, seed=2)
         back = backend.apply_transposed(targets, controls, grad, power, RADIUS2, nearest2, sums)
         torch.testing.assert_close(back.double(), expected_w.T @ grad.double(), **tolerance)
+        assert torch.get_num_threads() == threads  # halved for each GEMM, then restored
 
 
 def test_a_batch_of_many_displacements_differentiates_through_the_blocks(small_gemm_blocks):
@@ -352,6 +354,26 @@ def test_one_and_two_threads_agree(dtype):
     import numba
 
     assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS  # restored
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_the_kernels_leave_torchs_thread_count_as_the_caller_set_it(threads):
+    # numba's OpenMP layer shares the OpenMP runtime with torch: restoring numba's own
+    # count after a call once set torch's too (1 became 2 after the first kernel call)
+    from torchmorph import IDW
+
+    targets, controls = cloud(40, 30, 3, torch.float64)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        kernels.nearest_squared(targets, controls)
+        assert torch.get_num_threads() == threads
+        IDW(controls, targets, mode="matrix_free", implementation="fused")(
+            random_values(9 * 30, 3, torch.float64).reshape(9, 30, 3)  # 27 columns: blocks
+        )
+        assert torch.get_num_threads() == threads
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_no_targets():

@@ -136,15 +136,22 @@ def _largest_integer(dtype: np.dtype) -> np.ndarray:
 def _threads():
     """numba's thread count set to torch's (capped by numba's pool) for one call, and its
     blocks handed out one at a time (``set_parallel_chunksize(1)``): a thread slowed by a
-    competing process then takes fewer blocks instead of holding up the others."""
+    competing process then takes fewer blocks instead of holding up the others.
+
+    torch's count is restored last: with numba's OpenMP layer both libraries share one
+    OpenMP runtime, so restoring numba's count alone would also set torch's (a user's
+    ``torch.set_num_threads(1)`` became 2 after the first kernel call)."""
+    torch_threads = torch.get_num_threads()
     previous, previous_chunk = numba.get_num_threads(), numba.get_parallel_chunksize()
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(max(1, min(torch_threads, numba.config.NUMBA_NUM_THREADS)))
     numba.set_parallel_chunksize(1)
     try:
         yield
     finally:
         numba.set_parallel_chunksize(previous_chunk)
         numba.set_num_threads(previous)
+        if torch.get_num_threads() != torch_threads:
+            torch.set_num_threads(torch_threads)
 
 
 # --------------------------------------------------------------------------- #

@@ -105,7 +105,12 @@ KD_TREE_BYTES = 16 * 1024
 #: cost grows with every column (one dot product per column and chunk), a GEMM's
 #: hardly. Measured at case-B counts (14,126 x 21,910), 1 and 2 threads, p = 4: the
 #: fused kernel was faster up to 12 columns (1.1-3.7x), about even at 24, and the blocks
-#: 1.5-3.5x faster at 48 columns (a batch of 16) and 2.2-5x at 300.
+#: 1.5-3.5x faster at 48 columns (a batch of 16) and 2.2-5x at 300. The assembly runs on
+#: all of torch's threads (numba, blocks of rows handed out one at a time) and the GEMM
+#: on half of them: a GEMM splits its work statically, so on a machine whose every core
+#: is busy the thread that shares its core with another process sets the pace (beside a
+#: busy process on 2 cores and 2 threads: 2.4-3.3x the quiet time with the GEMM on both
+#: threads, 1.6-2.3x with it on one, and still 1.3-1.7x faster than the fused kernel).
 GEMM_COLUMNS = 24
 GEMM_BLOCK_BYTES = 16 << 20
 
@@ -152,7 +157,9 @@ class _NumbaBackend:
 
     def _by_blocks(self, targets, controls, values, power, radius2, transposed=False):
         """W @ values (or Wᵀ @ values): blocks of rows of W from the fused assembly kernel,
-        each multiplied by torch's GEMM while it is in cache; W is never stored whole."""
+        each multiplied by torch's GEMM while it is in cache; W is never stored whole.
+        torch's thread count is halved for each GEMM and restored after it (the count is
+        process-wide: torch work in other Python threads meanwhile sees it too)."""
         n_targets, n_controls = targets.shape[0], controls.shape[0]
         rows = max(1, GEMM_BLOCK_BYTES // max(1, n_controls * controls.element_size()))
         buffer = targets.new_empty(min(rows, n_targets), n_controls)
@@ -160,15 +167,23 @@ class _NumbaBackend:
             out = targets.new_zeros(n_controls, values.shape[1])
         else:
             out = targets.new_empty(n_targets, values.shape[1])
+        threads = torch.get_num_threads()
+        gemm_threads = max(1, threads // 2)  # the other half free for a competing process
         for start in range(0, n_targets, rows):
             block = targets[start : start + rows]
             weights = self.kernels.weights(
                 block, controls, power, radius2, out=buffer[: block.shape[0]]
             )
-            if transposed:
-                out.addmm_(weights.mT, values[start : start + rows])
-            else:
-                torch.mm(weights, values, out=out[start : start + rows])
+            if gemm_threads != threads:
+                torch.set_num_threads(gemm_threads)
+            try:
+                if transposed:
+                    out.addmm_(weights.mT, values[start : start + rows])
+                else:
+                    torch.mm(weights, values, out=out[start : start + rows])
+            finally:
+                if gemm_threads != threads:
+                    torch.set_num_threads(threads)
         return out
 
     def weights(self, targets, controls, power, radius2, out=None):
