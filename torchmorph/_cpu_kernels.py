@@ -234,7 +234,7 @@ def nearest_squared(targets: Tensor, controls: Tensor) -> Tensor:
     Notes
     -----
     A brute-force pass, O(N_t N_c), for any D. With many controls scipy's KD-tree is
-    faster (1.3–2.6× at 10^4 controls); with few controls and targets far from them
+    faster (up to 2.4× at 10^4 controls); with few controls and targets far from them
     (a boundary's controls, a volume's targets) this pass is: the IDW backend picks by
     the controls' size (``KD_TREE_BYTES`` in :mod:`torchmorph._idw_fused`).
     """

@@ -95,9 +95,9 @@ class _TritonBackend:
 #: (4,096 float32 or 2,048 float64 controls) a fused brute-force pass, beyond it scipy's
 #: KD-tree. Measured on one thread with controls on a boundary and targets filling the
 #: volume (every IDW morph: the KD-tree visits most of its leaves for a target far from
-#: the boundary): the pass was 1.3-3.6x faster in float32 up to 3,845 controls and
-#: 1.5-2.3x in float64 up to 1,216, even at ~2,700-3,800 float64 controls; with 1e4 or
-#: more controls the KD-tree was 1.3-2.6x faster (3e3-1e6 targets, meshes and clouds).
+#: the boundary): the pass was 1.3-2.8x faster in float32 up to 3,845 controls and
+#: 1.9-2.7x in float64 up to 1,216, about even at ~2,700-3,800 float64 controls; with 1e4
+#: or more controls the KD-tree was up to 2.4x faster (3e3-1e6 targets, meshes, clouds).
 KD_TREE_BYTES = 16 * 1024
 
 #: value columns beyond which the CPU's matrix-free apply and its transpose assemble W
