@@ -161,7 +161,7 @@ class _NumbaBackend:
         torch's thread count is halved for each GEMM and restored after it (the count is
         process-wide: torch work in other Python threads meanwhile sees it too)."""
         n_targets, n_controls = targets.shape[0], controls.shape[0]
-        rows = max(1, GEMM_BLOCK_BYTES // max(1, n_controls * controls.element_size()))
+        rows = _rows_per_block(n_controls, controls.element_size(), GEMM_BLOCK_BYTES, copies=1)
         buffer = targets.new_empty(min(rows, n_targets), n_controls)
         if transposed:
             out = targets.new_zeros(n_controls, values.shape[1])
