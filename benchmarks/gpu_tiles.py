@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--dot",
         action="store_true",
-        help="only the tl.dot kernels (a batch of 16), both float32 precisions",
+        help="only the tl.dot kernels (a batch of 16: 48 columns), both dtypes",
     )
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
@@ -136,22 +136,14 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|")
     best = {}
     if args.dot:
-        controls, targets = graded_cloud(N_CONTROLS, N_TARGETS, torch.float32, "cuda")
-        targets_t, controls_t = normalise(targets, controls)
-        nearest = kernels.nearest_squared(targets_t, controls_t)
-        values = torch.randn(N_CONTROLS, 48, device="cuda")
-        expected = reference_apply(targets, controls, values)
-        candidates = dots + [
-            (128, 64, 8),
-            (64, 128, 8),
-            (128, 16, 4),
-            (64, 16, 4),
-            (32, 16, 4),
-            (128, 32, 4),
-            (32, 64, 4),
-        ]
-        for precision in (1, 2):
-            kernels.DOT_PRECISION_FLOAT32 = precision
+        candidates = dots + [(128, 16, 4), (64, 16, 4), (32, 16, 4), (128, 32, 4), (32, 64, 4)]
+        for dtype in (torch.float32, torch.float64):
+            name = str(dtype)[6:]
+            controls, targets = graded_cloud(N_CONTROLS, N_TARGETS, dtype, "cuda")
+            targets_t, controls_t = normalise(targets, controls)
+            nearest = kernels.nearest_squared(targets_t, controls_t)
+            values = torch.randn(N_CONTROLS, 48, dtype=dtype, device="cuda")
+            expected = reference_apply(targets, controls, values)
 
             def run_dot():
                 out = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)[0]
@@ -162,13 +154,35 @@ def main(argv: list[str] | None = None) -> int:
                     relative_error(out, expected),
                 )
 
-            sweep("apply_dot", run_dot, candidates, f"apply_dot K=48 precision {precision}")
-        small = torch.randn(N_CONTROLS, 3, device="cuda")
-        print(
-            f"one displacement (pass 2): "
-            f"{event_time(lambda: kernels.apply(targets_t, controls_t, small, 4.0, 1e-20, nearest)) * 1e3:.3f} ms; "
-            f"nearest pass {event_time(lambda: kernels.nearest_squared(targets_t, controls_t)) * 1e3:.3f} ms"
-        )
+            best[("apply_dot", name)] = sweep(
+                "apply_dot", run_dot, candidates, f"apply_dot K=48 {name}"
+            )
+            grad = torch.randn(N_TARGETS, 48, dtype=dtype, device="cuda")
+            _, _, sums = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)
+
+            def run_transposed_dot():
+                return (
+                    event_time(
+                        lambda: kernels.apply_transposed(
+                            targets_t, controls_t, grad, nearest, sums, 4.0, 1e-20
+                        )
+                    ),
+                    0.0,
+                )
+
+            best[("transposed_dot", name)] = sweep(
+                "transposed_dot", run_transposed_dot, candidates, f"transposed_dot K=48 {name}"
+            )
+            small = torch.randn(N_CONTROLS, 3, dtype=dtype, device="cuda")
+            one = event_time(
+                lambda: kernels.apply(targets_t, controls_t, small, 4.0, 1e-20, nearest)
+            )
+            print(
+                f"{name}: one displacement (pass 2) {one * 1e3:.3f} ms; nearest pass "
+                f"{event_time(lambda: kernels.nearest_squared(targets_t, controls_t)) * 1e3:.3f} ms"
+            )
+        for key, (candidate, seconds) in best.items():
+            print(f"best {key}: {candidate} {seconds * 1e3:.3f} ms")
         return 0
     for dtype in (torch.float32, torch.float64):
         name = str(dtype)[6:]

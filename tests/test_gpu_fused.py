@@ -61,6 +61,27 @@ def test_fused_matrix_free_matches_float64(dtype, batch, power):
     assert error < (1e-5 if dtype == torch.float32 else 1e-12), float(error)
 
 
+def test_fused_batch_keeps_float32_accuracy_over_many_controls():
+    # the batched pass runs on the matrix units: summed there over all 442 tiles of
+    # controls, their truncating accumulation drifted to 6.7e-5 at these counts
+    controls, targets, generator = sphere_cloud(14126, 2000, torch.float32, seed=1)
+    displacements = torch.randn(16, 14126, 3, generator=generator, dtype=F64).cuda()
+    reference = idw_apply(
+        controls=controls.double(),
+        targets=targets.double(),
+        displacements=displacements,
+        implementation="torch",
+    )
+    got = idw_apply(
+        controls=controls,
+        targets=targets,
+        displacements=displacements.float(),
+        implementation="fused",
+    )
+    error = (got.double() - reference).norm() / reference.norm()
+    assert error < 1e-5, float(error)
+
+
 def test_fused_exact_at_controls_and_mean_on_duplicates():
     controls, targets, generator = sphere_cloud(500, 800, F64)
     controls[7] = controls[6]

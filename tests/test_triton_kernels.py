@@ -157,3 +157,19 @@ def test_position_gradients_match_autograd(kernels, dtype, power, columns):
     tolerance = dict(rtol=1e-4, atol=1e-4) if dtype == torch.float32 else dict(rtol=1e-9, atol=1e-9)
     for value, reference in zip(got, expected, strict=True):
         torch.testing.assert_close(value.T.double(), reference, **tolerance)
+
+
+@pytest.mark.parametrize("ones_column", [True, False])
+def test_dot_operands_split_float32_exactly_into_a_tf32_part_and_a_rest(kernels, ones_column):
+    generator = torch.Generator().manual_seed(3)
+    values = torch.randn(9, 5, generator=generator) * torch.logspace(-30, 30, 5)
+    hi, lo, padded, split = kernels._dot_operands(values, ones_column)
+    assert split and padded == 16 and hi.shape == lo.shape == (9, 16)
+    assert hi.is_contiguous() and lo.is_contiguous()
+    assert not (hi.view(torch.int32) & 0x1FFF).any()  # hi has tf32's 10 mantissa bits
+    assert torch.equal(hi[:, :5] + lo[:, :5], values)  # and the rest is exact
+    assert (lo.abs() <= hi.abs() * 2**-10).all()
+    assert torch.equal(hi[:, 5], torch.full((9,), float(ones_column)))
+    assert not hi[:, 6:].any() and not lo[:, 5:].any()
+    full, same, padded, split = kernels._dot_operands(values.double(), ones_column)
+    assert not split and same is full and torch.equal(full[:, :5], values.double())

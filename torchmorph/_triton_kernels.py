@@ -14,21 +14,26 @@ differences floored at the dtype's smallest normal ``tiny`` and ``m_i = min_k d�
 - a coincident row (``m_i <= radius2``) has ``r_ik = [d²_ik <= radius2]`` and
   ``s_i`` their count: the target takes the mean of the controls it sits on.
 
-Kernels
--------
+Kernels (in :mod:`torchmorph._triton_jit`)
+------------------------------------------
+``_nearest_kernel``
+    pass 1: ``m_i`` for each target (once per geometry: modules keep it).
 ``_apply_kernel``
-    ``W @ V`` for V of shape (N_c, K): one pass over the controls keeping a running
-    minimum ``m`` and rescaling the accumulators whenever it drops (as online
-    softmax does), so no separate nearest-distance pass is needed; coincident rows
-    are redone with indicator weights in the same program, after the main loop.
-    Also returns ``m_i`` and ``s_i`` for the backward pass.
-``_apply_transposed_kernel``
+    pass 2, ``W @ V`` for V of shape (N_c, K), K <= 3: the weights against ``[v, 1]``
+    accumulated per tile position, divided by the row sums at the end; also returns
+    ``s_i`` for the backward pass.
+``_apply_dot_kernel``
+    pass 2 for more columns (a batch of displacements): the weight tile times
+    ``[V, 1]`` on the matrix units (float32 in three tf32 products, float32 accuracy).
+``_transposed_kernel``, ``_transposed_dot_kernel``
     ``Wᵀ @ G`` (the gradient to the displacements): parallel over controls, looping
     over targets with the saved ``m_i`` and ``s_i``.
-``_row_stats_kernel`` + ``_weights_kernel``
-    dense W: the row statistics ``m_i, s_i`` first, then W written tile by tile.
+``_weights_kernel``
+    dense W, written tile by tile after the row statistics.
 ``_dense_apply_kernel``
     ``W @ v`` for a stored W and at most three columns, reading W once.
+``_position_grad_kernel``
+    the gradients to target and control positions.
 
 Each has a plain torch twin in :mod:`torchmorph.idw` that the tests compare it with.
 """
@@ -93,10 +98,6 @@ _TILES: dict[tuple[str, torch.dtype | None], tuple[int, int, int]] = {
 #: Fused gradients to point positions: up to this many columns and three dimensions.
 POSITION_GRAD_COLUMNS = 24
 
-#: float32 ``tl.dot`` precision: 1 = tf32x3 (float32 accuracy from three tf32 products
-#: on the matrix units), 2 = IEEE float32 on the ordinary cores.
-DOT_PRECISION_FLOAT32 = 1
-
 #: Tile shapes forced by the sweep script, by kernel name.
 _OVERRIDE: dict[str, tuple[int, int, int]] = {}
 
@@ -122,12 +123,23 @@ def _constants(dtype: torch.dtype, power: float, radius2: float):
     return max(float(radius2), tiny), tiny, float(power) / 2, power_kind(power), fast
 
 
-def _dot_layout(dtype: torch.dtype, columns: int) -> tuple[int, int]:
-    """(KP, PRECISION) of a ``tl.dot`` accumulation of ``columns`` columns: KP a power of
-    two >= 16 with room for the ones column; float32 through tf32x3 (float32 accuracy
-    on the matrix units), float64 as is."""
-    precision = DOT_PRECISION_FLOAT32 if dtype == torch.float32 else 0
-    return max(16, triton.next_power_of_2(columns + 1)), precision
+def _dot_operands(values: Tensor, ones_column: bool) -> tuple[Tensor, Tensor, int, bool]:
+    """(hi, lo, KP, SPLIT): ``values`` (N, K) padded with zero columns to KP (a power of
+    two >= 16, with room for a column of ones after the K columns when ``ones_column``:
+    the row sums), contiguous, for a ``tl.dot`` kernel. float32 comes split as
+    ``hi + lo`` with ``hi`` truncated to tf32, so that three tf32 products give float32
+    accuracy on the matrix units (``_dot_accumulate`` of :mod:`._triton_jit`); any other
+    dtype as is (``lo`` is ``hi``)."""
+    rows, columns = values.shape
+    padded = max(16, triton.next_power_of_2(columns + int(ones_column)))
+    full = values.new_zeros(rows, padded)
+    full[:, :columns] = values
+    if ones_column:
+        full[:, columns] = 1.0
+    if values.dtype != torch.float32:
+        return full, full, padded, False
+    hi = (full.view(torch.int32) & -8192).view(torch.float32)
+    return hi, full - hi, padded, True
 
 
 def nearest_squared(targets_t: Tensor, controls_t: Tensor) -> Tensor:
@@ -210,18 +222,18 @@ def apply(
             num_warps=warps,
         )
     else:
-        padded, precision = _dot_layout(values.dtype, columns)
+        v_hi, v_lo, padded, split = _dot_operands(values, ones_column=True)
         block_t, block_c, warps = tile_shapes("apply_dot", values.dtype)
         _apply_dot_kernel[(triton.cdiv(n_t, block_t),)](
             targets_t,
             controls_t,
-            values,
+            v_hi,
+            v_lo,
             nearest2,
             out,
             sums,
             n_t,
             n_c,
-            values.stride(0),
             out.stride(0),
             radius2,
             tiny,
@@ -231,7 +243,7 @@ def apply(
             KP=padded,
             KIND=kind,
             FAST=fast,
-            PRECISION=precision,
+            SPLIT=split,
             BLOCK_T=block_t,
             BLOCK_C=block_c,
             num_warps=warps,
@@ -280,17 +292,17 @@ def apply_transposed(
             num_warps=warps,
         )
     else:
-        padded, precision = _dot_layout(grad.dtype, columns)
+        g_hi, g_lo, padded, split = _dot_operands(scaled, ones_column=False)
         block_c, block_t, warps = tile_shapes("transposed_dot", grad.dtype)
         _transposed_dot_kernel[(triton.cdiv(n_c, block_c),)](
             controls_t,
             targets_t,
             nearest2,
-            scaled,
+            g_hi,
+            g_lo,
             out,
             n_c,
             n_t,
-            scaled.stride(0),
             out.stride(0),
             radius2,
             tiny,
@@ -300,7 +312,7 @@ def apply_transposed(
             KP=padded,
             KIND=kind,
             FAST=fast,
-            PRECISION=precision,
+            SPLIT=split,
             BLOCK_C=block_c,
             BLOCK_T=block_t,
             num_warps=warps,
