@@ -102,6 +102,51 @@ def sweep(kernel: str, run, candidates, label: str) -> tuple[tuple[int, int, int
     return best
 
 
+def sweep_columns(geometry, dtype, columns: int, candidates, best: dict) -> None:
+    """Sweep pass 2 (``apply``) and the transposed pass at ``columns`` value columns:
+    the one-by-one kernels up to ``SMALL_COLUMNS``, the ``tl.dot`` kernels above."""
+    targets, controls, targets_t, controls_t, nearest = geometry
+    name = str(dtype)[6:]
+    values = torch.randn(N_CONTROLS, columns, dtype=dtype, device="cuda")
+    expected = reference_apply(targets, controls, values)
+    small = columns <= kernels.SMALL_COLUMNS
+    kernel, tkernel = ("apply", "transposed") if small else ("apply_dot", "transposed_dot")
+
+    def run_apply():
+        out = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)[0]
+        return (
+            event_time(lambda: kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)),
+            relative_error(out, expected),
+        )
+
+    best[(kernel, name)] = sweep(
+        kernel, run_apply, candidates, f"{kernel} (pass 2) {name} K={columns}"
+    )
+    grad = torch.randn(N_TARGETS, columns, dtype=dtype, device="cuda")
+    _, _, sums = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)
+
+    def run_transposed():
+        return (
+            event_time(
+                lambda: kernels.apply_transposed(
+                    targets_t, controls_t, grad, nearest, sums, 4.0, 1e-20
+                )
+            ),
+            0.0,
+        )
+
+    best[(tkernel, name)] = sweep(
+        tkernel, run_transposed, candidates, f"{tkernel} {name} K={columns}"
+    )
+
+
+def case_b_geometry(dtype):
+    """(targets, controls, their normalised (D, N) layouts, the nearest distances)."""
+    controls, targets = graded_cloud(N_CONTROLS, N_TARGETS, dtype, "cuda")
+    targets_t, controls_t = normalise(targets, controls)
+    return targets, controls, targets_t, controls_t, kernels.nearest_squared(targets_t, controls_t)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="the current tiles only")
@@ -135,100 +180,22 @@ def main(argv: list[str] | None = None) -> int:
     print("| kernel | (rows, cols, warps) | median | rel. error vs float64 |")
     print("|---|---|---|---|")
     best = {}
-    if args.dot:
-        candidates = dots + [(128, 16, 4), (64, 16, 4), (32, 16, 4), (128, 32, 4), (32, 64, 4)]
-        for dtype in (torch.float32, torch.float64):
-            name = str(dtype)[6:]
-            controls, targets = graded_cloud(N_CONTROLS, N_TARGETS, dtype, "cuda")
-            targets_t, controls_t = normalise(targets, controls)
-            nearest = kernels.nearest_squared(targets_t, controls_t)
-            values = torch.randn(N_CONTROLS, 48, dtype=dtype, device="cuda")
-            expected = reference_apply(targets, controls, values)
-
-            def run_dot():
-                out = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)[0]
-                return (
-                    event_time(
-                        lambda: kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)
-                    ),
-                    relative_error(out, expected),
-                )
-
-            best[("apply_dot", name)] = sweep(
-                "apply_dot", run_dot, candidates, f"apply_dot K=48 {name}"
-            )
-            grad = torch.randn(N_TARGETS, 48, dtype=dtype, device="cuda")
-            _, _, sums = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)
-
-            def run_transposed_dot():
-                return (
-                    event_time(
-                        lambda: kernels.apply_transposed(
-                            targets_t, controls_t, grad, nearest, sums, 4.0, 1e-20
-                        )
-                    ),
-                    0.0,
-                )
-
-            best[("transposed_dot", name)] = sweep(
-                "transposed_dot", run_transposed_dot, candidates, f"transposed_dot K=48 {name}"
-            )
+    if args.dot and not args.quick:
+        dots += [(128, 16, 4), (64, 16, 4), (32, 16, 4), (128, 32, 4), (32, 64, 4)]
+    for dtype in (torch.float32, torch.float64):
+        name = str(dtype)[6:]
+        geometry = case_b_geometry(dtype)
+        targets, controls, targets_t, controls_t, nearest = geometry
+        if args.dot:
+            sweep_columns(geometry, dtype, 48, dots, best)
             small = torch.randn(N_CONTROLS, 3, dtype=dtype, device="cuda")
             one = event_time(
                 lambda: kernels.apply(targets_t, controls_t, small, 4.0, 1e-20, nearest)
             )
-            print(
-                f"{name}: one displacement (pass 2) {one * 1e3:.3f} ms; nearest pass "
-                f"{event_time(lambda: kernels.nearest_squared(targets_t, controls_t)) * 1e3:.3f} ms"
-            )
-        for key, (candidate, seconds) in best.items():
-            print(f"best {key}: {candidate} {seconds * 1e3:.3f} ms")
-        return 0
-    for dtype in (torch.float32, torch.float64):
-        name = str(dtype)[6:]
-        controls, targets = graded_cloud(N_CONTROLS, N_TARGETS, dtype, "cuda")
-        targets_t, controls_t = normalise(targets, controls)
-        nearest = kernels.nearest_squared(targets_t, controls_t)
-        for columns in (3, 48):
-            values = torch.randn(N_CONTROLS, columns, dtype=dtype, device="cuda")
-            expected = reference_apply(targets, controls, values)
-            kernel = "apply" if columns <= kernels.SMALL_COLUMNS else "apply_dot"
-
-            def run_apply():
-                out = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)[0]
-                return (
-                    event_time(
-                        lambda: kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)
-                    ),
-                    relative_error(out, expected),
-                )
-
-            best[(kernel, name)] = sweep(
-                kernel,
-                run_apply,
-                square if columns <= 3 else dots,
-                f"{kernel} (pass 2) {name} K={columns}",
-            )
-            grad = torch.randn(N_TARGETS, columns, dtype=dtype, device="cuda")
-            _, _, sums = kernels.apply(targets_t, controls_t, values, 4.0, 1e-20, nearest)
-            tkernel = "transposed" if columns <= kernels.SMALL_COLUMNS else "transposed_dot"
-
-            def run_transposed():
-                return (
-                    event_time(
-                        lambda: kernels.apply_transposed(
-                            targets_t, controls_t, grad, nearest, sums, 4.0, 1e-20
-                        )
-                    ),
-                    0.0,
-                )
-
-            best[(tkernel, name)] = sweep(
-                tkernel,
-                run_transposed,
-                square if columns <= 3 else dots,
-                f"{tkernel} {name} K={columns}",
-            )
+            print(f"{name}: one displacement (pass 2) {one * 1e3:.3f} ms")
+            continue
+        sweep_columns(geometry, dtype, 3, square, best)
+        sweep_columns(geometry, dtype, 48, dots, best)
 
         def run_nearest():
             return event_time(lambda: kernels.nearest_squared(targets_t, controls_t)), 0.0

@@ -46,3 +46,58 @@ def test_float32_and_float64_are_accepted():
     cube = box_mesh(2)
     for dtype in (torch.float32, torch.float64):
         assert signed_volumes(cube.points.to(dtype), cube.tets).dtype == dtype
+
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_check_finite_counts_nan_and_inf_and_passes_the_extreme_finite_values(device, dtype):
+    from torchmorph._checks import check_finite
+
+    largest = torch.finfo(dtype).max
+    values = torch.tensor([[largest, -largest, 1.0], [0.0, -0.0, 5e-45]], dtype=dtype)
+    check_finite(values.to(device), "values")  # the hot path's maximum is finite here
+    for bad, count in (
+        ([float("nan")], 1),
+        ([float("inf"), float("-inf")], 2),
+        ([float("nan"), float("inf"), float("nan")], 3),
+    ):
+        broken = values.flatten().clone()
+        broken[: len(bad)] = torch.tensor(bad, dtype=dtype)
+        with pytest.raises(ValueError, match=f"values holds {count} NaN or infinite"):
+            check_finite(broken.to(device), "values")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_idw_points_with_nan_or_inf_are_reported_by_name(device):
+    from torchmorph import idw_apply
+
+    generator = torch.Generator().manual_seed(0)
+    controls = torch.rand(30, 3, generator=generator, dtype=torch.float64)
+    targets = torch.rand(40, 3, generator=generator, dtype=torch.float64)
+    displacements = torch.rand(30, 3, generator=generator, dtype=torch.float64)
+    for name, index, value in (
+        ("controls", (4, 2), float("nan")),
+        ("controls", (0, 0), float("-inf")),
+        ("targets", (39, 1), float("inf")),
+        ("targets", (7, 0), float("nan")),
+    ):
+        points = {"controls": controls.clone(), "targets": targets.clone()}
+        points[name][index] = value
+        with pytest.raises(ValueError, match=f"{name} holds 1 NaN or infinite"):
+            idw_apply(
+                controls=points["controls"].to(device),
+                targets=points["targets"].to(device),
+                displacements=displacements.to(device),
+            )
+    # the largest finite coordinates are not mistaken for infinite ones
+    huge = torch.finfo(torch.float64).max / 4
+    moved = idw_apply(
+        controls=(controls * huge).to(device),
+        targets=(targets * huge).to(device),
+        displacements=displacements.to(device),
+    )
+    expected = idw_apply(controls=controls, targets=targets, displacements=displacements)
+    torch.testing.assert_close(moved.cpu(), expected)

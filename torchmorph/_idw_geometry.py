@@ -12,7 +12,13 @@ import warnings
 import torch
 from torch import Tensor
 
-from ._checks import as_points, check_positive, check_same_device_dtype, is_traced
+from ._checks import (
+    as_points,
+    check_finite,
+    check_positive,
+    check_same_device_dtype,
+    is_traced,
+)
 
 __all__: list[str] = []
 
@@ -42,20 +48,41 @@ def _normalise(
     are not translated: a translation would round the coordinates of a cloud
     centred away from its own fine details. The radius is a Python float, or a
     0-d tensor when the call is traced (no value is read in Python then).
+
+    Raises ``ValueError`` naming the cloud when one holds NaN or infinite
+    coordinates: the bounds that set the scale are read in one go with that check
+    (one device synchronisation per call), so callers validate the points with
+    ``as_points(..., finite=False)``.
     """
+    tiny = torch.finfo(controls.dtype).tiny
     with torch.no_grad():
         t, c = targets.detach(), controls.detach()
-        low, high, largest = c.amin(0), c.amax(0), c.abs().amax()
+        if is_traced(t) or is_traced(c):
+            check_finite(controls, "controls")
+            check_finite(targets, "targets")
+            low, high, largest = c.amin(0), c.amax(0), c.abs().amax()
+            if t.shape[0]:
+                low = torch.minimum(low, t.amin(0))
+                high = torch.maximum(high, t.amax(0))
+                largest = torch.maximum(largest, t.abs().amax())
+            _, exponent = torch.frexp(largest)
+            scale = torch.ldexp(torch.ones_like(largest), -exponent)
+            diagonal = torch.linalg.vector_norm(high * scale - low * scale)
+            radius2 = (tolerance * diagonal).square().clamp_min(tiny)
+            return targets * scale, controls * scale, radius2
+        extremes = [*torch.aminmax(c, dim=0)]
         if t.shape[0]:
-            low = torch.minimum(low, t.amin(0))
-            high = torch.maximum(high, t.amax(0))
-            largest = torch.maximum(largest, t.abs().amax())
-        _, exponent = torch.frexp(largest)
-        scale = torch.ldexp(torch.ones_like(largest), -exponent)
-        diagonal = torch.linalg.vector_norm(high * scale - low * scale)
-        radius2 = (tolerance * diagonal).square().clamp_min(torch.finfo(c.dtype).tiny)
-        if not (is_traced(t) or is_traced(c)):
-            radius2 = float(radius2)
+            extremes += torch.aminmax(t, dim=0)
+        bounds = torch.stack(extremes).tolist()  # the one read: NaN propagates
+    if not all(math.isfinite(value) for row in bounds for value in row):
+        check_finite(controls, "controls")
+        check_finite(targets, "targets")
+    low = [min(column) for column in zip(*bounds[0::2], strict=True)]
+    high = [max(column) for column in zip(*bounds[1::2], strict=True)]
+    _, exponent = math.frexp(max(map(abs, low + high)))
+    scale = math.ldexp(1.0, -exponent)
+    diagonal = math.hypot(*(b * scale - a * scale for a, b in zip(low, high, strict=True)))
+    radius2 = max((tolerance * diagonal) ** 2, tiny)
     return targets * scale, controls * scale, radius2
 
 
@@ -81,8 +108,8 @@ def _points_arguments(function: str, positional: tuple, controls, targets, count
 
 def _prepare(targets, controls, power, coincidence_tolerance):
     """Validated, normalised points, the power and the squared coincidence radius."""
-    controls = as_points(controls, "controls", dim=_dim_of(controls))
-    targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True)
+    controls = as_points(controls, "controls", dim=_dim_of(controls), finite=False)
+    targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True, finite=False)
     check_same_device_dtype(controls, "controls", targets, "targets")
     power = _check_power(power)
     targets, controls, radius2 = _normalise(
