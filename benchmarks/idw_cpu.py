@@ -18,7 +18,9 @@ against a baseline measured in the same run):
 3. shared cores, two threads: each path timed quiet and with a competing busy
    process (a Python subprocess spinning, started before and killed after each
    timed block, bounded in time); the busy / quiet ratio. Includes a batch of 16
-   displacements (48 columns): blocks of W times GEMM (the default) and the fused kernel.
+   displacements (48 columns): blocks of W times GEMM (the default) and the fused kernel,
+   and a baseline that is not IDW (a plain torch GEMM), whose ratio is what the machine's
+   scheduler gives any 2-thread computation beside the busy process in that run.
 
 Point clouds: controls on a box's walls and on an inner thin ellipsoid, targets in
 between (as in ``benchmarks/idw.py``), normalised to a unit bounding-box diagonal.
@@ -293,7 +295,11 @@ def shared_table(size, repeats, only: str = "") -> None:
         batch = torch.randn(  # a batch of 16 displacements: 48 value columns
             controls.shape[0], 48, dtype=dtype, generator=torch.Generator().manual_seed(3)
         )
+        square = torch.rand(768, 768, dtype=dtype, generator=torch.Generator().manual_seed(4))
         paths = {
+            # not IDW: what the machine itself allows a 2-thread computation beside the
+            # busy process (a GEMM split statically between the threads)
+            "baseline: a plain torch GEMM (768², no IDW)": partial(torch.mm, square, square),
             "dense build, fused weights": partial(
                 kernels.weights, targets, controls, POWER, 0.0, out=out
             ),
