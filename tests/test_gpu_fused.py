@@ -82,6 +82,26 @@ def test_fused_batch_keeps_float32_accuracy_over_many_controls():
     assert error < 1e-5, float(error)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_fused_wide_batch_and_its_gradient_run_in_groups_of_columns(dtype):
+    # 100 displacements: 300 value columns, three launches of the batched pass each way
+    controls, targets, generator = sphere_cloud(1500, 2500, dtype, seed=2)
+    displacements = torch.randn(100, 1500, 3, generator=generator, dtype=F64)
+    weights = idw_weights(
+        controls=controls.double().cpu(), targets=targets.double().cpu(), implementation="torch"
+    )
+    leaf = displacements.to(dtype).cuda().requires_grad_()
+    got = idw_apply(controls=controls, targets=targets, displacements=leaf, implementation="fused")
+    expected = weights @ displacements
+    tolerance = 1e-5 if dtype == torch.float32 else 1e-12
+    assert (got.double().cpu() - expected).norm() / expected.norm() < tolerance
+    upstream = torch.randn(100, 2500, 3, generator=generator, dtype=F64)
+    got.backward(upstream.to(dtype).cuda())
+    expected_grad = weights.T @ upstream
+    error = (leaf.grad.double().cpu() - expected_grad).norm() / expected_grad.norm()
+    assert error < tolerance, float(error)
+
+
 def test_fused_exact_at_controls_and_mean_on_duplicates():
     controls, targets, generator = sphere_cloud(500, 800, F64)
     controls[7] = controls[6]

@@ -173,3 +173,23 @@ def test_dot_operands_split_float32_exactly_into_a_tf32_part_and_a_rest(kernels,
     assert not hi[:, 6:].any() and not lo[:, 5:].any()
     full, same, padded, split = kernels._dot_operands(values.double(), ones_column)
     assert not split and same is full and torch.equal(full[:, :5], values.double())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_wide_batches_run_in_groups_of_columns(kernels, dtype, monkeypatch):
+    # 40 columns in launches of at most 16 padded columns: 15 + 15 + 10 forward (each
+    # with the column of ones), 16 + 16 + 8 transposed
+    monkeypatch.setattr(kernels, "DOT_COLUMNS", 16)
+    targets, controls, generator = cloud(70, 45, 3, dtype, seed=11)
+    values = torch.randn(45, 40, generator=generator, dtype=F64).to(dtype)
+    weights = brute_force(targets, controls, 4.0, 1e-20)
+    out, nearest2, sums = kernels.apply(
+        targets.T.contiguous(), controls.T.contiguous(), values, 4.0, 1e-20
+    )
+    torch.testing.assert_close(out.double(), weights @ values.double(), **TOLERANCES[dtype])
+    assert torch.equal(out[3], values[5])
+    grad = torch.randn(70, 40, generator=generator, dtype=F64).to(dtype)
+    transposed = kernels.apply_transposed(
+        targets.T.contiguous(), controls.T.contiguous(), grad, nearest2, sums, 4.0, 1e-20
+    )
+    torch.testing.assert_close(transposed.double(), weights.T @ grad.double(), **TOLERANCES[dtype])

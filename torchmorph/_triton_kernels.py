@@ -104,6 +104,12 @@ _OVERRIDE: dict[str, tuple[int, int, int]] = {}
 #: Up to this many columns are accumulated one by one; more go through ``tl.dot``.
 SMALL_COLUMNS = 3
 
+#: The widest ``tl.dot`` launch, in padded columns (KP): a wider batch runs in groups of
+#: columns, one launch each (the weights recomputed per group), so that the accumulator
+#: and the operand tiles keep fitting in registers and shared memory. On an H100 at
+#: case-B counts a batch of 1000 took 63 ms in groups of 64, 46 ms of 128, 77 ms of 256.
+DOT_COLUMNS = 128
+
 
 def tile_shapes(kernel: str, dtype: torch.dtype) -> tuple[int, int, int]:
     """(BLOCK_rows, BLOCK_cols, num_warps) for ``kernel`` at ``dtype``."""
@@ -222,32 +228,35 @@ def apply(
             num_warps=warps,
         )
     else:
-        v_hi, v_lo, padded, split = _dot_operands(values, ones_column=True)
         block_t, block_c, warps = tile_shapes("apply_dot", values.dtype)
-        _apply_dot_kernel[(triton.cdiv(n_t, block_t),)](
-            targets_t,
-            controls_t,
-            v_hi,
-            v_lo,
-            nearest2,
-            out,
-            sums,
-            n_t,
-            n_c,
-            out.stride(0),
-            radius2,
-            tiny,
-            half_power,
-            D=dim,
-            K=columns,
-            KP=padded,
-            KIND=kind,
-            FAST=fast,
-            SPLIT=split,
-            BLOCK_T=block_t,
-            BLOCK_C=block_c,
-            num_warps=warps,
-        )
+        group = DOT_COLUMNS - 1  # value columns per launch, and the column of ones
+        for start in range(0, columns, group):
+            part = values[:, start : start + group]
+            v_hi, v_lo, padded, split = _dot_operands(part, ones_column=True)
+            _apply_dot_kernel[(triton.cdiv(n_t, block_t),)](
+                targets_t,
+                controls_t,
+                v_hi,
+                v_lo,
+                nearest2,
+                out[:, start:],
+                sums,
+                n_t,
+                n_c,
+                out.stride(0),
+                radius2,
+                tiny,
+                half_power,
+                D=dim,
+                K=part.shape[1],
+                KP=padded,
+                KIND=kind,
+                FAST=fast,
+                SPLIT=split,
+                BLOCK_T=block_t,
+                BLOCK_C=block_c,
+                num_warps=warps,
+            )
     return out, nearest2, sums
 
 
@@ -292,31 +301,33 @@ def apply_transposed(
             num_warps=warps,
         )
     else:
-        g_hi, g_lo, padded, split = _dot_operands(scaled, ones_column=False)
         block_c, block_t, warps = tile_shapes("transposed_dot", grad.dtype)
-        _transposed_dot_kernel[(triton.cdiv(n_c, block_c),)](
-            controls_t,
-            targets_t,
-            nearest2,
-            g_hi,
-            g_lo,
-            out,
-            n_c,
-            n_t,
-            out.stride(0),
-            radius2,
-            tiny,
-            half_power,
-            D=dim,
-            K=columns,
-            KP=padded,
-            KIND=kind,
-            FAST=fast,
-            SPLIT=split,
-            BLOCK_C=block_c,
-            BLOCK_T=block_t,
-            num_warps=warps,
-        )
+        for start in range(0, columns, DOT_COLUMNS):
+            part = scaled[:, start : start + DOT_COLUMNS]
+            g_hi, g_lo, padded, split = _dot_operands(part, ones_column=False)
+            _transposed_dot_kernel[(triton.cdiv(n_c, block_c),)](
+                controls_t,
+                targets_t,
+                nearest2,
+                g_hi,
+                g_lo,
+                out[:, start:],
+                n_c,
+                n_t,
+                out.stride(0),
+                radius2,
+                tiny,
+                half_power,
+                D=dim,
+                K=part.shape[1],
+                KP=padded,
+                KIND=kind,
+                FAST=fast,
+                SPLIT=split,
+                BLOCK_C=block_c,
+                BLOCK_T=block_t,
+                num_warps=warps,
+            )
     return out
 
 
