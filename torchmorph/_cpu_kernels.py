@@ -68,7 +68,7 @@ as the GPU ones. Measured on one core of the shared 2-core development machine
 float32 and 0.6–0.75 Gpair/s in float64, 5.4–6.3× (float32) and 2.4–2.5× (float64) a
 plain two-pass numba loop and about 4× torchmorph's tiled torch path; beside a busy process
 the fused paths take 1.3–2.3× their quiet time (about what a plain 2-thread GEMM takes
-there, 2.2–2.9×) where the torch path takes up to 3.6–12×.
+there, 2.2–2.9×) where the torch path has taken up to 12×.
 The price is compilation: lazy, once per kernel and dtype, 2–3 s each on first use
 (about 13 s for all five kernels in one dtype), then cached on disk by numba
 (``cache=True``: in ``__pycache__`` beside this file, or under ``NUMBA_CACHE_DIR``),
