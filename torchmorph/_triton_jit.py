@@ -230,8 +230,9 @@ def _split_tf32(x):
 
 
 @triton.jit
-def _dot_accumulate(weight, v_hi, v_lo, acc, SPLIT: tl.constexpr):
-    """``acc + weight @ v`` on the matrix units.
+def _dot_accumulate(weight, v_hi, v_lo, cols, col_ok, acc, KP: tl.constexpr, SPLIT: tl.constexpr):
+    """``acc + weight @ v`` on the matrix units, for the rows ``cols`` of a host-padded
+    (N, KP) operand ``v`` (see ``_dot_operands`` of :mod:`._triton_kernels`).
 
     SPLIT (float32): ``v = v_hi + v_lo`` split on the host and ``weight`` split here, the
     three products ``w_lo v_hi + w_hi v_lo + w_hi v_hi`` in tf32 (float32 accuracy) summed
@@ -240,14 +241,17 @@ def _dot_accumulate(weight, v_hi, v_lo, acc, SPLIT: tl.constexpr):
     (6.7e-5 of |v| at case-B counts, against 2.8e-6 this way). Otherwise ``v_hi`` is v and
     the product is exact to the dtype (float64).
     """
+    offsets = cols.to(tl.int64)[:, None] * KP + tl.arange(0, KP)[None, :]
+    hi = tl.load(v_hi + offsets, mask=col_ok[:, None], other=0.0)
     if SPLIT:
+        lo = tl.load(v_lo + offsets, mask=col_ok[:, None], other=0.0)
         w_hi, w_lo = _split_tf32(weight)
-        tile = tl.dot(w_lo, v_hi, tl.zeros_like(acc), input_precision="tf32")
-        tile = tl.dot(w_hi, v_lo, tile, input_precision="tf32")
-        tile = tl.dot(w_hi, v_hi, tile, input_precision="tf32")
+        tile = tl.dot(w_lo, hi, tl.zeros_like(acc), input_precision="tf32")
+        tile = tl.dot(w_hi, lo, tile, input_precision="tf32")
+        tile = tl.dot(w_hi, hi, tile, input_precision="tf32")
         result = acc + tile
     else:
-        result = acc + tl.dot(weight, v_hi)
+        result = acc + tl.dot(weight, hi)
     return result
 
 
@@ -295,12 +299,7 @@ def _apply_dot_kernel(
         weight = _weight_tile(
             dist2, nearest2, coincident, any_coincident, radius2, half_power, KIND, FAST, True
         )
-        offsets = cols.to(tl.int64)[:, None] * KP + k_idx[None, :]
-        hi = tl.load(v_hi + offsets, mask=col_ok[:, None], other=0.0)
-        lo = hi
-        if SPLIT:
-            lo = tl.load(v_lo + offsets, mask=col_ok[:, None], other=0.0)
-        acc = _dot_accumulate(weight, hi, lo, acc, SPLIT)
+        acc = _dot_accumulate(weight, v_hi, v_lo, cols, col_ok, acc, KP, SPLIT)
     total = tl.sum(tl.where(k_idx[None, :] == K, acc, 0.0), axis=1)
     tl.store(sums_out + rows, total, mask=row_ok)
     tl.store(
@@ -413,12 +412,7 @@ def _transposed_dot_kernel(
         weight = _weight_tile(
             dist2, nearest2, coincident, any_coincident, radius2, half_power, KIND, FAST, False
         )
-        offsets = cols.to(tl.int64)[:, None] * KP + k_idx[None, :]
-        hi = tl.load(g_hi + offsets, mask=col_ok[:, None], other=0.0)
-        lo = hi
-        if SPLIT:
-            lo = tl.load(g_lo + offsets, mask=col_ok[:, None], other=0.0)
-        acc = _dot_accumulate(weight, hi, lo, acc, SPLIT)
+        acc = _dot_accumulate(weight, g_hi, g_lo, cols, col_ok, acc, KP, SPLIT)
     tl.store(
         out + rows.to(tl.int64)[:, None] * stride_o + k_idx[None, :],
         acc,

@@ -148,6 +148,16 @@ def _dot_operands(values: Tensor, ones_column: bool) -> tuple[Tensor, Tensor, in
     return hi, full - hi, padded, True
 
 
+def _dot_groups(values: Tensor, ones_column: bool):
+    """``(start, width, hi, lo, KP, SPLIT)`` for each launch of a ``tl.dot`` kernel: the
+    columns of ``values`` in groups of at most :data:`DOT_COLUMNS` padded columns (one
+    fewer values with the column of ones), each group as :func:`_dot_operands` gives it."""
+    group = DOT_COLUMNS - int(ones_column)
+    for start in range(0, values.shape[1], group):
+        part = values[:, start : start + group]
+        yield (start, part.shape[1], *_dot_operands(part, ones_column))
+
+
 def nearest_squared(targets_t: Tensor, controls_t: Tensor) -> Tensor:
     """``max(min_k d²_ik, tiny)`` for each target, shape (N_t,)."""
     dim, n_t = targets_t.shape
@@ -229,10 +239,7 @@ def apply(
         )
     else:
         block_t, block_c, warps = tile_shapes("apply_dot", values.dtype)
-        group = DOT_COLUMNS - 1  # value columns per launch, and the column of ones
-        for start in range(0, columns, group):
-            part = values[:, start : start + group]
-            v_hi, v_lo, padded, split = _dot_operands(part, ones_column=True)
+        for start, width, v_hi, v_lo, padded, split in _dot_groups(values, ones_column=True):
             _apply_dot_kernel[(triton.cdiv(n_t, block_t),)](
                 targets_t,
                 controls_t,
@@ -248,7 +255,7 @@ def apply(
                 tiny,
                 half_power,
                 D=dim,
-                K=part.shape[1],
+                K=width,
                 KP=padded,
                 KIND=kind,
                 FAST=fast,
@@ -302,9 +309,7 @@ def apply_transposed(
         )
     else:
         block_c, block_t, warps = tile_shapes("transposed_dot", grad.dtype)
-        for start in range(0, columns, DOT_COLUMNS):
-            part = scaled[:, start : start + DOT_COLUMNS]
-            g_hi, g_lo, padded, split = _dot_operands(part, ones_column=False)
+        for start, width, g_hi, g_lo, padded, split in _dot_groups(scaled, ones_column=False):
             _transposed_dot_kernel[(triton.cdiv(n_c, block_c),)](
                 controls_t,
                 targets_t,
@@ -319,7 +324,7 @@ def apply_transposed(
                 tiny,
                 half_power,
                 D=dim,
-                K=part.shape[1],
+                K=width,
                 KP=padded,
                 KIND=kind,
                 FAST=fast,
