@@ -1,6 +1,6 @@
 """Tile-shape sweep of the fused Triton IDW kernels on a CUDA device.
 
-For each kernel of :mod:`torchmorph._triton_kernels` and each candidate
+For each kernel of :mod:`torchmorph.idw.backends.triton.kernels` and each candidate
 (BLOCK_rows, BLOCK_cols, num_warps), the median time (CUDA events, after warm-up) at
 the paper's case-B counts (14,126 controls on a sphere, 21,910 targets inside it: a
 graded cloud), float32 and float64, with the error of each candidate against a
@@ -16,7 +16,7 @@ import sys
 
 import torch
 
-from torchmorph import _triton_kernels as kernels
+from torchmorph.idw.backends.triton import kernels
 
 N_CONTROLS, N_TARGETS = 14126, 21910
 

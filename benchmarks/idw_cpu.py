@@ -1,4 +1,4 @@
-"""Fused CPU IDW kernels (``torchmorph._cpu_kernels``, numba) against a plain numba loop.
+"""Fused CPU IDW kernels (``torchmorph.idw.backends.numba.kernels``, numba) against a plain numba loop.
 
 Prints three markdown tables (medians of repeats after a warm-up, all ratios taken
 against a baseline measured in the same run):
@@ -47,9 +47,9 @@ from _timing import median_time, seconds
 from idw import point_clouds as idw_point_clouds
 from numba import njit, prange
 
-from torchmorph import _cpu_kernels as kernels
-from torchmorph._idw_fused import _NumbaBackend
 from torchmorph.idw import idw_apply, idw_weights
+from torchmorph.idw._dispatch import _NumbaBackend
+from torchmorph.idw.backends.numba import kernels
 
 SIZES = [(21910, 14126), (5000, 10000)]  # (N_t, N_c): case-B counts, and a rounder one
 POWER = 4.0

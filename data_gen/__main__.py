@@ -73,8 +73,8 @@ def _format(value) -> str:
 
 
 def _write(path: Path, mesh) -> None:
-    from torchmorph.io import write_mesh
     from torchmorph.mesh import TetMesh
+    from torchmorph.mesh.io import write_mesh
 
     write_mesh(path, TetMesh(mesh.points, mesh.tets, mesh.node_sets))
 
@@ -97,7 +97,7 @@ def _check_arguments(args: argparse.Namespace) -> str:
     if args.seed < 0:
         raise _ArgumentError(f"--seed must be >= 0, got {args.seed}")
     if args.output is not None:
-        from torchmorph.io import MESH_FORMATS
+        from torchmorph.mesh.io import MESH_FORMATS
 
         output = args.output
         if output.is_dir():

@@ -1,17 +1,20 @@
 """Plain NumPy tetrahedral-mesh helpers shared by the meshers.
 
 The builders work on NumPy arrays and wrap the result in
-:class:`torchmorph.mesh.TetMesh` at the very end; the tetrahedron's edge table is
-torchmorph's own (:mod:`torchmorph._tet`), so importing data_gen imports torch.
+:class:`torchmorph.mesh.TetMesh` at the very end; volumes and edge ratios are
+torchmorph's own (:func:`torchmorph.mesh.signed_volumes`, :func:`torchmorph.mesh.edge_ratio`),
+so importing data_gen imports torch.
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 
-from torchmorph._tet import TET_EDGES
+from torchmorph import mesh as tm
 
 __all__ = [
     "MeshArrays",
@@ -26,7 +29,7 @@ __all__ = [
 
 # Faces of a positively oriented tetrahedron (a, b, c, d), normals pointing out.
 _OUTWARD_FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])
-_TET_EDGES = np.array(TET_EDGES)  # the one table, torchmorph._tet
+_TET_EDGES = np.array(list(itertools.combinations(range(4), 2)))  # every pair of vertices
 
 
 @dataclass
@@ -49,10 +52,12 @@ class MeshArrays:
 
 
 def signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Signed volumes, shape (M,): ``det[b - a, c - a, d - a] / 6``."""
-    a = points[tets[:, 0]]
-    u, v, w = points[tets[:, 1]] - a, points[tets[:, 2]] - a, points[tets[:, 3]] - a
-    return np.einsum("ij,ij->i", u, np.cross(v, w)) / 6.0
+    """Signed volumes, shape (M,) (:func:`torchmorph.mesh.signed_volumes` on arrays)."""
+    return tm.signed_volumes(_tensor(points), _tensor(tets)).numpy()
+
+
+def _tensor(array: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(array))
 
 
 def orient(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -87,10 +92,9 @@ def compact(
 
 
 def edge_ratio(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Mesh quality Q per tetrahedron: longest / shortest edge (Ballarin et al. 2017, Section 2.3.1), shape (M,)."""
-    ends = tets[:, _TET_EDGES]
-    lengths = np.linalg.norm(points[ends[:, :, 0]] - points[ends[:, :, 1]], axis=2)
-    return lengths.max(axis=1) / lengths.min(axis=1)
+    """Mesh quality Q per tetrahedron: longest / shortest edge (Ballarin et al. 2017,
+    Section 2.3.1), shape (M,) (:func:`torchmorph.mesh.edge_ratio` on arrays)."""
+    return tm.edge_ratio(_tensor(points), _tensor(tets)).numpy()
 
 
 def mesh_figures(points: np.ndarray, tets: np.ndarray) -> dict[str, float | int]:

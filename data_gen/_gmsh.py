@@ -12,12 +12,6 @@ Meshing is deterministic: one thread, a fixed ``Mesh.RandomSeed``.
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
-
-import numpy as np
-
-from data_gen._arrays import compact
 from data_gen.geometry import (
     BOX_WALLS,
     CHORD,
@@ -30,34 +24,11 @@ from data_gen.geometry import (
     naca_half_thickness,
     naca_profile,
 )
+from torchmorph.meshing.gmsh_model import add_box, collect_tets, distance_threshold, gmsh_session
 
 __all__ = ["mesh_fluid_wing", "mesh_hull", "mesh_wing"]
 
 _FLAT = 1e-5  # a surface whose bounding box is thinner than this [m] is planar (OCC pads by 1e-7)
-
-
-@contextlib.contextmanager
-def _session(name: str, *, seed: int, verbose: bool) -> Iterator[object]:
-    """A fresh gmsh model with deterministic settings; gmsh is finalised after
-    use unless it was initialised by the caller."""
-    import gmsh
-
-    started = not gmsh.isInitialized()
-    if started:
-        gmsh.initialize(readConfigFiles=False, interruptible=False)
-    try:
-        gmsh.model.add(name)
-        gmsh.option.setNumber("General.Terminal", 1 if verbose else 0)
-        gmsh.option.setNumber("General.Verbosity", 5 if verbose else 0)
-        gmsh.option.setNumber("General.NumThreads", 1)
-        gmsh.option.setNumber("Mesh.RandomSeed", seed)
-        yield gmsh
-    finally:
-        if started:
-            gmsh.finalize()
-        else:
-            with contextlib.suppress(Exception):
-                gmsh.model.remove()
 
 
 def _profile_splines(occ, num_points: int) -> int:
@@ -115,21 +86,6 @@ def _classify_surfaces(gmsh, bounds, body: str) -> dict[str, list[int]]:
     return names
 
 
-def _threshold(
-    field, surfaces: list[int], size_min: float, size_max: float, distance: float
-) -> int:
-    dist = field.add("Distance")
-    field.setNumbers(dist, "SurfacesList", surfaces)
-    field.setNumber(dist, "Sampling", 100)
-    threshold = field.add("Threshold")
-    field.setNumber(threshold, "InField", dist)
-    field.setNumber(threshold, "SizeMin", size_min)
-    field.setNumber(threshold, "SizeMax", size_max)
-    field.setNumber(threshold, "DistMin", 0.0)
-    field.setNumber(threshold, "DistMax", distance)
-    return threshold
-
-
 def _edge_nodes(gmsh, params: dict) -> None:
     """Fixed node counts on the wing's sharp edges (ESIDW's enrichment sets).
 
@@ -151,28 +107,9 @@ def _edge_nodes(gmsh, params: dict) -> None:
         gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 1)
 
 
-def _mesh_and_collect(gmsh, names: dict[str, list[int]], *, algorithm: int, optimize: str):
-    gmsh.option.setNumber("Mesh.Algorithm3D", algorithm)
-    gmsh.model.mesh.generate(3)
-    if optimize:
-        gmsh.model.mesh.optimize(optimize)
-    node_tags, coords, _ = gmsh.model.mesh.getNodes()
-    index = np.full(int(node_tags.max()) + 1, -1, dtype=np.int64)
-    index[node_tags.astype(np.int64)] = np.arange(len(node_tags))
-    points = coords.reshape(-1, 3).astype(np.float64)
-    _, tet_nodes = gmsh.model.mesh.getElementsByType(4)
-    tets = index[tet_nodes.astype(np.int64)].reshape(-1, 4)
-    patches = {}
-    for name, tags in names.items():
-        nodes = [gmsh.model.mesh.getNodes(2, tag, includeBoundary=True)[0] for tag in tags]
-        patches[name] = np.unique(index[np.concatenate(nodes).astype(np.int64)])
-    points, tets, patches = compact(points, tets, patches)
-    return points, tets, patches
-
-
 def mesh_wing(params: dict, *, seed: int, verbose: bool):
     """Case A: the wing alone. Returns (points, tets, patches)."""
-    with _session("torchmorph_wing", seed=seed, verbose=verbose) as gmsh:
+    with gmsh_session("torchmorph_wing", seed=seed, verbose=verbose) as gmsh:
         occ = gmsh.model.occ
         volume = _wing_volume(occ, params["profile_points"])
         occ.synchronize()
@@ -190,9 +127,7 @@ def mesh_wing(params: dict, *, seed: int, verbose: bool):
         field.setNumber(restrict, "IncludeBoundary", 0)
         field.setAsBackgroundMesh(restrict)
         _edge_nodes(gmsh, params)
-        return _mesh_and_collect(
-            gmsh, names, algorithm=params["algorithm"], optimize=params["optimize"]
-        )
+        return collect_tets(gmsh, names, algorithm=params["algorithm"], optimize=params["optimize"])
 
 
 def _graded_fields(gmsh, names, body_patches, bounds, params) -> None:
@@ -206,7 +141,9 @@ def _graded_fields(gmsh, names, body_patches, bounds, params) -> None:
     """
     field = gmsh.model.mesh.field
     body = [tag for name in body_patches for tag in names.get(name, [])]
-    near_body = _threshold(field, body, params["h_body"], params["h_far"], params["grading_body"])
+    near_body = distance_threshold(
+        field, body, params["h_body"], params["h_far"], params["grading_body"]
+    )
     (x0, y0, z0), (x1, y1, z1) = bounds
     wall_distance = (
         f"min(min(min(x - ({x0!r}), ({x1!r}) - x), min(y - ({y0!r}), ({y1!r}) - y)),"
@@ -229,26 +166,19 @@ def _graded_fields(gmsh, names, body_patches, bounds, params) -> None:
     gmsh.option.setNumber("Mesh.LcIntegrationPrecision", 1e-5)
 
 
-def _add_box(occ, bounds) -> int:
-    (x0, y0, z0), (x1, y1, z1) = bounds
-    return occ.addBox(x0, y0, z0, x1 - x0, y1 - y0, z1 - z0)
-
-
 def mesh_fluid_wing(params: dict, *, seed: int, verbose: bool):
     """Case B: the tunnel around the wing. Returns (points, tets, patches)."""
-    with _session("torchmorph_fluid_wing", seed=seed, verbose=verbose) as gmsh:
+    with gmsh_session("torchmorph_fluid_wing", seed=seed, verbose=verbose) as gmsh:
         occ = gmsh.model.occ
         wing = _wing_volume(occ, params["profile_points"])
-        box = _add_box(occ, TUNNEL_BOUNDS)
+        box = add_box(occ, TUNNEL_BOUNDS)
         occ.cut([(3, box)], [(3, wing)])
         occ.synchronize()
         names = _classify_surfaces(gmsh, TUNNEL_BOUNDS, "wing")
         if "root" in names:
             raise RuntimeError("gmsh kept the wing's root face inside the tunnel")
         _graded_fields(gmsh, names, ("upper", "lower", "tip"), TUNNEL_BOUNDS, params)
-        return _mesh_and_collect(
-            gmsh, names, algorithm=params["algorithm"], optimize=params["optimize"]
-        )
+        return collect_tets(gmsh, names, algorithm=params["algorithm"], optimize=params["optimize"])
 
 
 def _wigley_volume(occ) -> int:
@@ -273,14 +203,12 @@ def _wigley_volume(occ) -> int:
 
 def mesh_hull(params: dict, *, seed: int, verbose: bool):
     """Case C: the box around the hull. Returns (points, tets, patches)."""
-    with _session("torchmorph_hull", seed=seed, verbose=verbose) as gmsh:
+    with gmsh_session("torchmorph_hull", seed=seed, verbose=verbose) as gmsh:
         occ = gmsh.model.occ
         hull = _wigley_volume(occ)
-        box = _add_box(occ, HULL_BOX_BOUNDS)
+        box = add_box(occ, HULL_BOX_BOUNDS)
         occ.cut([(3, box)], [(3, hull)])
         occ.synchronize()
         names = _classify_surfaces(gmsh, HULL_BOX_BOUNDS, "hull")
         _graded_fields(gmsh, names, ("starboard", "port"), HULL_BOX_BOUNDS, params)
-        return _mesh_and_collect(
-            gmsh, names, algorithm=params["algorithm"], optimize=params["optimize"]
-        )
+        return collect_tets(gmsh, names, algorithm=params["algorithm"], optimize=params["optimize"])

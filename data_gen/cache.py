@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from data_gen._arrays import MeshArrays
-from torchmorph._atomic import atomic_output
+from torchmorph.mesh import atomic_output
 
 __all__ = ["FORMAT_VERSION", "cache_key", "default_cache_dir", "load", "load_or_none", "save"]
 
@@ -49,7 +49,7 @@ def save(path: Path, mesh: MeshArrays) -> bool:
     """Write ``mesh`` to ``path`` atomically; a failure is a warning, not an error.
 
     The file is written beside its final name and renamed over it when complete
-    (:func:`torchmorph._atomic.atomic_output`), with the permissions of a normally
+    (:func:`torchmorph.mesh.atomic_output`), with the permissions of a normally
     created file (``0o644`` under the usual umask), so other users of a shared cache
     can read it. If the directory cannot be created or written (a read-only cache, a
     full disk), a :class:`RuntimeWarning` names the path and the reason, and False is

@@ -31,6 +31,8 @@ import math
 
 import numpy as np
 
+from torchmorph.meshing import BOX_WALLS
+
 __all__ = [
     "BOX_WALLS",
     "CHORD",
@@ -97,16 +99,6 @@ HULL_BOX_SIZE = (50.0, 25.0, 10.0)
 HULL_BOX_BOUNDS = (
     tuple(-s / 2 for s in HULL_BOX_SIZE),
     tuple(s / 2 for s in HULL_BOX_SIZE),
-)
-
-#: Node-set name, axis and side (0 = lower bound, 1 = upper bound) of the six box walls.
-BOX_WALLS = (
-    ("wall_x0", 0, 0),
-    ("wall_x1", 0, 1),
-    ("wall_y0", 1, 0),
-    ("wall_y1", 1, 1),
-    ("wall_z0", 2, 0),
-    ("wall_z1", 2, 1),
 )
 
 

@@ -38,10 +38,10 @@ from _common import median_seconds
 
 from torchmorph._atomic import atomic_output
 from torchmorph.mesh import TetMesh
+from torchmorph.mesh.quality import signed_volumes
 from torchmorph.morph import MeshMorph
 from torchmorph.paper import CASES, load_mesh
 from torchmorph.pod import PODReducer
-from torchmorph.quality import signed_volumes
 
 PROBE = (1.6, 0.0, 0.0)  # m: in the water, 0.35 m ahead of the bow (x = 1.25)
 

@@ -19,7 +19,7 @@ while keeping every tetrahedron valid. The two targets fix μ1 + μ2 and μ3 but
 one-parameter family of bendings; most of them (the smallest parameters among them
 in particular) invert tets of the ESIDW morph, whose few control points leave the
 thin wing's interior loosely held. The validity barrier
-(:func:`torchmorph.quality.validity_barrier`) in the objective picks a valid one:
+(:func:`torchmorph.mesh.quality.validity_barrier`) in the objective picks a valid one:
 
     J(μ) = ((deflection - target) / 0.05 m)² + ((twist - target) / 1°)²
            + weight · Σ_tets φ(V_deformed / V_reference)
@@ -60,10 +60,10 @@ from _common import median_seconds, synchronise
 
 from torchmorph._atomic import atomic_output
 from torchmorph.mesh import TetMesh
+from torchmorph.mesh.quality import count_inverted, signed_volumes, validity_barrier
 from torchmorph.morph import MeshMorph
 from torchmorph.paper import CASES, load_mesh
 from torchmorph.pod import PODReducer
-from torchmorph.quality import count_inverted, signed_volumes, validity_barrier
 
 CHORD = 1.01
 SPAN = 2.0 * math.pi

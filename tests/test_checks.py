@@ -7,8 +7,8 @@ import torch
 
 from torchmorph import IDW, MeshMorph, TetMesh
 from torchmorph.mesh import box_mesh
+from torchmorph.mesh.quality import edge_ratio, signed_volumes
 from torchmorph.pod import pod_basis
-from torchmorph.quality import edge_ratio, signed_volumes
 from torchmorph.selection import select_control_points
 
 HALF = [torch.float16, torch.bfloat16]

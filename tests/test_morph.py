@@ -10,7 +10,7 @@ import torch
 from torch.autograd import gradcheck
 
 from torchmorph import MeshMorph, TetMesh
-from torchmorph.quality import count_inverted
+from torchmorph.mesh.quality import count_inverted
 from torchmorph.selection import SelectionPlan
 
 F64 = torch.float64
@@ -222,5 +222,5 @@ def test_a_tampered_state_fails_to_load_and_leaves_the_module_intact(cube, key, 
 def test_implementation_reaches_the_idw(cube):
     plain = MeshMorph(cube, implementation="torch")
     assert plain.idw.implementation == "torch"
-    with pytest.raises(ValueError, match="implementation must be 'auto', 'fused' or 'torch'"):
+    with pytest.raises(ValueError, match="implementation must be one of 'auto', 'fused', 'torch'"):
         MeshMorph(cube, implementation="gpu")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from torchmorph.io import read_mesh
+from torchmorph.mesh.io import read_mesh
 
 pytest.importorskip("pytetwild")
 pytest.importorskip("trimesh")

@@ -36,7 +36,9 @@ def test_mesh_morph_state_of_0_1_0_loads(saved):
 
 
 def test_pod_reducer_state_of_0_1_0_loads(saved):
-    reducer = PODReducer()
+    with pytest.raises(ValueError, match="energy_tolerance: the state was saved with"):
+        PODReducer().load_state_dict(saved["pod_reducer"])  # the load rule: same hyper-parameters
+    reducer = PODReducer(energy_tolerance=1e-8)
     reducer.load_state_dict(saved["pod_reducer"])
     assert reducer.is_fitted and reducer.energy_tolerance == 1e-8
     torch.testing.assert_close(
@@ -45,3 +47,22 @@ def test_pod_reducer_state_of_0_1_0_loads(saved):
         rtol=0,
         atol=1e-15,
     )
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "name"),
+    [
+        ("torchmorph.quality", "torchmorph.mesh.quality", "edge_ratio"),
+        ("torchmorph.io", "torchmorph.mesh.io", "read_mesh"),
+        ("torchmorph.pod_functional", "torchmorph.pod.functional", "pod_basis"),
+    ],
+)
+def test_modules_of_0_1_0_import_with_a_deprecation_warning(old, new, name):
+    import importlib
+    import sys
+
+    sys.modules.pop(old, None)
+    with pytest.warns(DeprecationWarning, match=f"{old} moved to {new}"):
+        module = importlib.import_module(old)
+    assert getattr(module, name) is getattr(importlib.import_module(new), name)
+    assert name in module.__all__

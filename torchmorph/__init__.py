@@ -5,23 +5,26 @@ POD-reduced offline/online morph of Ballarin, D'Amario, Perotto and Rozza (2017)
 as PyTorch modules.
 """
 
-from .idw import IDW, idw_apply, idw_weights
-from .io import read_mesh, write_mesh
-from .mesh import TetMesh, box_mesh
-from .morph import MeshMorph
-from .pod import PODReducer
-from .quality import (
+from torchmorph import _moved  # noqa: F401  (0.1.0's module names, deprecated)
+from torchmorph.idw import IDW, idw_apply, idw_weights
+from torchmorph.mesh import (
+    TetMesh,
+    box_mesh,
     count_inverted,
     edge_ratio,
     inverted,
     mass_matrix,
     quality_summary,
+    read_mesh,
     relative_l2_error,
     relative_nodal_error,
     signed_volumes,
     validity_barrier,
+    write_mesh,
 )
-from .selection import Region, SelectionPlan, select_control_points
+from torchmorph.morph import MeshMorph
+from torchmorph.pod import PODReducer
+from torchmorph.selection import Region, SelectionPlan, select_control_points
 
 __all__ = [
     "IDW",

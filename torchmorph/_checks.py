@@ -17,6 +17,7 @@ from torch import Tensor
 __all__ = [
     "as_index",
     "as_points",
+    "check_choice",
     "check_finite",
     "check_float_dtype",
     "check_positive",
@@ -173,6 +174,15 @@ def check_float_dtype(value: Tensor, name: str) -> None:
         )
 
 
+def check_choice(value: object, name: str, choices: Sequence[str]) -> str:
+    """Return ``value`` if it is one of ``choices``, else raise ``ValueError`` in the one
+    format of every enumerated option: ``name must be one of 'a', 'b'; got 'c'``."""
+    if not isinstance(value, str) or value not in choices:
+        listed = ", ".join(repr(choice) for choice in choices)
+        raise ValueError(f"{name} must be one of {listed}; got {value!r}")
+    return value
+
+
 def check_positive(value: float, name: str) -> float:
     """Return ``value`` as float if it is finite and > 0, else raise ``ValueError``."""
     number = float(value)
@@ -195,18 +205,18 @@ def check_same_device_dtype(
         )
 
 
-def check_vectors(value: Tensor, name: str, count: int, *, what: str) -> bool:
-    """Check a field of 3-vectors, shape (count, 3) or (B, count, 3).
+def check_vectors(value: Tensor, name: str, count: int, *, dim: int = 3, what: str) -> bool:
+    """Check a field of ``dim``-vectors, shape (count, dim) or (B, count, dim).
 
     Returns True when the input is batched. ``what`` names the points the rows
     belong to, for the message (e.g. "control points").
     """
     if not isinstance(value, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
-    if value.ndim not in (2, 3) or value.shape[-2:] != (count, 3):
+    if value.ndim not in (2, 3) or value.shape[-2:] != (count, dim):
         raise ValueError(
-            f"{name} must have shape ({count}, 3) or (B, {count}, 3) for {count} {what}, "
-            f"got {tuple(value.shape)}"
+            f"{name} must have shape ({count}, {dim}) or (B, {count}, {dim}) for {count} "
+            f"{what}, got {tuple(value.shape)}"
         )
     check_float_dtype(value, name)
     check_finite(value, name)

@@ -1,30 +1,75 @@
-"""Loading state into modules whose buffer shapes depend on fitted data."""
+"""What every module of torchmorph does with its state: one error for use before
+``fit`` (:class:`NotFittedError`), one rule for loading a saved state
+(:func:`check_saved_hyperparameters`), and buffers that take the saved shapes
+(:func:`resize_buffers_for_load`).
+
+The load rule: a state holds the module's hyper-parameters beside its buffers. Those
+that change the result (``power``, ``coincidence_tolerance``, ``energy_tolerance``,
+``num_modes``, ``online`` …) must equal the loading module's, or loading raises
+``ValueError`` naming the field; build the module with the saved values, then load.
+Choices of storage and speed (IDW's ``mode``, block sizes, ``implementation``) may
+differ. Data learned or derived from the geometry (W, a selection, a POD basis) is
+taken from the state whatever its size.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
+from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-__all__ = ["resize_buffers_for_load"]
+__all__ = ["NotFittedError", "check_saved_hyperparameters", "resize_buffers_for_load"]
+
+
+class NotFittedError(RuntimeError):
+    """A fitted quantity was asked of an estimator (:class:`~torchmorph.PODReducer`,
+    :class:`~torchmorph.distributed.ShardedPOD`) before ``fit`` or before a fitted state
+    was loaded."""
+
+
+def check_saved_hyperparameters(
+    module: str, saved: Mapping[str, Any], current: Mapping[str, Any]
+) -> None:
+    """Raise ``ValueError`` unless every hyper-parameter in ``current`` was saved with the
+    same value (the load rule of the module docstring); ``module`` names the class."""
+    if not isinstance(saved, Mapping):
+        raise ValueError(
+            f"{module} state: the extra state must be a dict, got {type(saved).__name__}"
+        )
+    for field, value in current.items():
+        if field not in saved:
+            raise ValueError(f"{module} state: the extra state lacks {field!r}")
+        if saved[field] != value:
+            raise ValueError(
+                f"{field}: the state was saved with {field}={saved[field]!r} but this "
+                f"{module} has {field}={value!r}; build the module with the saved value"
+            )
 
 
 def resize_buffers_for_load(
-    module: nn.Module, state_dict: Mapping[str, Tensor], prefix: str, names: Iterable[str]
+    module: nn.Module,
+    state_dict: Mapping[str, Tensor],
+    prefix: str,
+    names: Iterable[str],
+    *,
+    take_dtype: bool = False,
 ) -> None:
-    """Give the named buffers of ``module`` the shapes stored in ``state_dict``.
+    """Give the named buffers of ``module`` the shapes stored in ``state_dict`` (and, with
+    ``take_dtype``, their floating dtype), on the module's device.
 
     Call from ``_load_from_state_dict`` before delegating to ``nn.Module``: a
     selection, a fitted basis or a W whose size depends on data then loads into
     a module built with other data instead of failing on a size mismatch.
     """
     for name in names:
-        key = prefix + name
         current = module._buffers.get(name)
-        incoming = state_dict.get(key)
-        if incoming is None or current is None or current.shape == incoming.shape:
+        incoming = state_dict.get(prefix + name)
+        if not isinstance(incoming, Tensor) or current is None:
             continue
-        module._buffers[name] = torch.empty(
-            incoming.shape, dtype=current.dtype, device=current.device
-        )
+        dtype = current.dtype
+        if take_dtype and incoming.is_floating_point():
+            dtype = incoming.dtype
+        if current.shape != incoming.shape or current.dtype != dtype:
+            module._buffers[name] = torch.empty(incoming.shape, dtype=dtype, device=current.device)

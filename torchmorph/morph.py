@@ -16,14 +16,14 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_same_device_dtype, check_vectors
-from ._state import resize_buffers_for_load
-from .idw import DEFAULT_DENSE_BYTES, IDW, Implementation, Mode
-from .mesh import TetMesh
-from .quality import signed_volumes
+from torchmorph._checks import check_same_device_dtype, check_vectors
+from torchmorph._state import resize_buffers_for_load
+from torchmorph.idw.module import DEFAULT_DENSE_BYTES, IDW, Implementation, Mode
+from torchmorph.mesh.model import TetMesh
+from torchmorph.mesh.quality import signed_volumes
 
 if TYPE_CHECKING:
-    from .selection import SelectionPlan
+    from torchmorph.selection.plan import SelectionPlan
 
 __all__ = ["MeshMorph"]
 
@@ -75,7 +75,7 @@ class MeshMorph(nn.Module):
     Notes
     -----
     Does not check the morphed mesh for inverted tetrahedra on its own: call
-    :meth:`count_inverted` (or :func:`torchmorph.quality.count_inverted`).
+    :meth:`count_inverted` (or :func:`torchmorph.mesh.quality.count_inverted`).
 
     :meth:`forward` is differentiable with respect to the boundary displacement
     and to ``points``, works under ``torch.func`` transforms (``vmap`` over a
@@ -346,7 +346,7 @@ class MeshMorph(nn.Module):
         """Mask of the tets whose signed volume is <= 0 after ``displacement``.
 
         ``displacement`` is a nodal field (N, 3) or a batch (B, N, 3); the mask has
-        shape (M,) or (B, M) (as :func:`torchmorph.quality.inverted`).
+        shape (M,) or (B, M) (as :func:`torchmorph.mesh.quality.inverted`).
         """
         check_vectors(displacement, "displacement", self.num_nodes, what="mesh nodes")
         with torch.no_grad():
@@ -355,7 +355,7 @@ class MeshMorph(nn.Module):
     def count_inverted(self, displacement: Tensor) -> int:
         """Number of tets whose signed volume is <= 0 after ``displacement`` (N, 3).
 
-        Always an int, as :func:`torchmorph.quality.count_inverted`; for a batch
+        Always an int, as :func:`torchmorph.mesh.quality.count_inverted`; for a batch
         (B, N, 3) count with ``inverted(displacement).sum(-1)``.
         """
         if isinstance(displacement, Tensor) and displacement.ndim == 3:

@@ -46,12 +46,12 @@ Notes
 * Errors are relative errors against full IDW with every boundary node a control
   point, over the whole mesh, in two norms: the nodal ℓ2 norm (the paper's reading:
   it defines Ω_h as the set of nodes) and the P1 mass-matrix norm (L2(Ω) of the
-  piecewise-linear field), see :func:`torchmorph.quality.relative_l2_error`.
+  piecewise-linear field), see :func:`torchmorph.mesh.quality.relative_l2_error`.
 """
 
 from __future__ import annotations
 
-from .cases import (
+from torchmorph.paper.cases import (
     CASES,
     ENERGY_TOLERANCE,
     HULL_CENTRE,
@@ -65,7 +65,7 @@ from .cases import (
     load_mesh,
     wing_bending,
 )
-from .experiments import (
+from torchmorph.paper.experiments import (
     CaseContext,
     SelectionPoint,
     factor_sweep,
@@ -73,12 +73,12 @@ from .experiments import (
     pod_spectra,
     prepare_case,
     radius_sweep,
-    reproduce,
     selection_point,
     selective_morph,
 )
-from .plots import plane_section, plot_case, plot_one_mode_bound
-from .reports import CaseResult, MethodResult
+from torchmorph.paper.plots import plane_section, plot_case, plot_one_mode_bound
+from torchmorph.paper.reports import CaseResult, MethodResult
+from torchmorph.paper.reproduce import reproduce
 
 __all__ = [
     "CASES",

@@ -10,9 +10,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..mesh import TetMesh
-from ..morph import MeshMorph
-from ..selection import Region, SelectionPlan
+from torchmorph._checks import check_choice
+from torchmorph.mesh.model import TetMesh
+from torchmorph.morph import MeshMorph
+from torchmorph.selection.plan import Region, SelectionPlan
 
 __all__ = [
     "CASES",
@@ -502,10 +503,7 @@ def get_case(case: str | CaseSpec, variant: str | None = None) -> CaseSpec:
     key = case_key(case)
     if variant is None:
         return CASES[key]
-    if variant not in VARIANTS[key]:
-        raise ValueError(
-            f"variant must be one of {', '.join(VARIANTS[key])} for case {key!r}, got {variant!r}"
-        )
+    check_choice(variant, f"variant (case {key!r})", tuple(VARIANTS[key]))
     return VARIANTS[key][variant]
 
 

@@ -9,13 +9,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 from torch import Tensor
 
-from .._atomic import atomic_output
-from .._tet import TET_EDGES
-from ..morph import MeshMorph
-from .cases import HULL_CENTRE
+from torchmorph._atomic import atomic_output
+from torchmorph.mesh._cells import TET_EDGES
+from torchmorph.morph import MeshMorph
+from torchmorph.paper.cases import HULL_CENTRE
 
 if TYPE_CHECKING:
-    from .experiments import CaseContext
+    from torchmorph.paper.experiments import CaseContext
 
 __all__ = ["plane_section", "plot_case", "plot_one_mode_bound"]
 

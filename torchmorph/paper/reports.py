@@ -13,13 +13,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._atomic import atomic_output
-from ..morph import MeshMorph
-from ..quality import edge_ratio
-from .cases import PaperMesh, PaperRow
+from torchmorph._atomic import atomic_output
+from torchmorph.mesh.quality import edge_ratio
+from torchmorph.morph import MeshMorph
+from torchmorph.paper.cases import PaperMesh, PaperRow
 
 if TYPE_CHECKING:
-    from .experiments import CaseContext
+    from torchmorph.paper.experiments import CaseContext
 
 __all__ = ["CaseResult", "MethodResult", "write_outputs"]
 
@@ -300,8 +300,8 @@ def write_outputs(
     fields: dict[str, Tensor],
     result: CaseResult,
 ) -> list[Path]:
-    from ..io import write_mesh
-    from .plots import plot_case
+    from torchmorph.mesh.io import write_mesh
+    from torchmorph.paper.plots import plot_case
 
     out.mkdir(parents=True, exist_ok=True)
     mesh = context.mesh

@@ -1,0 +1,484 @@
+"""``torchmorph morph``: a mesh, a boundary displacement and a selection in, the morphed
+mesh out (the paper's Algorithm 2); the command-line layer over :class:`MeshMorph`."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from torchmorph.cli._common import (
+    EXIT_INVERTED,
+    EXIT_OK,
+    CommandError,
+    _boundary_rows,
+    _check_names,
+    _line,
+    _load_displacement,
+    _positive_float,
+    _progress_option,
+    _read,
+    _seconds,
+    _Stages,
+    _warn,
+)
+
+if TYPE_CHECKING:
+    from torchmorph.mesh.model import TetMesh
+    from torchmorph.selection.plan import UncoveredNodesError
+
+__all__: list[str] = []
+
+
+def _selection_parameters(text: str) -> tuple[float, float, float]:
+    """Parse ``R[,a[,b]]`` and validate it with :class:`~torchmorph.selection.Region`."""
+    parts = [part.strip() for part in text.split(",")]
+    if not 1 <= len(parts) <= 3 or not all(parts):
+        raise argparse.ArgumentTypeError(
+            f"expected R, R,a or R,a,b (radius and factors, e.g. 0.3,0.8,1.3), got {text!r}"
+        )
+    try:
+        numbers = [float(part) for part in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected numbers R[,a[,b]] (e.g. 0.3,0.8,1.3), got {text!r}"
+        ) from None
+    from torchmorph.selection.plan import Region
+
+    try:
+        region = Region("region", *numbers)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return region.parameters
+
+
+def _region_option(text: str) -> tuple[tuple[str, ...], tuple[float, float, float]]:
+    """Parse ``SET[+SET...]=R[,a[,b]]``."""
+    names, equals, parameters = text.rpartition("=")
+    names_list = tuple(name.strip() for name in names.split("+"))
+    if not equals or not all(names_list):
+        raise argparse.ArgumentTypeError(
+            f"expected SET=R[,a,b] or SET1+SET2=R[,a,b] (e.g. top=0.5,0.8,1.3), got {text!r}"
+        )
+    return names_list, _selection_parameters(parameters)
+
+
+def add_parser(commands, common: argparse.ArgumentParser) -> None:
+    """Add the ``morph`` subcommand to ``commands`` (the subparsers of ``torchmorph``)."""
+    morph = commands.add_parser(
+        "morph",
+        parents=[common],
+        help="morph a mesh from a boundary displacement",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Morph a tetrahedral mesh: boundary nodes take the prescribed displacement\n"
+        "exactly, interior nodes are interpolated by IDW from the control points (all\n"
+        "boundary nodes, or a selection: --select / --region, with --enrich).",
+        epilog=_MORPH_EPILOG,
+    )
+    morph.add_argument("mesh", metavar="MESH", help="mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)")
+    morph.add_argument(
+        "--moving",
+        nargs="+",
+        action="extend",
+        metavar="SET",
+        help="node sets that move (names separated by spaces or commas); every other boundary "
+        "node is fixed. Without it the file must give every boundary node",
+    )
+    morph.add_argument(
+        "--displacement",
+        "-d",
+        required=True,
+        metavar="FILE",
+        help="displacement file (.npy, .npz, .csv, .txt, .dat); accepted shapes below",
+    )
+    morph.add_argument(
+        "--output",
+        "-o",
+        required=True,
+        metavar="OUT",
+        help="output mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)",
+    )
+    selection = morph.add_argument_group(
+        "control-point selection (default: every boundary node, plain IDW)"
+    )
+    exclusive = selection.add_mutually_exclusive_group()
+    exclusive.add_argument(
+        "--select",
+        type=_selection_parameters,
+        metavar="R[,a,b]",
+        help="Selective IDW on all boundary nodes as one region: radius R > 0, "
+        "0 < a < 1 (default 0.8), b > 1 (default 1.3)",
+    )
+    exclusive.add_argument(
+        "--region",
+        type=_region_option,
+        action="append",
+        metavar="SET=R[,a,b]",
+        help="Selective IDW per node set (repeatable; SET1+SET2=R for a union); every boundary "
+        "node must be in a region or an --enrich set unless --uncovered ignore",
+    )
+    selection.add_argument(
+        "--enrich",
+        nargs="+",
+        action="extend",
+        metavar="SET",
+        help="node sets whose nodes are always control points (ESIDW); needs --select or --region",
+    )
+    selection.add_argument(
+        "--strategy",
+        choices=("random", "centroid", "farthest"),
+        default="random",
+        help="SelectControlPoint strategy (default: random, the paper's)",
+    )
+    selection.add_argument(
+        "--overlap",
+        choices=("error", "first", "share"),
+        default="error",
+        help="nodes in several --region sets with different parameters: error (default), give "
+        "them to the first region, or let every region keep them",
+    )
+    selection.add_argument(
+        "--uncovered",
+        choices=("error", "ignore"),
+        default="error",
+        help="boundary nodes in no --region and no --enrich set: error (default), or never "
+        "select them",
+    )
+    selection.add_argument(
+        "--seed", type=int, default=0, help="seed of the random selection (default 0)"
+    )
+    idw = morph.add_argument_group("interpolation")
+    idw.add_argument(
+        "--power", type=_positive_float, default=4.0, help="IDW exponent p (default 4, the paper's)"
+    )
+    idw.add_argument(
+        "--mode",
+        choices=("auto", "dense", "matrix_free"),
+        default="auto",
+        help="store W (dense), recompute it in tiles (matrix_free), or choose by size (auto)",
+    )
+    idw.add_argument(
+        "--batch-index",
+        type=int,
+        default=None,
+        metavar="I",
+        help="field to use from a batched file (B, ..., 3); negative counts from the end",
+    )
+    idw.add_argument("--device", default="cpu", help="torch device (default cpu), e.g. cuda")
+    idw.add_argument(
+        "--dtype",
+        choices=("float64", "float32"),
+        default="float64",
+        help="floating-point precision (default float64)",
+    )
+    out = morph.add_argument_group("result")
+    out.add_argument(
+        "--write-deformed",
+        action="store_true",
+        help="write the deformed coordinates instead of the reference mesh",
+    )
+    out.add_argument(
+        "--strict",
+        action="store_true",
+        help=f"exit with code {EXIT_INVERTED} when the morph inverts tetrahedra "
+        "(the output is written all the same)",
+    )
+    _progress_option(out)
+    morph.set_defaults(run=run, parser=morph)
+
+
+_MORPH_EPILOG = """\
+displacement file layouts (n_moving = nodes in the union of the --moving sets,
+N_b = boundary nodes, N = all nodes):
+  (n_moving, 3)  rows of the moving nodes, in ascending global node id
+  (N_b, 3)       rows of the boundary nodes, in ascending global node id
+  (N, 3)         a nodal field; its boundary rows are used
+  (3,)           one translation of every moving node
+  (B, ..., 3)    a batch of any of these; pick one with --batch-index
+Boundary nodes outside the --moving sets are fixed (zero displacement).
+
+output: the reference mesh with point data 'displacement' (use ParaView's
+Warp By Vector) and 'control_point', cell data 'quality' (Q after the morph),
+'quality_reference' and 'inverted'.
+
+examples:
+  torchmorph morph wing.vtu --moving tip -d tip.npy -o out.vtu
+  torchmorph morph wing.vtu --moving upper lower -d d.npy --region root+tip=0.05 \\
+      --region upper+lower=0.5 --overlap first --enrich leading_edge trailing_edge \\
+      -o out.vtu
+(regions that share nodes, here the profiles where root and tip meet the sides,
+need --overlap first or --overlap share)
+"""
+
+
+# Name of the temporary node set that holds every boundary node for --select.
+_ALL_BOUNDARY = "(boundary)"
+
+
+def _split_names(values: Sequence[str] | None) -> list[str] | None:
+    """Names given as ``a b`` or ``a,b`` (or both), in order, without repeats."""
+    if values is None:
+        return None
+    names: list[str] = []
+    for value in values:
+        for name in value.split(","):
+            name = name.strip()
+            if name and name not in names:
+                names.append(name)
+    return names
+
+
+def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMesh, str]:
+    """The SelectionPlan of the options (or None), the mesh to select on, and a description."""
+    from torchmorph.mesh.model import TetMesh
+    from torchmorph.selection.plan import Region, SelectionPlan
+
+    enrich = _split_names(args.enrich) or []
+    if args.select is None and not args.region:
+        return None, mesh, "IDW: every boundary node is a control point"
+    method = "ESIDW" if enrich else "SIDW"
+    if args.select is not None:
+        radius, a, b = args.select
+        sets = {**mesh.node_sets, _ALL_BOUNDARY: mesh.boundary_nodes}
+        selection_mesh = TetMesh(mesh.points, mesh.tets, sets, name=mesh.name)
+        regions = [Region(_ALL_BOUNDARY, radius, a, b)]
+        text = f"all boundary nodes R={radius:g}, a={a:g}, b={b:g}"
+    else:
+        for names, _ in args.region:
+            _check_names(mesh, names, "--region")
+        selection_mesh = mesh
+        regions = [Region(names, *parameters) for names, parameters in args.region]
+        text = "; ".join(
+            f"{region.label} R={region.radius:g}, a={region.a:g}, b={region.b:g}"
+            for region in regions
+        )
+    if enrich:
+        text += f"; enriched with {', '.join(enrich)}"
+    plan = SelectionPlan(
+        regions,
+        enrich=enrich,
+        strategy=args.strategy,
+        overlap=args.overlap,
+        uncovered=args.uncovered,
+    )
+    return plan, selection_mesh, f"{method} ({args.strategy}): {text}"
+
+
+def _uncovered_message(mesh: TetMesh, error: UncoveredNodesError) -> str:
+    """The library's uncovered-nodes error in command-line terms, with where the nodes lie."""
+    missing = np.asarray(error.nodes)
+    is_missing = np.zeros(mesh.num_nodes, dtype=bool)
+    is_missing[missing] = True
+    where = []
+    in_some_set = np.zeros(mesh.num_nodes, dtype=bool)
+    for name in sorted(mesh.node_sets):
+        nodes = mesh.node_sets[name].cpu().numpy()
+        in_some_set[nodes] = True
+        count = int(is_missing[nodes].sum())
+        if count:
+            where.append(f"{count} in {name}")
+    outside = int((is_missing & ~in_some_set).sum())
+    if outside:
+        where.append(f"{outside} in no node set")
+    examples = ", ".join(str(int(node)) for node in missing[:5])
+    return (
+        f"{missing.size} of the {error.total} boundary nodes are in no --region and no "
+        f"--enrich set ({'; '.join(where)}; e.g. node(s) {examples}); add their sets with "
+        "--region SET=R or --enrich SET, or pass --uncovered ignore to never select them"
+    )
+
+
+# --------------------------------------------------------------------------- commands
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from torchmorph.mesh.io import MESH_FORMATS, write_mesh
+    from torchmorph.mesh.quality import edge_ratio, quality_summary
+    from torchmorph.morph import MeshMorph
+    from torchmorph.selection.plan import RegionOverlapError, UncoveredNodesError
+
+    output = Path(args.output)
+    if output.suffix.lower() not in MESH_FORMATS:
+        args.parser.error(
+            f"argument --output/-o: unsupported mesh file extension "
+            f"{output.suffix or '(none)'!r}; supported: "
+            f"{', '.join(sorted(MESH_FORMATS))}"
+        )
+    if args.enrich and args.select is None and not args.region:
+        args.parser.error(
+            "argument --enrich: needs --select or --region (without a selection "
+            "every boundary node is a control point already)"
+        )
+    try:
+        device = torch.device(args.device)
+    except RuntimeError as error:
+        args.parser.error(f"argument --device: {error}")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise CommandError(
+            f"--device {args.device}: CUDA is not available in this torch build or on this machine"
+        )
+    dtype = getattr(torch, args.dtype)
+    moving = _split_names(args.moving)
+
+    stages = _Stages(5, args.progress)
+    try:
+        with stages.step("reading mesh"):
+            mesh, _, _ = _read(args.mesh)
+            array = _load_displacement(args.displacement)
+        mesh_cpu = mesh
+        boundary = mesh.boundary_nodes.cpu().numpy()
+        moving_nodes = None
+        if moving is not None:
+            _check_names(mesh, moving, "--moving")
+            moving_nodes = mesh.nodes_of(moving).cpu().numpy()
+            is_boundary = np.zeros(mesh.num_nodes, dtype=bool)
+            is_boundary[boundary] = True
+            for name in moving:
+                nodes = mesh.node_set(name).cpu().numpy()
+                inside = nodes[~is_boundary[nodes]]
+                if inside.size:
+                    raise CommandError(
+                        f"--moving node set {name!r} holds {inside.size} interior node(s) (e.g. "
+                        f"node {int(inside[0])}); only boundary nodes can be prescribed, the "
+                        "interior is interpolated"
+                    )
+        if args.enrich:
+            _check_names(mesh, _split_names(args.enrich), "--enrich")
+        moving_label = ", ".join(moving) if moving else ""
+        rows, layout, dropped = _boundary_rows(
+            array,
+            source=args.displacement,
+            num_nodes=mesh.num_nodes,
+            boundary_nodes=boundary,
+            moving_nodes=moving_nodes,
+            moving_label=moving_label,
+            batch_index=args.batch_index,
+        )
+        if dropped > 0:
+            _warn(
+                "morph",
+                f"the displacement file gives non-zero rows (max |value| {dropped:.3g}) "
+                f"for boundary nodes outside the moving sets ({moving_label}); they "
+                "are fixed (zero displacement)",
+            )
+        mesh = mesh.to(device=device, dtype=dtype)
+        plan, selection_mesh, method = _selection_plan(args, mesh)
+        generator = torch.Generator().manual_seed(args.seed)
+        with stages.step("selecting controls, assembling W"):
+            try:
+                morph = MeshMorph(
+                    selection_mesh, plan, power=args.power, mode=args.mode, generator=generator
+                )
+            except UncoveredNodesError as error:
+                raise CommandError(_uncovered_message(mesh, error)) from error
+            except RegionOverlapError as error:
+                first, second = error.first, error.second
+                raise CommandError(
+                    f"--region {first.label}={first.radius:g},{first.a:g},{first.b:g} and "
+                    f"--region {second.label}={second.radius:g},{second.a:g},{second.b:g} share "
+                    f"{error.count} node(s) but have different parameters; pass --overlap first "
+                    "(a shared node goes to the first region listing it) or --overlap share "
+                    "(each region keeps all its nodes)"
+                ) from error
+        boundary_displacement = torch.as_tensor(rows, dtype=dtype, device=device)
+        with stages.step("morphing"):
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            start = time.perf_counter()
+            with torch.no_grad():
+                field = morph(boundary_displacement)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            morph_time = time.perf_counter() - start
+        with stages.step("mesh quality"):
+            before = quality_summary(mesh)
+            after = quality_summary(mesh, field)
+            deformed_points = mesh.points + field
+            quality_after = edge_ratio(deformed_points, mesh.tets)
+            quality_before = edge_ratio(mesh.points, mesh.tets)
+            inverted = (mesh.deformed(field).volumes <= 0).to(torch.uint8)
+        with stages.step("writing output"):
+            control_flag = torch.zeros(mesh.num_nodes, dtype=torch.uint8)
+            control_flag[morph.control_nodes.cpu()] = 1
+            written = (
+                mesh_cpu.deformed(field.cpu().to(mesh_cpu.dtype))
+                if args.write_deformed
+                else mesh_cpu
+            )
+            output.parent.mkdir(parents=True, exist_ok=True)
+            write_mesh(
+                output,
+                written,
+                point_data={"displacement": field.cpu(), "control_point": control_flag},
+                cell_data={
+                    "quality": quality_after.cpu(),
+                    "quality_reference": quality_before.cpu(),
+                    "inverted": inverted.cpu(),
+                },
+            )
+    finally:
+        stages.close()
+
+    num_inverted = int(after["num_inverted"])
+    _line(
+        "mesh",
+        f"{args.mesh}: {mesh.num_nodes} nodes, {mesh.num_tets} tets "
+        f"({morph.num_boundary} boundary, {morph.num_interior} interior nodes)",
+    )
+    if moving is not None:
+        _line(
+            "moving",
+            f"{moving_label}: {moving_nodes.size} nodes; the other "
+            f"{boundary.size - moving_nodes.size} boundary nodes are fixed",
+        )
+    else:
+        _line("moving", "every boundary node, as given in the file")
+    _line(
+        "displacement",
+        f"{args.displacement}: {layout}; max |d| on the boundary "
+        f"{float(np.abs(rows).max()) if rows.size else 0.0:.4g}",
+    )
+    _line("method", method)
+    _line("controls", f"{morph.num_controls} of {morph.num_boundary} boundary nodes")
+    _line("selection", _seconds(morph.selection_time))
+    storage = (
+        "matrix-free: weights recomputed at every morph"
+        if morph.idw.mode == "matrix_free"
+        else "dense, stored"
+    )
+    _line(
+        "assembly",
+        f"{_seconds(morph.assembly_time)} (W {morph.num_interior} x "
+        f"{morph.num_controls}, {storage}; p={args.power:g}, "
+        f"{args.dtype} on {device})",
+    )
+    _line("morph", _seconds(morph_time))
+    _line(
+        "quality Q",
+        f"max {before['max_edge_ratio']:.4g} -> {after['max_edge_ratio']:.4g}, "
+        f"mean {before['mean_edge_ratio']:.4g} -> {after['mean_edge_ratio']:.4g}",
+    )
+    _line("min vol. ratio", f"{after['min_volume_ratio']:.4g} (deformed / reference volume)")
+    _line("inverted tets", f"{num_inverted} of {mesh.num_tets}")
+    _line(
+        "wrote",
+        f"{output} ({'deformed' if args.write_deformed else 'reference'} mesh; point "
+        "data displacement, control_point; cell data quality, quality_reference, "
+        "inverted)",
+    )
+    if num_inverted:
+        _warn(
+            "morph",
+            f"the morph inverts {num_inverted} of {mesh.num_tets} tetrahedra (cell "
+            "data 'inverted' marks them); try a smaller displacement, more control "
+            "points (smaller R, --enrich) or a larger --power",
+        )
+        if args.strict:
+            return EXIT_INVERTED
+    return EXIT_OK

@@ -1,0 +1,259 @@
+"""The numba kernels of the fused CPU IDW (the paper's eq. 2, two passes: the nearest
+distance, then the ratio weights against ``[values, 1]``); their wrappers, argument checks
+and thread handling are in :mod:`torchmorph.idw.backends.numba.kernels`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+ROWS = 16
+"""Rows (targets; controls in :func:`apply_transposed`) per block of a kernel: the
+unit of parallel work, and the number of rows that reuse one chunk from L1."""
+
+CHUNK = 256
+"""Points of the other set per chunk: a chunk's coordinates, values and ratios fit
+in the L1 cache, and its partial sums go into float64 accumulators."""
+
+
+try:  # numba is optional: without it torchmorph falls back to its torch path
+    import numba
+    from numba import njit, prange
+except ImportError:  # pragma: no cover - exercised where numba is absent
+    numba = None
+    prange = range
+
+    def njit(*args, **kwargs):  # the kernels stay plain (never called) Python functions
+        return lambda function: function
+
+
+# --------------------------------------------------------------------------- #
+# the kernels (plain numba; compiled lazily, once per dtype, cached on disk)
+# --------------------------------------------------------------------------- #
+WEIGHT_ROWS = 4
+"""Rows per block of :func:`weights`: the block's rows of W (distances, then weights in
+place, then scaled) stay in the L2 cache at the paper's sizes."""
+
+
+_FASTMATH = {"nsz", "reassoc", "contract"}  # vectorised sums and mins; no unsafe maths
+_OPTIONS = {"cache": True, "nogil": True, "fastmath": _FASTMATH, "error_model": "numpy"}
+
+
+@njit(**_OPTIONS)
+def _squared_distances(point, points_t, start, stop, out):
+    """out[k] = |point - points_t[:, start + k]|² for the chunk (direct differences)."""
+    column = points_t[0, start:stop]
+    coordinate = point[0]
+    for k in range(stop - start):
+        diff = coordinate - column[k]
+        out[k] = diff * diff
+    for axis in range(1, points_t.shape[0]):
+        column = points_t[axis, start:stop]
+        coordinate = point[axis]
+        for k in range(stop - start):
+            diff = coordinate - column[k]
+            out[k] += diff * diff
+
+
+@njit(**_OPTIONS)
+def _smallest(squared, best):
+    """min(best, min_k squared[k]) on the bit patterns (``best`` and the result as integers).
+
+    Squared distances are >= +0, and the IEEE bit patterns of non-negative floats are
+    ordered like the values: an integer minimum vectorises, a float one does not here.
+    """
+    for k in range(squared.shape[0]):
+        value = squared[k]
+        best = min(best, value)
+    return best
+
+
+@njit(**_OPTIONS)
+def _ratio_powers(nearest, buffer, width, mode, params):
+    """buffer[k] <- r_ik from buffer[k] = d²_ik, for one row whose m_i is ``nearest``;
+    ``mode`` is :func:`~torchmorph.idw.backends.power_code` (4 and 2 special-cased, any
+    other code through the general power)."""
+    tiny, radius2, half_power, zero, one = params[0], params[1], params[2], params[3], params[4]
+    if nearest <= radius2:  # coincident row: the controls within the radius, equally
+        for k in range(width):
+            buffer[k] = one if buffer[k] <= radius2 else zero
+    elif mode == 4:
+        for k in range(width):
+            ratio = nearest / max(buffer[k], tiny)
+            buffer[k] = ratio * ratio
+    elif mode == 2:
+        for k in range(width):
+            buffer[k] = nearest / max(buffer[k], tiny)
+    else:
+        for k in range(width):
+            buffer[k] = (nearest / max(buffer[k], tiny)) ** half_power
+
+
+@njit(**_OPTIONS)
+def _dot(weights, values, zero):
+    """Σ_k weights[k] values[k] in the input dtype (one chunk: SIMD lanes of few terms)."""
+    total = zero
+    for k in range(weights.shape[0]):
+        total += weights[k] * values[k]
+    return total
+
+
+@njit(**_OPTIONS)
+def _sum(weights, zero):
+    total = zero
+    for k in range(weights.shape[0]):
+        total += weights[k]
+    return total
+
+
+@njit(parallel=True, **_OPTIONS)
+def _nearest_kernel(targets, controls_t, largest, out):
+    """Pass 1: out[i] = min_k d²_ik. ``largest``: [the largest integer of the float's width]."""
+    n_targets, n_controls = targets.shape[0], controls_t.shape[1]
+    blocks = (n_targets + ROWS - 1) // ROWS
+    for block in prange(blocks):
+        first = block * ROWS
+        last = min(first + ROWS, n_targets)
+        bits = np.empty(CHUNK, largest.dtype)
+        buffer = bits.view(targets.dtype)
+        best = np.full(ROWS, largest[0])
+        for start in range(0, n_controls, CHUNK):
+            stop = min(start + CHUNK, n_controls)
+            for row in range(first, last):
+                _squared_distances(targets[row], controls_t, start, stop, buffer)
+                best[row - first] = _smallest(bits[: stop - start], best[row - first])
+        found = best.view(targets.dtype)
+        for row in range(first, last):
+            out[row] = found[row - first]
+
+
+@njit(parallel=True, **_OPTIONS)
+def _apply_kernel(targets, controls_t, values_t, nearest2, params, mode, out, sums):
+    """Ratio weights against [values, 1]: out = W @ values, sums = s (m_i given)."""
+    tiny, zero = params[0], params[3]
+    n_targets, n_controls = targets.shape[0], controls_t.shape[1]
+    columns = values_t.shape[0]
+    blocks = (n_targets + ROWS - 1) // ROWS
+    for block in prange(blocks):
+        first = block * ROWS
+        last = min(first + ROWS, n_targets)
+        buffer = np.empty(CHUNK, targets.dtype)
+        accumulated = np.zeros((ROWS, columns), np.float64)
+        total = np.zeros(ROWS, np.float64)
+        for start in range(0, n_controls, CHUNK):
+            stop = min(start + CHUNK, n_controls)
+            width = stop - start
+            chunk = buffer[:width]
+            for row in range(first, last):
+                local = row - first
+                _squared_distances(targets[row], controls_t, start, stop, buffer)
+                _ratio_powers(max(nearest2[row], tiny), buffer, width, mode, params)
+                total[local] += _sum(chunk, zero)
+                for column in range(columns):
+                    accumulated[local, column] += _dot(chunk, values_t[column, start:stop], zero)
+        for row in range(first, last):
+            local = row - first
+            sums[row] = total[local]
+            for column in range(columns):
+                out[row, column] = accumulated[local, column] / total[local]
+
+
+@njit(parallel=True, **_OPTIONS)
+def _transposed_kernel(controls, targets_t, scaled_t, nearest2, params, mode, out):
+    """Wᵀ @ grad, parallel over controls: scaled_t[j, i] = grad[i, j] / s_i."""
+    tiny, radius2, half_power, zero, one = params[0], params[1], params[2], params[3], params[4]
+    n_controls, n_targets = controls.shape[0], targets_t.shape[1]
+    columns = scaled_t.shape[0]
+    blocks = (n_controls + ROWS - 1) // ROWS
+    for block in prange(blocks):
+        first = block * ROWS
+        last = min(first + ROWS, n_controls)
+        buffer = np.empty(CHUNK, controls.dtype)
+        floored = np.empty(CHUNK, controls.dtype)
+        accumulated = np.zeros((ROWS, columns), np.float64)
+        for start in range(0, n_targets, CHUNK):
+            stop = min(start + CHUNK, n_targets)
+            width = stop - start
+            chunk = buffer[:width]
+            nearest = nearest2[start:stop]
+            for k in range(width):
+                floored[k] = max(nearest[k], tiny)
+            for row in range(first, last):
+                _squared_distances(controls[row], targets_t, start, stop, buffer)
+                # r_ik with the target's m_i varying along the chunk
+                if mode == 4:
+                    for k in range(width):
+                        ratio = floored[k] / max(buffer[k], tiny)
+                        within = one if buffer[k] <= radius2 else zero
+                        buffer[k] = within if floored[k] <= radius2 else ratio * ratio
+                elif mode == 2:
+                    for k in range(width):
+                        ratio = floored[k] / max(buffer[k], tiny)
+                        within = one if buffer[k] <= radius2 else zero
+                        buffer[k] = within if floored[k] <= radius2 else ratio
+                else:
+                    for k in range(width):
+                        power = (floored[k] / max(buffer[k], tiny)) ** half_power
+                        within = one if buffer[k] <= radius2 else zero
+                        buffer[k] = within if floored[k] <= radius2 else power
+                for column in range(columns):
+                    accumulated[row - first, column] += _dot(
+                        chunk, scaled_t[column, start:stop], zero
+                    )
+        for row in range(first, last):
+            for column in range(columns):
+                out[row, column] = accumulated[row - first, column]
+
+
+@njit(parallel=True, **_OPTIONS)
+def _weights_kernel(targets, controls_t, params, mode, largest, out):
+    """Dense W, one fused pass per block of rows (kept in cache): d² and the nearest
+    distance, then r_ik in place and s_i, then r_ik / s_i."""
+    tiny, zero = params[0], params[3]
+    n_targets, n_controls = targets.shape[0], controls_t.shape[1]
+    blocks = (n_targets + WEIGHT_ROWS - 1) // WEIGHT_ROWS
+    for block in prange(blocks):
+        first = block * WEIGHT_ROWS
+        last = min(first + WEIGHT_ROWS, n_targets)
+        best = np.full(WEIGHT_ROWS, largest[0])
+        total = np.zeros(WEIGHT_ROWS, np.float64)
+        for start in range(0, n_controls, CHUNK):  # d² into W's rows, and the nearest
+            stop = min(start + CHUNK, n_controls)
+            for row in range(first, last):
+                chunk = out[row, start:stop]
+                _squared_distances(targets[row], controls_t, start, stop, chunk)
+                best[row - first] = _smallest(chunk.view(largest.dtype), best[row - first])
+        found = best.view(targets.dtype)
+        for row in range(first, last):  # r_ik in place and s_i
+            values = out[row]
+            nearest = max(found[row - first], tiny)
+            for start in range(0, n_controls, CHUNK):
+                stop = min(start + CHUNK, n_controls)
+                chunk = values[start:stop]
+                _ratio_powers(nearest, chunk, stop - start, mode, params)
+                total[row - first] += _sum(chunk, zero)
+        for row in range(first, last):  # normalise
+            scale = 1.0 / total[row - first]
+            values = out[row]
+            for k in range(n_controls):
+                values[k] = values[k] * scale
+
+
+@njit(parallel=True, **_OPTIONS)
+def _dense_apply_kernel(weights, values_t, zero, out):
+    """out = weights @ values, reading each row of W once (K dot products per chunk)."""
+    n_rows, n_columns = weights.shape[0], weights.shape[1]
+    columns = values_t.shape[0]
+    blocks = (n_rows + ROWS - 1) // ROWS
+    for block in prange(blocks):
+        first = block * ROWS
+        last = min(first + ROWS, n_rows)
+        accumulated = np.zeros(columns, np.float64)
+        for row in range(first, last):
+            accumulated[:] = 0.0
+            for start in range(0, n_columns, CHUNK):
+                stop = min(start + CHUNK, n_columns)
+                chunk = weights[row, start:stop]
+                for column in range(columns):
+                    accumulated[column] += _dot(chunk, values_t[column, start:stop], zero[0])
+            for column in range(columns):
+                out[row, column] = accumulated[column]

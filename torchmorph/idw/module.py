@@ -1,0 +1,351 @@
+"""The :class:`IDW` module: the reference geometry and, in dense mode, W as registered
+buffers, over the functional core of :mod:`torchmorph.idw.functional` (the paper's
+eqs. 1–2; numerics and implementations are described there)."""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+import torch
+from torch import Tensor, nn
+
+from torchmorph._checks import (
+    as_points,
+    check_choice,
+    check_positive,
+    check_same_device_dtype,
+    check_vectors,
+)
+from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
+from torchmorph.idw._dispatch import apply_with, assemble_weights, backend_for, dense_apply
+from torchmorph.idw._dispatch import check_implementation as _check_implementation
+from torchmorph.idw._geometry import (
+    check_power,
+    check_tolerance,
+    free_memory,
+    prepare,
+    warn_duplicate_controls,
+)
+from torchmorph.idw.functional import (
+    DEFAULT_COINCIDENCE_TOLERANCE,
+    Implementation,
+    idw_apply,
+    idw_weights,
+)
+
+__all__ = ["DEFAULT_DENSE_BYTES", "IDW", "Mode"]
+
+DEFAULT_DENSE_BYTES: int | None = None
+"""``mode="auto"`` stores W (dense) when it takes at most this many bytes; ``None``
+means half of the memory the device has free when the module is built."""
+
+Mode = Literal["auto", "dense", "matrix_free"]
+
+
+class IDW(nn.Module):
+    """IDW interpolation from control points to target points (the paper's eq. 1–2).
+
+    Parameters
+    ----------
+    controls : Tensor, shape (N_c, 3)
+        Control points (e.g. the selected boundary nodes).
+    targets : Tensor, shape (N_t, 3)
+        Points whose displacement is interpolated (e.g. the interior nodes).
+    power : float
+        IDW exponent p > 0; default 4 (the paper's).
+    mode : {"auto", "dense", "matrix_free"}
+        ``dense`` assembles and stores W (N_t, N_c) once; ``matrix_free``
+        recomputes weights on every call and never stores W; ``auto`` picks
+        dense when W takes at most ``dense_bytes``.
+    block_bytes : int, optional
+        Byte budget of one block of pairwise temporaries of the torch
+        implementation (default: 4 MiB on the CPU, 256 MiB on CUDA).
+    dense_bytes : int, optional
+        Threshold for ``mode="auto"`` (default: half the memory the device has
+        free when the module is built).
+    coincidence_tolerance : float
+        Relative distance under which a target takes a control's value exactly.
+    implementation : {"auto", "fused", "torch"}
+        Fused kernels (Triton on CUDA, numba on the CPU) or torch operations; see
+        :mod:`torchmorph.idw`. Chosen per call, so ``.to("cuda")`` just works.
+
+    Attributes
+    ----------
+    controls, targets : buffers
+        The reference geometry (copies of the inputs, unless these require grad:
+        then they are kept, borrowed, so that W can be rebuilt from them).
+    weights : buffer, shape (N_t, N_c), dense mode only
+        W (rows sum to 1).
+    assembly_time : float
+        Seconds spent assembling W (0 in matrix-free mode).
+
+    Raises
+    ------
+    ValueError
+        For bad points or options; ``mode="dense"`` when W does not fit in the
+        memory the device has free (before allocating; the message names
+        ``mode="matrix_free"``).
+
+    Notes
+    -----
+    Gradients always flow to the displacements. To differentiate with respect
+    to geometry, either pass ``controls``/``targets`` that require grad to the
+    constructor (the module then rebuilds W differentiably from them on every
+    call made with grad enabled) or pass new positions to :meth:`forward`; those
+    calls use the torch implementation. ``.to(device)`` of a module built from
+    tensors that require grad makes copies: the link to the caller's tensors is
+    then lost.
+
+    The whole state is in :meth:`state_dict`: the geometry, W in dense mode, and
+    ``power``, ``coincidence_tolerance`` and ``mode`` as extra state. Loading a
+    state saved with another power or tolerance raises; a dense state loads into
+    a matrix-free module (W is dropped) and a matrix-free one into a dense module
+    (W is assembled from the loaded geometry).
+
+    The forward composes with ``torch.func``: ``vmap`` over displacements (a
+    per-value family mapped over μ equals the batched call), ``grad``, ``jacrev``
+    and ``jacfwd`` in both modes; in dense mode also over moved positions. Dense
+    mode traces under ``torch.compile(fullgraph=True)`` without graph breaks (the
+    finiteness check of the inputs is skipped while compiling); matrix-free mode
+    does not (its KD-tree search runs in NumPy), nor does it ``vmap`` over positions.
+    """
+
+    def __init__(
+        self,
+        controls: Tensor,
+        targets: Tensor,
+        *,
+        power: float = 4.0,
+        mode: Mode = "auto",
+        block_bytes: int | None = None,
+        dense_bytes: int | None = DEFAULT_DENSE_BYTES,
+        coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
+        implementation: Implementation = "auto",
+    ) -> None:
+        super().__init__()
+        controls = as_points(controls, "controls")
+        targets = as_points(targets, "targets", allow_empty=True)
+        check_same_device_dtype(controls, "controls", targets, "targets")
+        check_choice(mode, "mode", ("auto", "dense", "matrix_free"))
+        self.power = check_power(power)
+        self.block_bytes = (
+            None if block_bytes is None else int(check_positive(block_bytes, "block_bytes"))
+        )
+        self.dense_bytes = (
+            None if dense_bytes is None else int(check_positive(dense_bytes, "dense_bytes"))
+        )
+        self.coincidence_tolerance = check_tolerance(coincidence_tolerance)
+        self.implementation = _check_implementation(implementation)
+        size = targets.shape[0] * controls.shape[0] * controls.element_size()
+        if mode == "auto":
+            budget = self.dense_bytes
+            if budget is None:
+                budget = free_memory(controls.device) // 2
+            mode = "dense" if size <= budget else "matrix_free"
+        elif mode == "dense":
+            free = free_memory(controls.device)
+            if size > free:
+                raise ValueError(
+                    f"mode='dense': W ({targets.shape[0]:,} x {controls.shape[0]:,}, "
+                    f"{size / 2**30:.1f} GiB) does not fit in the {free / 2**30:.1f} GiB free on "
+                    f"{controls.device}; use mode='matrix_free'"
+                )
+        self.mode: str = mode
+        warn_duplicate_controls(controls, self.coincidence_tolerance)
+        # copies, so that later in-place edits of the caller's tensors cannot leave W stale
+        self.register_buffer("controls", controls if controls.requires_grad else controls.clone())
+        self.register_buffer("targets", targets if targets.requires_grad else targets.clone())
+        self.assembly_time = 0.0
+        self._fused_cache: tuple | None = None
+        if mode == "dense":
+            start = time.perf_counter()
+            with torch.no_grad():
+                weights = self._assemble(self.targets.detach(), self.controls.detach())
+            self.assembly_time = time.perf_counter() - start
+            self.register_buffer("weights", weights)
+        else:
+            self.weights = None
+
+    @property
+    def num_controls(self) -> int:
+        return self.controls.shape[0]
+
+    @property
+    def num_targets(self) -> int:
+        return self.targets.shape[0]
+
+    def _assemble(self, targets: Tensor, controls: Tensor) -> Tensor:
+        targets, controls, power, radius2 = prepare(
+            targets, controls, self.power, self.coincidence_tolerance
+        )
+        return assemble_weights(
+            targets, controls, power, radius2, self.block_bytes, self.implementation
+        )
+
+    def weights_matrix(self) -> Tensor:
+        """W of shape (N_t, N_c): the stored buffer, or assembled now (matrix-free)."""
+        if self.weights is not None:
+            return self.weights
+        with torch.no_grad():
+            return self._assemble(self.targets.detach(), self.controls.detach())
+
+    # ----------------------------------------------------------------- state
+    def get_extra_state(self) -> dict:
+        return {
+            "power": self.power,
+            "coincidence_tolerance": self.coincidence_tolerance,
+            "mode": self.mode,
+        }
+
+    def set_extra_state(self, state: dict) -> None:
+        check_saved_hyperparameters("IDW", state, self._hyperparameters())
+
+    def _hyperparameters(self) -> dict[str, float]:
+        return {"power": self.power, "coincidence_tolerance": self.coincidence_tolerance}
+
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ):
+        if prefix + "_extra_state" in state_dict:  # before anything is loaded
+            check_saved_hyperparameters(
+                "IDW", state_dict[prefix + "_extra_state"], self._hyperparameters()
+            )
+        key = prefix + "weights"
+        has_weights = key in state_dict
+        if self.mode == "matrix_free" and has_weights:  # a dense state: W is not needed
+            state_dict = {k: v for k, v in state_dict.items() if k != key}
+        resize_buffers_for_load(self, state_dict, prefix, ("controls", "targets", "weights"))
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+        self._fused_cache = None
+        if self.mode == "dense" and not has_weights:  # a matrix-free state: assemble W
+            if key in missing_keys:
+                missing_keys.remove(key)
+            with torch.no_grad():
+                self._buffers["weights"] = self._assemble(
+                    self.targets.detach(), self.controls.detach()
+                )
+        for name in ("controls", "targets"):
+            incoming = state_dict.get(prefix + name)
+            if incoming is not None and incoming.shape[-1:] != self._buffers[name].shape[-1:]:
+                error_msgs.append(
+                    f"{name}: the state holds points of shape {tuple(incoming.shape)}"
+                )
+        weights = self._buffers.get("weights")
+        if weights is not None and weights.shape != (self.num_targets, self.num_controls):
+            error_msgs.append(
+                f"weights: shape {tuple(weights.shape)} does not match "
+                f"{self.num_targets} targets x {self.num_controls} controls"
+            )
+
+    def _geometry_requires_grad(self) -> bool:
+        return self.controls.requires_grad or self.targets.requires_grad
+
+    def _fused_geometry(self, backend):
+        """Normalised geometry in the backend's layout and the nearest distances of the
+        stored points, computed once per geometry (and again after it changes)."""
+        key = (
+            backend,
+            self.controls.data_ptr(),
+            self.targets.data_ptr(),
+            self.controls._version,
+            self.targets._version,
+            self.controls.device,
+            self.controls.dtype,
+        )
+        if self._fused_cache is None or self._fused_cache[0] != key:
+            with torch.no_grad():
+                targets, controls, _, radius2 = prepare(
+                    self.targets.detach(),
+                    self.controls.detach(),
+                    self.power,
+                    self.coincidence_tolerance,
+                )
+                targets, controls = backend.layout(targets), backend.layout(controls)
+                nearest2 = backend.nearest(targets, controls)
+            self._fused_cache = (key, targets, controls, radius2, nearest2)
+        return self._fused_cache[1:]
+
+    def forward(
+        self,
+        displacements: Tensor,
+        *,
+        controls: Tensor | None = None,
+        targets: Tensor | None = None,
+    ) -> Tensor:
+        """Interpolate control displacements to the targets.
+
+        Parameters
+        ----------
+        displacements : Tensor, shape (N_c, 3) or (B, N_c, 3)
+        controls, targets : Tensor, optional
+            Moved positions (same shapes as the reference) to use instead of the
+            stored geometry; W is then rebuilt differentiably from them.
+
+        Returns
+        -------
+        Tensor, shape (N_t, 3) or (B, N_t, 3)
+        """
+        dim = self.controls.shape[1]
+        check_vectors(
+            displacements, "displacements", self.num_controls, dim=dim, what="control points"
+        )
+        check_same_device_dtype(
+            self.controls, "the module's controls", displacements, "displacements"
+        )
+        new_geometry = controls is not None or targets is not None
+        if controls is not None:
+            controls = self._check_moved(controls, self.controls, "controls")
+        if targets is not None:
+            targets = self._check_moved(targets, self.targets, "targets")
+        controls = self.controls if controls is None else controls
+        targets = self.targets if targets is None else targets
+        rebuild = new_geometry or (torch.is_grad_enabled() and self._geometry_requires_grad())
+        options = {
+            "power": self.power,
+            "coincidence_tolerance": self.coincidence_tolerance,
+            "block_bytes": self.block_bytes,
+            "implementation": self.implementation,
+        }
+        if self.mode == "matrix_free":
+            if not rebuild:
+                backend = backend_for(self.implementation, self.controls, displacements)
+                if not backend.differentiable and self.num_targets:
+                    return self._fused_matrix_free(backend, displacements)
+            return idw_apply(
+                controls=controls, targets=targets, displacements=displacements, **options
+            )
+        if rebuild:
+            return idw_weights(controls=controls, targets=targets, **options) @ displacements
+        return dense_apply(self.weights, displacements, self.implementation)
+
+    def _fused_matrix_free(self, backend, displacements: Tensor) -> Tensor:
+        targets, controls, radius2, nearest2 = self._fused_geometry(backend)
+        batched, dim = displacements.ndim == 3, displacements.shape[-1]
+        batch = displacements.shape[0] if batched else 1
+        values = (displacements.permute(1, 0, 2) if batched else displacements).reshape(
+            self.num_controls, dim * batch
+        )
+        result = apply_with(backend, targets, controls, values, self.power, radius2, nearest2)
+        result = result.reshape(self.num_targets, batch, dim)
+        return result.permute(1, 0, 2) if batched else result[:, 0]
+
+    @staticmethod
+    def _check_moved(moved: Tensor, reference: Tensor, name: str) -> Tensor:
+        if not isinstance(moved, Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(moved).__name__}")
+        if moved.shape != reference.shape:
+            raise ValueError(
+                f"{name} must have shape {tuple(reference.shape)}, got {tuple(moved.shape)}"
+            )
+        check_same_device_dtype(reference, f"the module's {name}", moved, name)
+        return as_points(moved, name, allow_empty=True)
+
+    def extra_repr(self) -> str:
+        return (
+            f"num_controls={self.num_controls}, num_targets={self.num_targets}, "
+            f"power={self.power:g}, mode={self.mode!r}, "
+            f"implementation={self.implementation!r}"
+        )

@@ -1,0 +1,375 @@
+"""Selection of control points: Algorithm 1 (SIDW) and per-region selection plans.
+
+:func:`select_control_points` implements Algorithm 1 of the paper (Ballarin et al. 2017,
+Section 2.2) on a cloud of candidate points of any dimension; :class:`SelectionPlan` runs it on named node sets
+of a :class:`~torchmorph.mesh.TetMesh`, each with its own radius ``R`` and factors
+``a``, ``b``, takes the union and adds enrichment node sets (ESIDW: Algorithm 2,
+step (ii), Section 2.2.1).
+
+Definitions used throughout (the paper's Section 2.2): ``B(c; r)`` is the open ball
+``|x - c| < r`` and ``B(c; r_i, r_e)`` the shell ``r_i <= |x - c| < r_e``, so that a
+point at distance exactly ``R`` of a selected point survives the removal and may be
+selected itself. Consequences kept by the implementation: every candidate lies within
+distance ``R`` of a selected point, and selected points are pairwise at least ``R``
+apart.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchmorph._checks import as_index, check_choice, check_positive
+from torchmorph.selection.sidw import (
+    DEFAULT_SEED,
+    STRATEGIES,
+    _check_factor,
+    _check_generator,
+    _check_strategy,
+    select_control_points,
+)
+
+__all__ = [
+    "DEFAULT_SEED",
+    "STRATEGIES",
+    "Region",
+    "RegionOverlapError",
+    "SelectionPlan",
+    "UncoveredNodesError",
+    "select_control_points",
+]
+
+
+class RegionOverlapError(ValueError):
+    """Two regions with different parameters share nodes (``overlap="error"``).
+
+    ``first`` and ``second`` are the two :class:`Region` objects, ``count`` the
+    number of nodes they share.
+    """
+
+    def __init__(self, message: str, *, first: Region, second: Region, count: int) -> None:
+        super().__init__(message)
+        self.first, self.second, self.count = first, second, count
+
+
+class UncoveredNodesError(ValueError):
+    """Candidate nodes in no region and no enrichment set (``uncovered="error"``).
+
+    ``nodes`` holds their global ids (int64 array), ``total`` the number of candidates.
+    """
+
+    def __init__(self, message: str, *, nodes: np.ndarray, total: int) -> None:
+        super().__init__(message)
+        self.nodes, self.total = nodes, total
+
+
+# --------------------------------------------------------------------------------------
+# regions and plans
+# --------------------------------------------------------------------------------------
+
+_OVERLAP = ("error", "first", "share")
+_UNCOVERED = ("error", "ignore")
+
+
+@dataclass(frozen=True)
+class Region:
+    """Node sets selected together with one set of Algorithm-1 parameters.
+
+    Parameters
+    ----------
+    nodes : str or tuple of str
+        Name(s) of mesh node sets (``TetMesh.node_set``); their union is the region.
+    radius : float
+        Selection radius ``R > 0``.
+    a : float, default 0.8
+        Annulus thickness factor, ``0 < a < 1``.
+    b : float, default 1.3
+        Selection-shell factor, ``b > 1``.
+    """
+
+    nodes: str | tuple[str, ...]
+    radius: float
+    a: float = 0.8
+    b: float = 1.3
+
+    def __post_init__(self) -> None:
+        nodes = self.nodes
+        if isinstance(nodes, str):
+            names: tuple[str, ...] = (nodes,)
+        elif isinstance(nodes, Sequence):
+            names = tuple(nodes)
+        else:
+            raise TypeError(f"nodes must be a node-set name or a sequence of names, got {nodes!r}")
+        if not names or not all(isinstance(name, str) and name for name in names):
+            raise ValueError(f"nodes must name at least one node set, got {nodes!r}")
+        object.__setattr__(self, "nodes", nodes if isinstance(nodes, str) else names)
+        object.__setattr__(self, "radius", check_positive(self.radius, "radius"))
+        object.__setattr__(self, "a", _check_factor(self.a, "a", low=0.0, high=1.0))
+        object.__setattr__(self, "b", _check_factor(self.b, "b", low=1.0, high=np.inf))
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The node-set names, always as a tuple."""
+        return (self.nodes,) if isinstance(self.nodes, str) else self.nodes
+
+    @property
+    def label(self) -> str:
+        """A readable name for messages: the node-set names joined by '+'."""
+        return "+".join(self.names)
+
+    @property
+    def parameters(self) -> tuple[float, float, float]:
+        """``(radius, a, b)``."""
+        return (self.radius, self.a, self.b)
+
+
+def _as_region(key: Any, value: Any) -> Region:
+    nodes = key if isinstance(key, str) else tuple(key)
+    if isinstance(value, Region):
+        raise TypeError(f"regions[{key!r}]: give a radius or (radius, a, b), not a Region")
+    if isinstance(value, Mapping):
+        return Region(nodes, **value)
+    if isinstance(value, (tuple, list)):
+        if not 1 <= len(value) <= 3:
+            raise ValueError(
+                f"regions[{key!r}] must be radius or (radius[, a[, b]]), got {value!r}"
+            )
+        return Region(nodes, *value)
+    return Region(nodes, value)
+
+
+@dataclass
+class SelectionPlan:
+    """Per-region control-point selection with enrichment (Algorithm 2 (i)-(ii), Section 2.2.1).
+
+    Parameters
+    ----------
+    regions : sequence of Region, or mapping
+        The regions, in priority order. A mapping is shorthand: its keys are node-set
+        names (or tuples of names) and its values a radius, ``(radius, a, b)`` (a
+        shorter tuple keeps the remaining defaults) or a dict of ``Region`` keywords,
+        e.g. ``{"root": 0.05, "tip": 0.05, "upper": 0.5, "lower": 0.5}``.
+    enrich : sequence of str, default ()
+        Node sets whose nodes are always control points (ESIDW), e.g. the end profiles
+        and leading/trailing edges of a wing, or nodes held fixed.
+    strategy : {"random", "centroid", "farthest"}, default "random"
+        ``SelectControlPoint`` used in every region (see :func:`select_control_points`).
+    overlap : {"error", "first", "share"}, default "error"
+        Nodes listed by several regions. With ``"error"``, regions with different
+        ``(radius, a, b)`` must not share nodes (``ValueError`` naming both); a node
+        shared by regions with equal parameters goes to the first of them. With
+        ``"first"`` every shared node goes to the first region listing it. With
+        ``"share"`` every region keeps all its nodes: each runs Algorithm 1 on its full
+        node set and a shared node may be chosen by several regions.
+    uncovered : {"error", "ignore"}, default "error"
+        Candidate nodes in no region and no enrichment set. ``"error"`` raises
+        ``ValueError``; ``"ignore"`` leaves them out: they are never selected, and no
+        selected point is guaranteed within any distance of them (e.g. a far wall
+        deliberately left out of the controls).
+
+    Notes
+    -----
+    The candidates are the mesh's boundary nodes unless ``candidates`` is given to
+    :meth:`select`; region and enrichment nodes must be candidates (Algorithm 2 draws
+    its controls from the boundary and interpolates only the interior). Regions run
+    in order, each drawing its start point (and, with ``"random"``, its choices) from
+    the same generator. An empty region (e.g. all of its nodes taken by an earlier
+    region under ``"first"``) selects nothing. After construction ``regions`` is a
+    tuple of :class:`Region` and ``enrich`` a tuple of names.
+    """
+
+    regions: Sequence[Region] | Mapping[Any, Any]
+    enrich: Sequence[str] = ()
+    strategy: str = "random"
+    overlap: str = "error"
+    uncovered: str = "error"
+
+    def __post_init__(self) -> None:
+        regions = self.regions
+        if isinstance(regions, Mapping):
+            regions = tuple(_as_region(key, value) for key, value in regions.items())
+        elif isinstance(regions, Region):
+            regions = (regions,)
+        elif isinstance(regions, Sequence) and not isinstance(regions, str):
+            regions = tuple(regions)
+            for position, region in enumerate(regions):
+                if not isinstance(region, Region):
+                    raise TypeError(
+                        f"regions[{position}] must be a Region, got {type(region).__name__}"
+                    )
+        else:
+            raise TypeError(
+                f"regions must be a sequence of Region or a mapping, got {type(regions).__name__}"
+            )
+        self.regions = regions
+        enrich = (self.enrich,) if isinstance(self.enrich, str) else tuple(self.enrich)
+        if not all(isinstance(name, str) and name for name in enrich):
+            raise ValueError(f"enrich must be a sequence of node-set names, got {self.enrich!r}")
+        self.enrich = enrich
+        _check_strategy(self.strategy)
+        check_choice(self.overlap, "overlap", _OVERLAP)
+        check_choice(self.uncovered, "uncovered", _UNCOVERED)
+
+    def region_nodes(self, mesh: Any, *, candidates: Any = None) -> list[Tensor]:
+        """Global node ids each region selects from, after resolving overlaps.
+
+        Parameters
+        ----------
+        mesh : TetMesh
+            Needs ``points``, ``boundary_nodes`` and ``node_set(name)``.
+        candidates : Tensor or array of int, optional
+            Global ids of the nodes that may be control points; default
+            ``mesh.boundary_nodes``.
+
+        Returns
+        -------
+        list of Tensor (int64, sorted unique)
+            One per region, in the order of ``self.regions``, on the CPU.
+
+        Raises
+        ------
+        ValueError
+            Unknown node-set names (listing the known ones), region or enrichment nodes
+            that are not candidates, conflicting overlaps under ``overlap="error"``, or
+            uncovered candidates under ``uncovered="error"``.
+        """
+        return self._resolve(mesh, candidates)[0]
+
+    def select(
+        self,
+        mesh: Any,
+        *,
+        generator: torch.Generator | None = None,
+        candidates: Any = None,
+    ) -> Tensor:
+        """Run Algorithm 1 on every region, take the union and add the enrichment sets.
+
+        Parameters
+        ----------
+        mesh : TetMesh
+            Needs ``points``, ``boundary_nodes`` and ``node_set(name)``.
+        generator : torch.Generator, optional
+            CPU generator for start points and random choices; ``None`` uses a fresh
+            generator seeded with :data:`DEFAULT_SEED` (reproducible).
+        candidates : Tensor or array of int, optional
+            Global ids of the nodes that may be control points; default
+            ``mesh.boundary_nodes``.
+
+        Returns
+        -------
+        Tensor, shape (N_sel,), int64
+            Sorted unique global node ids of the control points, on the device of
+            ``mesh.points``.
+
+        Raises
+        ------
+        ValueError
+            As :meth:`region_nodes`, or for a generator that is not on the CPU.
+        """
+        generator = _check_generator(generator)
+        per_region, enriched, points = self._resolve(mesh, candidates)
+        chosen = [enriched]
+        for region, nodes in zip(self.regions, per_region, strict=True):
+            if nodes.numel() == 0:
+                continue
+            node_ids = nodes.numpy()
+            local = select_control_points(
+                points[node_ids],
+                region.radius,
+                a=region.a,
+                b=region.b,
+                strategy=self.strategy,
+                generator=generator,
+            )
+            chosen.append(node_ids[local.numpy()])
+        control_nodes = np.unique(np.concatenate(chosen))
+        return torch.as_tensor(control_nodes, dtype=torch.int64, device=mesh.points.device)
+
+    def _resolve(self, mesh: Any, candidates: Any) -> tuple[list[Tensor], np.ndarray, np.ndarray]:
+        """Region node ids (after overlap rules), enrichment ids and the points array."""
+        points = mesh.points
+        points = (
+            points.detach().to("cpu", torch.float64).numpy()
+            if isinstance(points, Tensor)
+            else np.asarray(points, dtype=np.float64)
+        )
+        num_nodes = points.shape[0]
+        if candidates is None:
+            candidate_ids = _id_array(mesh.boundary_nodes)
+            what = "boundary nodes"
+        else:
+            candidate_ids = as_index(candidates, "candidates", size=num_nodes).cpu().numpy()
+            what = "candidates"
+        is_candidate = np.zeros(num_nodes, dtype=bool)
+        is_candidate[candidate_ids] = True
+
+        def nodes_of(name: str, role: str) -> np.ndarray:
+            ids = _id_array(mesh.node_set(name))
+            outside = ids[~is_candidate[ids]]
+            if outside.size:
+                raise ValueError(
+                    f"{role} node set {name!r} holds {outside.size} node(s) that are not "
+                    f"{what} (e.g. node {int(outside[0])}); control points are drawn from "
+                    f"the {what} only"
+                )
+            return ids
+
+        region_ids = [
+            np.unique(np.concatenate([nodes_of(name, "region") for name in region.names]))
+            for region in self.regions
+        ]
+        enrich_ids = [nodes_of(name, "enrichment") for name in self.enrich]
+        enriched = (
+            np.unique(np.concatenate(enrich_ids)) if enrich_ids else np.zeros(0, dtype=np.int64)
+        )
+
+        if self.overlap != "share":
+            owner = np.full(num_nodes, -1, dtype=np.int64)
+            for position, ids in enumerate(region_ids):
+                taken = owner[ids]
+                shared = taken >= 0
+                if self.overlap == "error":
+                    for other in np.unique(taken[shared]):
+                        first, second = self.regions[other], self.regions[position]
+                        if first.parameters != second.parameters:
+                            count = int((taken == other).sum())
+                            raise RegionOverlapError(
+                                f"regions {first.label!r} (R={first.radius:g}, a={first.a:g}, "
+                                f"b={first.b:g}) and {second.label!r} (R={second.radius:g}, "
+                                f"a={second.a:g}, b={second.b:g}) share {count} node(s) but "
+                                "have different parameters; pass overlap='first' (a shared "
+                                "node goes to the first region listing it) or overlap='share' "
+                                "(each region keeps all its nodes)",
+                                first=first,
+                                second=second,
+                                count=count,
+                            )
+                owner[ids[~shared]] = position
+                region_ids[position] = ids[~shared]
+
+        if self.uncovered == "error":
+            covered = np.zeros(num_nodes, dtype=bool)
+            for ids in region_ids:
+                covered[ids] = True
+            covered[enriched] = True
+            missing = candidate_ids[~covered[candidate_ids]]
+            if missing.size:
+                raise UncoveredNodesError(
+                    f"{missing.size} of the {candidate_ids.size} {what} are in no region and "
+                    f"no enrichment set (e.g. node {int(missing[0])}); add them to a region, "
+                    "enrich them, or pass uncovered='ignore' to leave them out of the selection",
+                    nodes=missing,
+                    total=int(candidate_ids.size),
+                )
+        return [torch.from_numpy(ids) for ids in region_ids], enriched, points
+
+
+def _id_array(ids: Any) -> np.ndarray:
+    if isinstance(ids, Tensor):
+        ids = ids.detach().cpu().numpy()
+    return np.asarray(ids, dtype=np.int64).reshape(-1)
