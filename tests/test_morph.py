@@ -130,7 +130,7 @@ def test_count_inverted(cube):
     assert count == count_inverted(cube, crushed)
     counts = morph.inverted(torch.stack([gentle, crushed])).sum(-1)
     assert counts.tolist() == [0, count]
-    with pytest.raises(ValueError, match=r"count_inverted takes one field \(N, 3\)"):
+    with pytest.raises(ValueError, match=r"count_inverted takes one field \(N, D\)"):
         morph.count_inverted(torch.stack([gentle, crushed]))
 
 
@@ -138,13 +138,13 @@ def test_errors(cube):
     morph = MeshMorph(cube)
     with pytest.raises(ValueError, match=r"boundary_displacement must have shape \(98, 3\)"):
         morph(torch.zeros(97, 3, dtype=F64))
-    with pytest.raises(ValueError, match="unknown node set 'wing'; known: x0, x1"):
+    with pytest.raises(ValueError, match="unknown marker 'wing'; known: x0, x1"):
         morph.boundary_displacement("wing", bend_top)
     with pytest.raises(ValueError, match=r"displacement must return shape \(25, 3\)"):
         morph.boundary_displacement("z1", lambda p: p[:, :2])
     with pytest.raises(ValueError, match="boundary_displacement has dtype torch.float32"):
         morph(torch.zeros(98, 3))
-    with pytest.raises(TypeError, match="mesh must be a TetMesh"):
+    with pytest.raises(TypeError, match="mesh must be a torchmorph Mesh"):
         MeshMorph(cube.points)
 
 
@@ -192,7 +192,19 @@ def test_node_sets_are_copies_of_the_mesh_sets(cube):
         ("selected", lambda v: v + 1000, r"'selected'\]: holds indices outside"),
         ("control_nodes", lambda v: v.flip(0), r"'control_nodes'\]: must equal boundary_nodes"),
         ("interior_nodes", lambda v: v[1:], r"'interior_nodes'\]: boundary_nodes and interior"),
-        ("tets", lambda v: v + 10_000, r"'tets'\]: holds vertex indices outside"),
+        ("cell_nodes", lambda v: v + 10_000, r"'cell_nodes'\]: holds indices outside"),
+        ("cell_nodes", lambda v: v[1:], r"'cell_nodes'\]: holds 1535 entries but the cell"),
+        ("cell_orientation", lambda v: v[1:], r"'cell_orientation'\]: holds 383 entries"),
+        (
+            "_extra_state",
+            lambda v: {**v, "cell_blocks": [["tetra10", 384]]},
+            r"'cell_nodes'\]: holds 1536 entries but the cell blocks need 3840",
+        ),
+        (
+            "_extra_state",
+            lambda v: {**v, "cell_blocks": [["polygon", 384]]},
+            r"'_extra_state'\]: .*cell kind 'polygon' is not supported",
+        ),
         ("node_set_members", lambda v: v + 10_000, r"'node_set_members'\]: holds indices"),
         ("node_set_offsets", lambda v: v[:-1], r"'node_set_offsets'\]: must rise from 0"),
         (

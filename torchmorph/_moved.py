@@ -15,11 +15,11 @@ import warnings
 
 __all__ = ["MOVED"]
 
-#: old module name -> new module name
+#: old module name -> the new modules that hold its names
 MOVED = {
-    "torchmorph.io": "torchmorph.mesh.io",
-    "torchmorph.quality": "torchmorph.mesh.quality",
-    "torchmorph.pod_functional": "torchmorph.pod.functional",
+    "torchmorph.io": ("torchmorph.mesh.io",),
+    "torchmorph.quality": ("torchmorph.mesh.quality", "torchmorph.mesh.norms"),
+    "torchmorph.pod_functional": ("torchmorph.pod.functional",),
 }
 
 
@@ -32,21 +32,29 @@ class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
         return None
 
     def create_module(self, spec):
-        new = MOVED[spec.name]
-        module = types.ModuleType(spec.name, f"Moved to :mod:`{new}` (deprecated alias).")
+        targets = MOVED[spec.name]
+        module = types.ModuleType(spec.name, f"Moved to {', '.join(targets)} (deprecated alias).")
 
         def forward(attribute: str):
-            return getattr(importlib.import_module(new), attribute)
+            for target in targets:
+                found = getattr(importlib.import_module(target), attribute, None)
+                if found is not None:
+                    return found
+            raise AttributeError(f"module {spec.name!r} has no attribute {attribute!r}")
 
         module.__getattr__ = forward  # type: ignore[method-assign]
         return module
 
     def exec_module(self, module) -> None:
-        new = MOVED[module.__name__]
-        module.__all__ = list(getattr(importlib.import_module(new), "__all__", []))
+        targets = MOVED[module.__name__]
+        module.__all__ = [
+            name
+            for target in targets
+            for name in getattr(importlib.import_module(target), "__all__", [])
+        ]
         warnings.warn(
-            f"{module.__name__} moved to {new} in torchmorph 0.2.0; import it from there "
-            "(the old name will be removed in 0.3.0)",
+            f"{module.__name__} moved to {' and '.join(targets)} in torchmorph 0.2.0; import it "
+            "from there (the old name will be removed in 0.3.0)",
             DeprecationWarning,
             stacklevel=2,
         )

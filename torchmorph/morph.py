@@ -1,10 +1,13 @@
-"""Shape morphing of a tetrahedral mesh (Ballarin et al. 2017, section 2, Algorithm 2).
+"""Shape morphing of a mesh (Ballarin et al. 2017, section 2, Algorithm 2).
 
 :class:`MeshMorph` composes the pieces: control points chosen from the
 boundary nodes (all of them, or a :class:`~torchmorph.selection.SelectionPlan`
 for SIDW/ESIDW), an :class:`~torchmorph.idw.IDW` from the selected points to
 the interior nodes, and the scatter of boundary and interior displacements
-into one nodal field.
+into one nodal field. Nothing of it depends on the element kinds or on the
+dimension: a :class:`~torchmorph.mesh.Mesh` of any kinds, 2-D or 3-D, is morphed
+alike (the paper: SIDW/ESIDW "can be applied to any dimension and to arbitrary
+meshes"); the cells only serve the boundary and the validity checks.
 """
 
 from __future__ import annotations
@@ -18,9 +21,11 @@ from torch import Tensor, nn
 
 from torchmorph._checks import check_same_device_dtype, check_vectors
 from torchmorph._state import resize_buffers_for_load
+from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE
 from torchmorph.idw.module import DEFAULT_DENSE_BYTES, IDW, Implementation, Mode
-from torchmorph.mesh.model import TetMesh
-from torchmorph.mesh.quality import signed_volumes
+from torchmorph.mesh.cells import cell_kind
+from torchmorph.mesh.model import CellBlock, Mesh
+from torchmorph.mesh.quality import inverted_cells
 
 if TYPE_CHECKING:
     from torchmorph.selection.plan import SelectionPlan
@@ -29,7 +34,7 @@ __all__ = ["MeshMorph"]
 
 
 class MeshMorph(nn.Module):
-    """IDW / SIDW / ESIDW morph of a tetrahedral mesh (Algorithm 2).
+    """IDW / SIDW / ESIDW morph of a mesh of any element kinds, 2-D or 3-D (Algorithm 2).
 
     Selection phase (once, here): choose the control points among the boundary
     nodes — every boundary node when ``plan`` is None (plain IDW), else the
@@ -40,8 +45,11 @@ class MeshMorph(nn.Module):
 
     Parameters
     ----------
-    mesh : TetMesh
-        The reference mesh.
+    mesh : Mesh
+        The reference mesh (a :class:`~torchmorph.mesh.TetMesh` or any
+        :class:`~torchmorph.mesh.Mesh`: mixed, quadratic, 2-D). Its boundary is the
+        facets used once; the mid-side nodes of quadratic boundary facets are boundary
+        nodes, and the others interior nodes.
     plan : SelectionPlan, optional
         Control-point selection (SIDW/ESIDW). None: all boundary nodes.
     power : float
@@ -56,6 +64,8 @@ class MeshMorph(nn.Module):
     implementation : {"auto", "fused", "torch"}
         Passed to :class:`~torchmorph.idw.IDW`: fused kernels (Triton on CUDA, numba
         on the CPU) or torch operations.
+    coincidence_tolerance : float
+        Passed to :class:`~torchmorph.idw.IDW`.
 
     Attributes
     ----------
@@ -74,8 +84,11 @@ class MeshMorph(nn.Module):
 
     Notes
     -----
-    Does not check the morphed mesh for inverted tetrahedra on its own: call
+    Does not check the morphed mesh for inverted cells on its own: call
     :meth:`count_inverted` (or :func:`torchmorph.mesh.quality.count_inverted`).
+    Every marker of the mesh (node sets, the nodes of face sets, groups) is a node set
+    of the morph (:attr:`node_sets`), so a moving boundary can be named by an SU2
+    marker or an OpenFOAM patch. Displacements are D-vectors, D the mesh's dimension.
 
     :meth:`forward` is differentiable with respect to the boundary displacement
     and to ``points``, works under ``torch.func`` transforms (``vmap`` over a
@@ -85,7 +98,7 @@ class MeshMorph(nn.Module):
 
     def __init__(
         self,
-        mesh: TetMesh,
+        mesh: Mesh,
         plan: SelectionPlan | None = None,
         *,
         power: float = 4.0,
@@ -94,10 +107,13 @@ class MeshMorph(nn.Module):
         block_bytes: int | None = None,
         dense_bytes: int | None = DEFAULT_DENSE_BYTES,
         implementation: Implementation = "auto",
+        coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
     ) -> None:
         super().__init__()
-        if not isinstance(mesh, TetMesh):
-            raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
+        if not isinstance(mesh, Mesh):
+            raise TypeError(
+                f"mesh must be a torchmorph Mesh (or TetMesh), got {type(mesh).__name__}"
+            )
         boundary = mesh.boundary_nodes
         interior = mesh.interior_nodes
         start = time.perf_counter()
@@ -117,13 +133,15 @@ class MeshMorph(nn.Module):
             raise ValueError("plan selected nodes that are not boundary nodes")
         points = mesh.points
         self.register_buffer("points", points.detach().clone())
-        self.register_buffer("tets", mesh.tets.clone())
+        self.register_buffer("cell_nodes", torch.cat([b.nodes.reshape(-1) for b in mesh.cells]))
+        self.register_buffer("cell_orientation", torch.cat(mesh.orientation).clone())
+        self._cell_blocks: list[tuple[str, int]] = [(b.kind, b.nodes.shape[0]) for b in mesh.cells]
         self.register_buffer("boundary_nodes", boundary.clone())
         self.register_buffer("interior_nodes", interior.clone())
         self.register_buffer("selected", selected)
         self.register_buffer("control_nodes", control_nodes.clone())
-        names = list(mesh.node_sets)
-        members = [mesh.node_sets[name].reshape(-1).long() for name in names]
+        names = list(mesh.markers)
+        members = [mesh.node_set(name).reshape(-1).long() for name in names]
         sizes = torch.tensor([0, *(len(nodes) for nodes in members)], dtype=torch.long)
         self._node_set_names: list[str] = names
         self.register_buffer(
@@ -139,13 +157,15 @@ class MeshMorph(nn.Module):
             block_bytes=block_bytes,
             dense_bytes=dense_bytes,
             implementation=implementation,
+            coincidence_tolerance=coincidence_tolerance,
         )
         self.assembly_time = self.idw.assembly_time
 
     # ------------------------------------------------------------------ state
     _STATE_BUFFERS = (
         "points",
-        "tets",
+        "cell_nodes",
+        "cell_orientation",
         "boundary_nodes",
         "interior_nodes",
         "selected",
@@ -153,7 +173,7 @@ class MeshMorph(nn.Module):
         "node_set_members",
         "node_set_offsets",
     )
-    _STATE_VERSION = 1
+    _STATE_VERSION = 2  # 1: tetrahedra only, a "tets" buffer (still loads)
 
     @property
     def node_sets(self) -> dict[str, Tensor]:
@@ -168,15 +188,46 @@ class MeshMorph(nn.Module):
         }
 
     def get_extra_state(self) -> dict[str, Any]:
-        return {"version": self._STATE_VERSION, "node_set_names": list(self._node_set_names)}
+        return {
+            "version": self._STATE_VERSION,
+            "node_set_names": list(self._node_set_names),
+            "cell_blocks": [list(block) for block in self._cell_blocks],
+        }
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
         self._node_set_names = list(state["node_set_names"])
+        self._cell_blocks = [(str(kind), int(count)) for kind, count in state["cell_blocks"]]
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        state_dict = _upgraded_state(state_dict, prefix)
         _check_morph_state(state_dict, prefix)
         resize_buffers_for_load(self, state_dict, prefix, self._STATE_BUFFERS)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    @property
+    def cells(self) -> tuple[CellBlock, ...]:
+        """The reference mesh's cell blocks, as stored (see :attr:`Mesh.cells`)."""
+        blocks, start = [], 0
+        for kind, count in self._cell_blocks:
+            width = cell_kind(kind).num_nodes
+            nodes = self.cell_nodes[start : start + count * width].reshape(count, width)
+            blocks.append(CellBlock(kind, nodes))
+            start += count * width
+        return tuple(blocks)
+
+    def reference_mesh(self) -> Mesh:
+        """The reference mesh as stored in the module's state (points, cells, markers as
+        node sets), for quality measures and norms on it."""
+        return Mesh.from_checked(self.points, self.cells, self._orientations(), self.node_sets)
+
+    def _orientations(self) -> tuple[Tensor, ...]:
+        counts = [count for _, count in self._cell_blocks]
+        return tuple(self.cell_orientation.split(counts))
+
+    @property
+    def dim(self) -> int:
+        """The dimension D of the points and the displacements."""
+        return int(self.points.shape[1])
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -197,19 +248,19 @@ class MeshMorph(nn.Module):
 
     @property
     def boundary_points(self) -> Tensor:
-        """Reference coordinates of the boundary nodes, shape (N_b, 3)."""
+        """Reference coordinates of the boundary nodes, shape (N_b, D)."""
         return self.points[self.boundary_nodes]
 
     # ------------------------------------------------------------ boundary data
     def boundary_mask(self, names: str | Sequence[str]) -> Tensor:
-        """Boolean mask over the boundary nodes of the nodes in the named sets."""
+        """Boolean mask over the boundary nodes of the nodes in the named markers."""
         names = [names] if isinstance(names, str) else list(names)
         mask = torch.zeros(self.num_nodes, dtype=torch.bool, device=self.points.device)
         node_sets = self.node_sets
         for name in names:
             if name not in node_sets:
-                known = ", ".join(sorted(node_sets)) or "none"
-                raise ValueError(f"unknown node set {name!r}; known: {known}")
+                known = ", ".join(node_sets) or "(none)"
+                raise ValueError(f"unknown marker {name!r}; known: {known}")
             mask[node_sets[name].to(mask.device)] = True
         return mask[self.boundary_nodes]
 
@@ -218,20 +269,19 @@ class MeshMorph(nn.Module):
         moving: str | Sequence[str],
         displacement: Callable[[Tensor], Tensor],
     ) -> Tensor:
-        """Boundary displacement that moves the named sets and fixes the rest.
+        """Boundary displacement that moves the named markers and fixes the rest.
 
         Parameters
         ----------
         moving : str or sequence of str
-            Node sets that move (e.g. ``"wing"``); every other boundary node
-            gets zero displacement.
+            Markers that move (e.g. ``"wing"``); every other boundary node gets zero
+            displacement.
         displacement : callable
-            Maps reference coordinates (n, 3) to displacements (n, 3) or
-            (B, n, 3).
+            Maps reference coordinates (n, D) to displacements (n, D) or (B, n, D).
 
         Returns
         -------
-        Tensor, shape (N_b, 3) or (B, N_b, 3)
+        Tensor, shape (N_b, D) or (B, N_b, D)
         """
         mask = self.boundary_mask(moving)
         moved_points = self.boundary_points[mask]
@@ -242,27 +292,32 @@ class MeshMorph(nn.Module):
             or values.ndim not in (2, 3)
         ):
             shape = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__
+            count = moved_points.shape[0]
             raise ValueError(
-                f"displacement must return shape ({moved_points.shape[0]}, 3) or "
-                f"(B, {moved_points.shape[0]}, 3), got {shape}"
+                f"displacement must return shape ({count}, {self.dim}) or "
+                f"(B, {count}, {self.dim}), got {shape}"
             )
-        out = values.new_zeros(*values.shape[:-2], self.num_boundary, 3)
+        out = values.new_zeros(*values.shape[:-2], self.num_boundary, self.dim)
         return out.index_copy(-2, torch.nonzero(mask).flatten(), values)
 
     def controls_from_boundary(self, boundary_displacement: Tensor) -> Tensor:
-        """The displacement of the selected control points, (N_sel, 3) or (B, N_sel, 3)."""
+        """The displacement of the selected control points, (N_sel, D) or (B, N_sel, D)."""
         return boundary_displacement.index_select(-2, self.selected)
 
     def assemble(self, boundary_displacement: Tensor, interior_displacement: Tensor) -> Tensor:
-        """Scatter boundary and interior displacements into one nodal field (N, 3)."""
-        shape = (*boundary_displacement.shape[:-2], self.num_nodes, 3)
+        """Scatter boundary and interior displacements into one nodal field (N, D)."""
+        shape = (*boundary_displacement.shape[:-2], self.num_nodes, self.dim)
         field = boundary_displacement.new_zeros(shape)
         field = field.index_copy(-2, self.boundary_nodes, boundary_displacement)
         return field.index_copy(-2, self.interior_nodes, interior_displacement)
 
     def _check_boundary(self, boundary_displacement: Tensor) -> None:
         check_vectors(
-            boundary_displacement, "boundary_displacement", self.num_boundary, what="boundary nodes"
+            boundary_displacement,
+            "boundary_displacement",
+            self.num_boundary,
+            dim=self.dim,
+            what="boundary nodes",
         )
         check_same_device_dtype(
             self.points, "the mesh points", boundary_displacement, "boundary_displacement"
@@ -274,16 +329,16 @@ class MeshMorph(nn.Module):
 
         Parameters
         ----------
-        boundary_displacement : Tensor, shape (N_b, 3) or (B, N_b, 3)
+        boundary_displacement : Tensor, shape (N_b, D) or (B, N_b, D)
             Prescribed displacement of every boundary node, ordered as
             ``boundary_nodes``.
-        points : Tensor, shape (N, 3), optional
+        points : Tensor, shape (N, D), optional
             Moved reference coordinates (shape optimisation): W is rebuilt
             differentiably from them.
 
         Returns
         -------
-        Tensor, shape (N, 3) or (B, N, 3)
+        Tensor, shape (N, D) or (B, N, D)
             Boundary rows equal ``boundary_displacement`` exactly.
         """
         self._check_boundary(boundary_displacement)
@@ -317,51 +372,54 @@ class MeshMorph(nn.Module):
         return self.idw.weights_matrix()
 
     def adjoint(self, fields: Tensor) -> Tensor:
-        """The transpose of the morph: nodal fields (B, N, 3) -> (B, N_b, 3).
+        """The transpose of the morph: nodal fields (B, N, D) -> (B, N_b, D).
 
         Boundary rows pass through; interior rows are mapped by Wᵀ onto the control
         points (one GEMM with a dense W, a vector-Jacobian product of the IDW
         otherwise). The morph is linear, so ``<morph(d), g> = <d, adjoint(g)>``.
         """
-        check_vectors(fields, "fields", self.num_nodes, what="mesh nodes")
+        dim = self.dim
+        check_vectors(fields, "fields", self.num_nodes, dim=dim, what="mesh nodes")
         batch = fields if fields.ndim == 3 else fields.unsqueeze(0)
         interior = batch.index_select(1, self.interior_nodes)
         weights = getattr(self.idw, "weights", None)
         if isinstance(weights, Tensor):
-            columns = interior.permute(1, 0, 2).reshape(self.num_interior, -1)  # (N_int, 3B)
-            controls = (columns.mT @ weights).reshape(batch.shape[0], 3, -1).mT
+            columns = interior.permute(1, 0, 2).reshape(self.num_interior, -1)  # (N_int, D B)
+            controls = (columns.mT @ weights).reshape(batch.shape[0], dim, -1).mT
         else:
             with torch.enable_grad():
-                probe = batch.new_zeros(batch.shape[0], self.num_controls, 3, requires_grad=True)
+                shape = (batch.shape[0], self.num_controls, dim)
+                probe = batch.new_zeros(shape, requires_grad=True)
                 (controls,) = torch.autograd.grad(self.idw(probe), probe, grad_outputs=interior)
         result = batch.index_select(1, self.boundary_nodes)
         result = result.index_add(1, self.selected, controls)
         return result if fields.ndim == 3 else result[0]
 
     def deformed_points(self, displacement: Tensor) -> Tensor:
-        """Reference points plus a nodal displacement (N, 3) or (B, N, 3)."""
+        """Reference points plus a nodal displacement (N, D) or (B, N, D)."""
         return self.points + displacement
 
     def inverted(self, displacement: Tensor) -> Tensor:
-        """Mask of the tets whose signed volume is <= 0 after ``displacement``.
+        """Mask of the cells that ``displacement`` inverts (a corner Jacobian or the volume
+        <= 0, as :func:`torchmorph.mesh.quality.inverted`).
 
-        ``displacement`` is a nodal field (N, 3) or a batch (B, N, 3); the mask has
-        shape (M,) or (B, M) (as :func:`torchmorph.mesh.quality.inverted`).
+        ``displacement`` is a nodal field (N, D) or a batch (B, N, D); the mask has
+        shape (M,) or (B, M), cells numbered across blocks in order.
         """
-        check_vectors(displacement, "displacement", self.num_nodes, what="mesh nodes")
-        with torch.no_grad():
-            return signed_volumes(self.deformed_points(displacement.detach()), self.tets) <= 0
+        check_vectors(displacement, "displacement", self.num_nodes, dim=self.dim, what="mesh nodes")
+        moved = self.deformed_points(displacement.detach())
+        return inverted_cells(moved, self.cells, self._orientations())
 
     def count_inverted(self, displacement: Tensor) -> int:
-        """Number of tets whose signed volume is <= 0 after ``displacement`` (N, 3).
+        """Number of cells that ``displacement`` (N, D) inverts.
 
         Always an int, as :func:`torchmorph.mesh.quality.count_inverted`; for a batch
-        (B, N, 3) count with ``inverted(displacement).sum(-1)``.
+        (B, N, D) count with ``inverted(displacement).sum(-1)``.
         """
         if isinstance(displacement, Tensor) and displacement.ndim == 3:
             raise ValueError(
-                "displacement: count_inverted takes one field (N, 3); for a "
-                "batch (B, N, 3) use inverted(displacement).sum(-1)"
+                "displacement: count_inverted takes one field (N, D); for a "
+                "batch (B, N, D) use inverted(displacement).sum(-1)"
             )
         return int(self.inverted(displacement).sum())
 
@@ -371,6 +429,29 @@ class MeshMorph(nn.Module):
             f"num_interior={self.num_interior}, num_controls={self.num_controls}, "
             f"mode={self.idw.mode!r}"
         )
+
+
+def _upgraded_state(state_dict, prefix: str):
+    """A state saved by version 1 (tetrahedra only: a ``tets`` buffer) in version 2's
+    form (``cell_nodes``, ``cell_orientation`` and the blocks in the extra state); other
+    states as they are."""
+    extra = state_dict.get(prefix + "_extra_state")
+    tets = state_dict.get(prefix + "tets")
+    if not (isinstance(extra, dict) and extra.get("version") == 1 and isinstance(tets, Tensor)):
+        return state_dict
+    if tets.ndim != 2 or tets.shape[1] != 4:
+        raise ValueError(f"state_dict[{prefix + 'tets'!r}]: must have shape (M, 4)")
+    upgraded = {key: value for key, value in state_dict.items() if key != prefix + "tets"}
+    upgraded[prefix + "cell_nodes"] = tets.reshape(-1)
+    upgraded[prefix + "cell_orientation"] = torch.ones(
+        tets.shape[0], dtype=torch.int8, device=tets.device
+    )
+    upgraded[prefix + "_extra_state"] = {
+        **extra,
+        "version": MeshMorph._STATE_VERSION,
+        "cell_blocks": [["tetra", int(tets.shape[0])]],
+    }
+    return upgraded
 
 
 def _check_morph_state(state_dict, prefix: str) -> None:
@@ -418,23 +499,38 @@ def _check_morph_state(state_dict, prefix: str) -> None:
                 "_extra_state",
                 f"version {extra.get('version')!r} is not {MeshMorph._STATE_VERSION}",
             )
+        blocks = extra.get("cell_blocks")
+        if not isinstance(blocks, list) or not all(
+            isinstance(b, (list, tuple)) and len(b) == 2 and isinstance(b[1], int) and b[1] >= 0
+            for b in blocks
+        ):
+            fail("_extra_state", "must hold 'cell_blocks', a list of [kind, count] pairs")
+        try:
+            width = sum(cell_kind(kind).num_nodes * count for kind, count in blocks)
+        except ValueError as error:
+            fail("_extra_state", str(error))
+        nodes = entry("cell_nodes")
+        if isinstance(nodes, Tensor) and nodes.numel() != width:
+            fail("cell_nodes", f"holds {nodes.numel()} entries but the cell blocks need {width}")
+        orientation = entry("cell_orientation")
+        count = sum(count for _, count in blocks)
+        if isinstance(orientation, Tensor) and orientation.numel() != count:
+            fail("cell_orientation", f"holds {orientation.numel()} entries for {count} cells")
     points = entry("points")
     if points is None:
         return
     if (
         not isinstance(points, Tensor)
         or points.ndim != 2
-        or points.shape[1] != 3
+        or points.shape[1] not in (2, 3)
         or not points.is_floating_point()
     ):
-        fail("points", f"must be a floating tensor (N, 3), got {getattr(points, 'shape', points)}")
+        fail(
+            "points",
+            f"must be a floating tensor (N, 2 or 3), got {getattr(points, 'shape', points)}",
+        )
     num_nodes = points.shape[0]
-    tets = entry("tets")
-    if tets is not None:
-        if not isinstance(tets, Tensor) or tets.ndim != 2 or tets.shape[1] != 4:
-            fail("tets", "must have shape (M, 4)")
-        if tets.numel() and (int(tets.min()) < 0 or int(tets.max()) >= num_nodes):
-            fail("tets", f"holds vertex indices outside [0, {num_nodes})")
+    index("cell_nodes", num_nodes)
     boundary = index("boundary_nodes", num_nodes)
     interior = index("interior_nodes", num_nodes)
     if boundary is not None and interior is not None:

@@ -184,7 +184,7 @@ def test_gradcheck_with_respect_to_mu_and_points_together(mode):
 
 def test_barrier_of_the_morph_matches_finite_differences():
     morph, inputs, _ = build("morph-dense")
-    mesh = TetMesh(morph.points, morph.tets)
+    mesh = morph.reference_mesh()
     family = vector_family(inputs)
     mu = torch.tensor([-1.5, 1.2, 0.4], dtype=F64)  # squeezes the cube: penalty active
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 from conftest import structured_cube
 
-from torchmorph.mesh.quality import ERROR_NORMS, relative_l2_error, relative_nodal_error
+from torchmorph.mesh.norms import ERROR_NORMS, relative_l2_error, relative_nodal_error
 
 F64 = torch.float64
 

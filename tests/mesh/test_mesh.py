@@ -92,9 +92,9 @@ def test_boundary_faces_point_outward(cube_grid):
 
 def test_boundary_faces_without_int64_keys_agree(cube_grid, monkeypatch):
     # meshes with more than ~2e6 nodes use unique rows instead of packed keys
-    import torchmorph.mesh.model
+    import torchmorph.mesh.tetmesh
 
-    monkeypatch.setattr(torchmorph.mesh.model, "_MAX_NODES_FOR_FACE_KEYS", 0)
+    monkeypatch.setattr(torchmorph.mesh.tetmesh, "_MAX_NODES_FOR_FACE_KEYS", 0)
     fresh = TetMesh(cube_grid.points, cube_grid.tets)
     assert sorted(map(tuple, fresh.boundary_faces.tolist())) == sorted(
         map(tuple, cube_grid.boundary_faces.tolist())
@@ -149,9 +149,9 @@ def test_node_sets_are_sorted_unique_and_accept_masks(reference_tet):
 
 def test_unknown_node_set_lists_the_known_ones(reference_tet):
     mesh = TetMesh(reference_tet.points, reference_tet.tets, {"root": [0], "tip": [1]})
-    with pytest.raises(ValueError, match=r"unknown node set 'wing'; known: root, tip"):
+    with pytest.raises(ValueError, match=r"unknown marker 'wing'; known: root, tip"):
         mesh.node_set("wing")
-    with pytest.raises(ValueError, match=r"unknown node set 'x'; known: \(none\)"):
+    with pytest.raises(ValueError, match=r"unknown marker 'x'; known: \(none\)"):
         reference_tet.node_set("x")
 
 
@@ -269,7 +269,7 @@ def test_faces_shared_by_three_tetrahedra_are_rejected():
 
 
 def test_fold_check_agrees_without_int64_face_keys(monkeypatch):
-    import torchmorph.mesh.model as mesh_module
+    import torchmorph.mesh.tetmesh as mesh_module
 
     points, tets = kuhn_grid(3)
     reference = TetMesh(points, tets).boundary_faces

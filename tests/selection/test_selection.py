@@ -466,9 +466,9 @@ def test_candidates_override(cube8):
 
 
 def test_plan_errors(cube8):
-    with pytest.raises(ValueError, match="unknown node set 'wing'; known: "):
+    with pytest.raises(ValueError, match="unknown marker 'wing'; known: "):
         SelectionPlan({"wing": 0.3}).select(cube8)
-    with pytest.raises(ValueError, match="unknown node set 'tip'"):
+    with pytest.raises(ValueError, match="unknown marker 'tip'"):
         SelectionPlan(dict.fromkeys(FACES, 0.3), enrich=["tip"]).select(cube8)
     with pytest.raises(ValueError, match="region node set 'core' holds 1 node.* not boundary"):
         SelectionPlan({"core": 0.3}, uncovered="ignore").select(cube8)

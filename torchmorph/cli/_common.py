@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from torchmorph.mesh.model import TetMesh
+    from torchmorph.mesh.tetmesh import TetMesh
 
 EXIT_OK = 0
 EXIT_ERROR = 1

@@ -28,7 +28,7 @@ from torchmorph.cli._common import (
 )
 
 if TYPE_CHECKING:
-    from torchmorph.mesh.model import TetMesh
+    from torchmorph.mesh.tetmesh import TetMesh
     from torchmorph.selection.plan import UncoveredNodesError
 
 __all__: list[str] = []
@@ -234,7 +234,7 @@ def _split_names(values: Sequence[str] | None) -> list[str] | None:
 
 def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMesh, str]:
     """The SelectionPlan of the options (or None), the mesh to select on, and a description."""
-    from torchmorph.mesh.model import TetMesh
+    from torchmorph.mesh.tetmesh import TetMesh
     from torchmorph.selection.plan import Region, SelectionPlan
 
     enrich = _split_names(args.enrich) or []

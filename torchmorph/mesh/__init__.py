@@ -1,7 +1,10 @@
-"""Meshes: the model (:mod:`torchmorph.mesh.model`), quality and error measures
+"""Meshes: the model of any element kinds in 2-D and 3-D (:mod:`torchmorph.mesh.model`,
+the kinds in :mod:`torchmorph.mesh.cells`) with its tetrahedral special case
+(:mod:`torchmorph.mesh.tetmesh`), quality and error measures
 (:mod:`torchmorph.mesh.quality`) and files (:mod:`torchmorph.mesh.io`)."""
 
 from torchmorph._atomic import atomic_output
+from torchmorph.mesh.cells import CELL_KINDS, CellKind
 from torchmorph.mesh.io import (
     MESH_FORMATS,
     decode_set_name,
@@ -11,27 +14,41 @@ from torchmorph.mesh.io import (
     to_meshio,
     write_mesh,
 )
-from torchmorph.mesh.model import FLAT_TET_TOLERANCE, TetMesh, box_mesh
-from torchmorph.mesh.quality import (
+from torchmorph.mesh.model import CellBlock, Mesh
+from torchmorph.mesh.norms import (
     ERROR_NORMS,
+    mass_matrix,
+    relative_l2_error,
+    relative_nodal_error,
+)
+from torchmorph.mesh.quality import (
+    cell_edge_ratio,
+    cell_volumes,
     count_inverted,
     edge_ratio,
     inverted,
-    mass_matrix,
+    quality_by_kind,
+    quality_report,
     quality_summary,
-    relative_l2_error,
-    relative_nodal_error,
+    scaled_jacobian,
     signed_volumes,
     validity_barrier,
 )
+from torchmorph.mesh.tetmesh import FLAT_TET_TOLERANCE, TetMesh, box_mesh
 
 __all__ = [
+    "CELL_KINDS",
     "ERROR_NORMS",
     "FLAT_TET_TOLERANCE",
     "MESH_FORMATS",
+    "CellBlock",
+    "CellKind",
+    "Mesh",
     "TetMesh",
     "atomic_output",
     "box_mesh",
+    "cell_edge_ratio",
+    "cell_volumes",
     "count_inverted",
     "decode_set_name",
     "edge_ratio",
@@ -39,10 +56,12 @@ __all__ = [
     "from_meshio",
     "inverted",
     "mass_matrix",
+    "quality_report",
     "quality_summary",
     "read_mesh",
     "relative_l2_error",
     "relative_nodal_error",
+    "scaled_jacobian",
     "signed_volumes",
     "to_meshio",
     "validity_barrier",

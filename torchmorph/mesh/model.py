@@ -1,9 +1,12 @@
-"""Tetrahedral meshes: :class:`TetMesh`.
+"""Meshes of any element kinds, 2-D and 3-D: :class:`Mesh`.
 
-A mesh is plain data — ``points (N, 3)``, ``tets (M, 4)`` and named node sets —
-checked once on construction. Topological quantities (boundary faces, boundary
-and interior nodes, edges) and geometric ones (volumes, the mass matrix of
-:mod:`torchmorph.mesh.quality`) are derived on first use and cached.
+A mesh is plain data — ``points (N, D)``, cell blocks by kind (any kinds of
+:data:`torchmorph.mesh.cells.CELL_KINDS` of one dimension D, linear or quadratic),
+named node sets, named face sets (facets, where a file's markers are faces) and groups
+of markers — checked once on construction. The boundary is the facets used once across
+all blocks; a quadratic cell's mid-side and face nodes are nodes like any other (those
+of boundary facets are boundary nodes). Topology and geometry are derived on first use
+and cached. :class:`~torchmorph.mesh.TetMesh` is the tetrahedral special case.
 """
 
 from __future__ import annotations
@@ -16,173 +19,262 @@ import torch
 from torch import Tensor
 
 from torchmorph._checks import as_index, as_points, check_finite, check_float_dtype
-from torchmorph.mesh._cells import (
-    TET_EDGES,
-    TET_OUTWARD_FACES,
-    tet_edge_lengths_squared,
-    tet_volumes,
+from torchmorph.mesh._kernels import simplex_volumes
+from torchmorph.mesh._topology import (
+    CellBlock,
+    Facets,
+    as_cell_blocks,
+    cell_orientations,
+    check_folds,
+    match_facets,
 )
+from torchmorph.mesh.cells import FACET_KINDS, cell_kind
 
-__all__ = ["FLAT_TET_TOLERANCE", "TetMesh", "box_mesh"]
-
-#: A tetrahedron is rejected as flat when ``|V| <= FLAT_TET_TOLERANCE * L**3``,
-#: ``L`` its longest edge. The bound is relative to the element's own size, so
-#: it does not depend on the units, on the extent of the mesh or on how graded
-#: it is (boundary-layer elements much smaller than the domain pass). A regular
-#: tetrahedron has ``V ≈ 0.118 L**3`` and float64 round-off in the volume is
-#: about ``1e-16 L**3``: the threshold lies far from both.
-FLAT_TET_TOLERANCE = 1e-12
-
-# Largest node count for which a face (i < j < k) fits one int64 key i*N² + j*N + k.
-_MAX_NODES_FOR_FACE_KEYS = 2_000_000
+__all__ = ["CellBlock", "Mesh"]
 
 
-class TetMesh:
-    """A conforming tetrahedral mesh with named node sets.
+class Mesh:
+    """A conforming mesh of any element kinds with named markers.
 
     Parameters
     ----------
-    points : Tensor or array, shape (N, 3)
+    points : Tensor or array, shape (N, D), D = 2 or 3
         Node coordinates. Tensors keep their dtype and device; NumPy arrays and
         sequences become float64 tensors.
-    tets : Tensor or array, shape (M, 4), integer
-        Vertex indices of the tetrahedra. Negatively oriented tetrahedra are
-        reoriented (their last two vertices swapped) so that every signed
-        volume is > 0; the order of the tetrahedra is kept, so cell data stay
-        aligned. The input is not modified.
+    cells : mapping of kind to array, or sequence of (kind, array) pairs
+        The cell blocks, in order (several blocks of one kind are kept apart), kinds as
+        meshio names them (``"tetra"``, ``"wedge"``, ``"hexahedron20"``, ``"quad"`` …)
+        with meshio's node order; all of topological dimension D. meshio ``CellBlock``
+        objects are accepted too.
     node_sets : mapping of str to index array, optional
-        Named groups of nodes (``"root"``, ``"tip"``, ``"wall_top"`` …), each
-        given as indices or a boolean mask of length N; stored as sorted unique
-        int64 tensors on the points' device.
+        Named groups of nodes (indices or boolean masks of length N).
+    face_sets : mapping of str to cell blocks, optional
+        Named sets of facets (``"triangle"``/``"quad"`` and their quadratic kinds in 3-D,
+        ``"line"``/``"line3"`` in 2-D), as a mapping or sequence like ``cells``. Their
+        nodes are markers too (:meth:`node_set`).
+    groups : mapping of str to sequence of str, optional
+        Named groups of markers (OpenFOAM's ``inGroups``): the group's nodes are the
+        union of its members'.
     name : str, optional, keyword-only
         A label for printing and file names.
 
     Raises
     ------
     ValueError
-        For points that are not (N, 3), empty, or hold NaN/inf; tets that are
-        not (M, 4) integers, empty, or index outside ``[0, N)``; flat
-        tetrahedra (``|V| <= FLAT_TET_TOLERANCE * L**3``, ``L`` the longest
-        edge); node sets with non-string names or indices outside ``[0, N)``.
+        For points that are not (N, D) with D the cells' dimension, or hold NaN/inf; an
+        unknown cell kind (named); cells of two dimensions; indices outside ``[0, N)``;
+        flat cells; reference cells inverted at some corners or folded over a neighbour;
+        facets shared by more than two cells; markers with bad names, indices or kinds,
+        or a name used twice.
 
     Notes
     -----
-    ``points`` and ``tets`` are copied (a tensor that requires grad keeps its
-    autograd link through the copy), so editing the caller's arrays afterwards
-    does not change the mesh. Nodes that belong to no tetrahedron are allowed; they are not on the
-    boundary and so count among :attr:`interior_nodes`. Faces shared by more
-    than two tetrahedra (a non-manifold or duplicated input) and tetrahedra
-    folded over a neighbour (inverted reference elements: the two tetrahedra of
-    an interior face on the same side of it) raise ``ValueError``.
-
-    Overlapping tetrahedra that share no face are detected where they share a
-    node: the solid angles of the tetrahedra at a node may add up to at most one
-    sphere (4π), and to exactly 4π at a node off the boundary. Not detected: two
-    parts of the mesh that overlap without sharing a node (e.g. two separate
-    blocks pushed into each other) — check the boundary surface for
-    self-intersections if your input may have them.
+    The node order of every cell is kept as given, so a mesh written back is the mesh
+    read: a cell given in mirrored order is valid, with orientation −1
+    (:attr:`orientation`), and its facets are flipped so that :attr:`boundary_facets`
+    point outward. Quadratic cells are measured on their corners (see
+    :mod:`torchmorph.mesh.cells`). Not detected: parts of the mesh that overlap without
+    sharing a facet.
     """
 
     def __init__(
         self,
         points: Tensor | np.ndarray | Sequence,
-        tets: Tensor | np.ndarray | Sequence,
-        node_sets: Mapping[str, Tensor | np.ndarray | Sequence] | None = None,
+        cells: Any,
+        node_sets: Mapping[str, Any] | None = None,
+        face_sets: Mapping[str, Any] | None = None,
         *,
+        groups: Mapping[str, Sequence[str]] | None = None,
         name: str | None = None,
     ) -> None:
         dtype = None if isinstance(points, Tensor) else torch.float64
-        given_points, given_tets = points, tets
-        points = as_points(points, "points", dtype=dtype)
-        if points is given_points:  # a copy: later in-place edits by the caller cannot
-            points = points.clone()  # make the cached topology and geometry stale
-        tets = _as_tets(tets, points.shape[0]).to(points.device)
-        if tets is given_tets:
-            tets = tets.clone()
-        tets = _orient(points, tets)
+        given = points
+        dim = _points_dim(points)
+        points = as_points(points, "points", dim=dim, dtype=dtype)
+        if points is given:
+            points = points.clone()
+        blocks = as_cell_blocks(cells, points.shape[0], points.device)
+        kind_dim = cell_kind(blocks[0].kind).dim
+        if kind_dim != dim:
+            raise ValueError(
+                f"points must have shape (N, {kind_dim}) for cells of dimension {kind_dim} "
+                f"({', '.join(sorted({b.kind for b in blocks}))}), got {tuple(points.shape)}; "
+                "a planar mesh keeps its two in-plane coordinates"
+            )
+        orientation = cell_orientations(points, blocks)
+        facets = match_facets(blocks, orientation, points.shape[0])
+        check_folds(points, blocks, facets)
+        self._setup(points, blocks, orientation, node_sets, face_sets, groups, name)
+        self._topology["facets"] = facets
+
+    def _setup(self, points, blocks, orientation, node_sets, face_sets, groups, name) -> None:
         if name is not None and not isinstance(name, str):
             raise TypeError(f"name must be a string or None, got {type(name).__name__}")
-        boundary_faces = _checked_faces(points, tets)
-        _check_interior_solid_angles(points, tets, boundary_faces)
+        num_nodes = points.shape[0]
         self._points = points
-        self._tets = tets
-        self._node_sets = _as_node_sets(node_sets, points.shape[0], points.device)
+        self._blocks = tuple(blocks)
+        self._orientation = tuple(orientation)
+        self._node_sets = _as_node_sets(node_sets, num_nodes, points.device)
+        self._face_sets = _as_face_sets(face_sets, num_nodes, points.device, points.shape[1])
+        self._groups = _as_groups(groups, set(self._node_sets) | set(self._face_sets))
+        clash = set(self._node_sets) & set(self._face_sets)
+        if clash:
+            raise ValueError(
+                f"node_sets and face_sets: the name(s) {', '.join(sorted(clash))} are used by "
+                "both; give each marker one name"
+            )
         self.name = name
-        self._topology: dict[str, Tensor] = {"boundary_faces": boundary_faces}
+        self._topology: dict[str, Any] = {}
         self._geometry: dict[str, Any] = {}
 
     @classmethod
-    def _from_parts(
+    def from_checked(
         cls,
         points: Tensor,
-        tets: Tensor,
-        node_sets: dict[str, Tensor],
-        name: str | None,
-        topology: dict[str, Tensor],
-    ) -> TetMesh:
-        """Build a mesh from checked parts, skipping validation and reorientation."""
+        cells: Sequence[CellBlock],
+        orientation: Sequence[Tensor],
+        node_sets: Mapping[str, Tensor] | None = None,
+        *,
+        name: str | None = None,
+    ) -> Mesh:
+        """A mesh from parts that were checked before (a module's stored reference mesh):
+        the cells and their orientation are taken as they are, not validated again."""
+        mesh = Mesh.__new__(Mesh)
+        mesh._setup(points, tuple(cells), tuple(orientation), node_sets, None, None, name)
+        return mesh
+
+    @classmethod
+    def _from_parts(cls, template: Mesh, points: Tensor, **changes: Any) -> Mesh:
+        """A copy of ``template`` with other points (topology shared), not re-validated."""
         mesh = cls.__new__(cls)
+        mesh.__dict__.update(template.__dict__)
         mesh._points = points
-        mesh._tets = tets
-        mesh._node_sets = node_sets
-        mesh.name = name
-        mesh._topology = topology
         mesh._geometry = {}
+        mesh.__dict__.update(changes)
         return mesh
 
     # ------------------------------------------------------------------ data
 
     @property
     def points(self) -> Tensor:
-        """Node coordinates, shape (N, 3)."""
+        """Node coordinates, shape (N, D)."""
         return self._points
 
     @property
-    def tets(self) -> Tensor:
-        """Vertex indices, shape (M, 4), int64, positively oriented."""
-        return self._tets
+    def dim(self) -> int:
+        """The dimension D (2 or 3) of the points and of the cells."""
+        return int(self._points.shape[1])
 
     @property
-    def node_sets(self) -> dict[str, Tensor]:
-        """Named node sets (a copy of the mapping; the tensors are shared)."""
-        return dict(self._node_sets)
+    def cells(self) -> tuple[CellBlock, ...]:
+        """The cell blocks ``(kind, nodes (M_k, n_k))``, in the order given."""
+        return self._blocks
+
+    @property
+    def orientation(self) -> tuple[Tensor, ...]:
+        """Per block, the orientation of every cell (int8: +1, or −1 for mirrored order)."""
+        return self._orientation
+
+    @property
+    def cell_counts(self) -> dict[str, int]:
+        """Number of cells of each kind (blocks of one kind added up)."""
+        counts: dict[str, int] = {}
+        for block in self._blocks:
+            counts[block.kind] = counts.get(block.kind, 0) + int(block.nodes.shape[0])
+        return counts
+
+    @property
+    def num_cells(self) -> int:
+        return sum(int(block.nodes.shape[0]) for block in self._blocks)
 
     @property
     def num_nodes(self) -> int:
-        """Number of nodes N."""
         return int(self._points.shape[0])
 
     @property
-    def num_tets(self) -> int:
-        """Number of tetrahedra M."""
-        return int(self._tets.shape[0])
-
-    @property
     def device(self) -> torch.device:
-        """Device of points and tets."""
         return self._points.device
 
     @property
     def dtype(self) -> torch.dtype:
-        """Floating dtype of the points."""
         return self._points.dtype
 
-    def node_set(self, name: str) -> Tensor:
-        """Indices of the node set ``name``, shape (K,), sorted unique int64.
+    @property
+    def is_tetrahedral(self) -> bool:
+        """Whether every cell is a linear tetrahedron."""
+        return all(block.kind == "tetra" for block in self._blocks)
+
+    @property
+    def tets(self) -> Tensor:
+        """The cells as positively oriented tetrahedra (M, 4), for a tetrahedral mesh.
 
         Raises
         ------
         ValueError
-            If there is no node set of that name.
+            If the mesh holds cells of other kinds (use :attr:`cells`).
         """
-        try:
-            return self._node_sets[name]
-        except (KeyError, TypeError):
-            known = ", ".join(sorted(self._node_sets)) or "(none)"
-            raise ValueError(f"unknown node set {name!r}; known: {known}") from None
+        if not self.is_tetrahedral:
+            kinds = ", ".join(sorted(self.cell_counts))
+            raise ValueError(
+                f"tets: this mesh holds {kinds} cells, not only linear tetrahedra; use "
+                "mesh.cells (the quality functions take any mesh)"
+            )
+
+        def build() -> Tensor:
+            parts = []
+            for block, orientation in zip(self._blocks, self._orientation, strict=True):
+                swapped = block.nodes[:, [0, 1, 3, 2]]
+                parts.append(torch.where(orientation[:, None] < 0, swapped, block.nodes))
+            return torch.cat(parts)
+
+        return self._cached_topology("tets", build)
+
+    # ------------------------------------------------------------------ markers
+
+    @property
+    def node_sets(self) -> dict[str, Tensor]:
+        """The named node sets given (a copy of the mapping; the tensors are shared)."""
+        return dict(self._node_sets)
+
+    @property
+    def face_sets(self) -> dict[str, tuple[CellBlock, ...]]:
+        """The named face sets given, as facet blocks."""
+        return dict(self._face_sets)
+
+    @property
+    def groups(self) -> dict[str, tuple[str, ...]]:
+        """The named groups of markers."""
+        return dict(self._groups)
+
+    @property
+    def markers(self) -> tuple[str, ...]:
+        """Every name :meth:`node_set` knows: node sets, face sets, then groups."""
+        return (*self._node_sets, *self._face_sets, *self._groups)
+
+    def node_set(self, name: str) -> Tensor:
+        """Nodes of the marker ``name``, shape (K,), sorted unique int64: a node set, the
+        nodes of a face set, or the union over a group's members.
+
+        Raises
+        ------
+        ValueError
+            If no marker has that name (the message lists the known ones).
+        """
+        if isinstance(name, str):
+            if name in self._node_sets:
+                return self._node_sets[name]
+            if name in self._face_sets:
+                key = "face_set_nodes:" + name
+                return self._cached_topology(
+                    key, lambda: _facet_nodes(self._face_sets[name], self.device)
+                )
+            if name in self._groups:
+                return self.nodes_of(self._groups[name])
+        known = ", ".join(self.markers) or "(none)"
+        raise ValueError(f"unknown marker {name!r}; known: {known}")
 
     def nodes_of(self, names: str | Sequence[str]) -> Tensor:
-        """Sorted unique union of one or several node sets, shape (K,), int64."""
+        """Sorted unique union of one or several markers, shape (K,), int64."""
         names = [names] if isinstance(names, str) else list(names)
         parts = [self.node_set(n) for n in names]
         if not parts:
@@ -191,7 +283,7 @@ class TetMesh:
 
     # ------------------------------------------------------------------ topology
 
-    def _cached_topology(self, key: str, build: Callable[[], Tensor]) -> Tensor:
+    def _cached_topology(self, key: str, build: Callable[[], Any]) -> Any:
         value = self._topology.get(key)
         if value is None:
             value = build()
@@ -199,12 +291,8 @@ class TetMesh:
         return value
 
     def _cached_geometry(self, key: str, build: Callable[[], Any], *, always: bool = False) -> Any:
-        """Memoise a quantity derived from this mesh's points.
-
-        Not cached while the points require grad (the cached tensor would hold
-        an autograd graph), unless ``always`` (for quantities built from
-        detached points, such as the mass matrix).
-        """
+        """Memoise a quantity derived from the points (not while they require grad, unless
+        ``always``: quantities built from detached points)."""
         if key in self._geometry:
             return self._geometry[key]
         value = build()
@@ -212,28 +300,27 @@ class TetMesh:
             self._geometry[key] = value
         return value
 
-    @property
-    def boundary_faces(self) -> Tensor:
-        """Faces that belong to exactly one tetrahedron, shape (F, 3), int64.
+    def _facets(self) -> Facets:
+        return self._cached_topology(
+            "facets", lambda: match_facets(self._blocks, self._orientation, self.num_nodes)
+        )
 
-        Each face is ordered so that its right-hand normal points out of the
-        mesh. Faces are sorted by their (sorted) vertex triples.
-        """
-        return self._cached_topology("boundary_faces", self._find_boundary_faces)
+    @property
+    def boundary_facets(self) -> tuple[CellBlock, ...]:
+        """The facets used by one cell (faces in 3-D, edges in 2-D), by facet kind,
+        oriented outward, each block sorted by its corners."""
+        return self._facets().boundary
 
     @property
     def boundary_nodes(self) -> Tensor:
-        """Nodes on the boundary faces, shape (N_b,), sorted int64."""
+        """Nodes of the boundary facets (mid-side and face nodes included), sorted int64."""
         return self._cached_topology(
-            "boundary_nodes", lambda: torch.unique(self.boundary_faces.flatten(), sorted=True)
+            "boundary_nodes", lambda: _facet_nodes(self.boundary_facets, self.device)
         )
 
     @property
     def interior_nodes(self) -> Tensor:
-        """All nodes not on the boundary, shape (N_int,), sorted int64.
-
-        Includes nodes that belong to no tetrahedron.
-        """
+        """All nodes not on the boundary, sorted int64 (nodes of no cell included)."""
 
         def build() -> Tensor:
             on_boundary = torch.zeros(self.num_nodes, dtype=torch.bool, device=self.device)
@@ -243,86 +330,63 @@ class TetMesh:
         return self._cached_topology("interior_nodes", build)
 
     @property
-    def edges(self) -> Tensor:
-        """Unique undirected edges ``(i, j)`` with ``i < j``, shape (E, 2), int64, sorted."""
-        return self._cached_topology("edges", lambda: self._find_edges()[0])
+    def simplices(self) -> tuple[Tensor, Tensor]:
+        """The fixed decomposition of every cell's corners into positively oriented simplices
+        (tetrahedra in 3-D, triangles in 2-D): ``(simplices (S, D + 1), cell of each (S,))``,
+        cells numbered across blocks in order."""
 
-    def _find_boundary_faces(self) -> Tensor:
-        return _face_structure(self._tets, self.num_nodes)[0]
+        def build() -> tuple[Tensor, Tensor]:
+            parts, owners, offset = [], [], 0
+            for block, orientation in zip(self._blocks, self._orientation, strict=True):
+                kind = cell_kind(block.kind)
+                count = block.nodes.shape[0]
+                local = torch.tensor(kind.simplices, device=self.device)  # (s, D + 1)
+                simplices = block.nodes[:, local]  # (M, s, D + 1)
+                swapped = simplices[..., [1, 0, *range(2, local.shape[1])]]
+                mirrored = (orientation < 0)[:, None, None]
+                parts.append(torch.where(mirrored, swapped, simplices).reshape(-1, local.shape[1]))
+                cells = torch.arange(offset, offset + count, device=self.device)
+                owners.append(cells.repeat_interleave(local.shape[0]))
+                offset += count
+            return torch.cat(parts), torch.cat(owners)
 
-    @property
-    def tet_edges(self) -> Tensor:
-        """Edge numbers of every tetrahedron, shape (M, 6), int64.
-
-        Row ``k`` holds the indices into :attr:`edges` of the edges
-        ``(0,1), (0,2), (0,3), (1,2), (1,3), (2,3)`` of tetrahedron ``k``.
-        """
-        return self._cached_topology("tet_edges", lambda: self._find_edges()[1])
-
-    def _find_edges(self) -> tuple[Tensor, Tensor]:
-        if "edges" in self._topology and "tet_edges" in self._topology:
-            return self._topology["edges"], self._topology["tet_edges"]
-        first = self._tets[:, [i for i, _ in TET_EDGES]]
-        second = self._tets[:, [j for _, j in TET_EDGES]]
-        n = self.num_nodes
-        keys = torch.minimum(first, second) * n + torch.maximum(first, second)
-        unique, inverse = torch.unique(keys.reshape(-1), sorted=True, return_inverse=True)
-        edges = torch.stack([unique // n, unique % n], dim=1)
-        self._topology["edges"] = edges
-        self._topology["tet_edges"] = inverse.reshape(-1, 6)
-        return edges, self._topology["tet_edges"]
+        return self._cached_topology("simplices", build)
 
     # ------------------------------------------------------------------ geometry
 
     @property
     def volumes(self) -> Tensor:
-        """Signed volumes of the tetrahedra, shape (M,), in the points' dtype.
+        """Volume (area in 2-D) of every cell from its simplices, shape (M,), positive for
+        a constructed mesh; a mesh from :meth:`deformed` may have some <= 0."""
 
-        All > 0 for a constructed mesh; a mesh from :meth:`deformed` may have
-        negative ones (inverted tetrahedra).
-        """
-        return self._cached_geometry("volumes", lambda: tet_volumes(self._points, self._tets))
+        def build() -> Tensor:
+            simplices, owners = self.simplices
+            volumes = simplex_volumes(self._points, simplices)
+            return volumes.new_zeros(self.num_cells).index_add(0, owners, volumes)
+
+        return self._cached_geometry("volumes", build)
 
     @property
     def bounding_box(self) -> Tensor:
-        """Lower and upper corners, shape (2, 3)."""
+        """Lower and upper corners, shape (2, D)."""
         points = self._points.detach()
         return torch.stack([points.amin(0), points.amax(0)])
 
     # ------------------------------------------------------------------ new meshes
 
-    def deformed(self, displacement: Tensor) -> TetMesh:
-        """The mesh moved by a nodal displacement.
-
-        Parameters
-        ----------
-        displacement : Tensor, shape (N, 3)
-            Added to the points; autograd history is kept, so quantities of the
-            returned mesh are differentiable with respect to it.
-
-        Returns
-        -------
-        TetMesh
-            Same tets, node sets and name; points ``points + displacement``.
-            It is NOT re-validated or reoriented: its volumes may be <= 0,
-            which is how inverted tetrahedra are found. Topology (boundary,
-            edges) is shared with this mesh.
-
-        Raises
-        ------
-        ValueError
-            If ``displacement`` is not a finite floating (N, 3) tensor on the
-            mesh's device.
-        """
+    def deformed(self, displacement: Tensor) -> Mesh:
+        """The mesh moved by a nodal displacement (N, D): same cells and markers, points
+        ``points + displacement`` (autograd history kept). Not re-validated: its volumes
+        may be <= 0, which is how inverted cells are found."""
         if isinstance(displacement, np.ndarray):
             displacement = torch.from_numpy(displacement)
         if not isinstance(displacement, Tensor):
             raise TypeError(
                 f"displacement must be a torch.Tensor, got {type(displacement).__name__}"
             )
-        if displacement.shape != (self.num_nodes, 3):
+        if displacement.shape != self._points.shape:
             raise ValueError(
-                f"displacement must have shape ({self.num_nodes}, 3), "
+                f"displacement must have shape {tuple(self._points.shape)}, "
                 f"got {tuple(displacement.shape)}"
             )
         check_float_dtype(displacement, "displacement")
@@ -331,207 +395,73 @@ class TetMesh:
                 f"displacement is on device {displacement.device} but the mesh is on {self.device}"
             )
         check_finite(displacement, "displacement")
-        return TetMesh._from_parts(
-            self._points + displacement,
-            self._tets,
-            dict(self._node_sets),
-            self.name,
-            self._topology,
-        )
+        return type(self)._from_parts(self, self._points + displacement)
 
     def to(
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
-    ) -> TetMesh:
+    ) -> Mesh:
         """A copy on another device and/or with another floating dtype for the points."""
         if dtype is not None and not dtype.is_floating_point:
             raise ValueError(f"dtype must be a floating-point dtype, got {dtype}")
         points = self._points.to(device=device, dtype=dtype)
         target = points.device
-        return TetMesh._from_parts(
+        return type(self)._from_parts(
+            self,
             points,
-            self._tets.to(target),
-            {key: value.to(target) for key, value in self._node_sets.items()},
-            self.name,
-            {key: value.to(target) for key, value in self._topology.items()},
+            _blocks=tuple(CellBlock(b.kind, b.nodes.to(target)) for b in self._blocks),
+            _orientation=tuple(o.to(target) for o in self._orientation),
+            _node_sets={k: v.to(target) for k, v in self._node_sets.items()},
+            _face_sets={
+                k: tuple(CellBlock(b.kind, b.nodes.to(target)) for b in v)
+                for k, v in self._face_sets.items()
+            },
+            _topology=_moved(self._topology, target),
         )
 
     def __repr__(self) -> str:
-        sets = ", ".join(sorted(self._node_sets)) or "none"
+        counts = ", ".join(f"{kind}={count}" for kind, count in self.cell_counts.items())
+        markers = ", ".join(self.markers) or "none"
         label = f"{self.name!r}, " if self.name else ""
         return (
-            f"TetMesh({label}nodes={self.num_nodes}, tets={self.num_tets}, "
-            f"node_sets=[{sets}], dtype={self.dtype}, device={self.device})"
+            f"{type(self).__name__}({label}dim={self.dim}, nodes={self.num_nodes}, {counts}, "
+            f"markers=[{markers}], dtype={self.dtype}, device={self.device})"
         )
 
 
 # ---------------------------------------------------------------------- helpers
 
 
-def _as_tets(tets: Tensor | np.ndarray | Sequence, num_nodes: int) -> Tensor:
-    if not isinstance(tets, Tensor):
-        array = np.asarray(tets)
-        if array.size == 0:
-            array = array.astype(np.int64)
-        if array.dtype.kind not in "iu":
-            raise ValueError(f"tets must hold integer vertex indices, got dtype {array.dtype}")
-        tets = torch.from_numpy(np.ascontiguousarray(array.astype(np.int64)))
-    if tets.is_floating_point() or tets.is_complex() or tets.dtype == torch.bool:
-        raise ValueError(f"tets must hold integer vertex indices, got dtype {tets.dtype}")
-    if tets.ndim != 2 or tets.shape[1] != 4:
-        raise ValueError(f"tets must have shape (M, 4), got {tuple(tets.shape)}")
-    if tets.shape[0] == 0:
-        raise ValueError("tets is empty: at least one tetrahedron is needed")
-    tets = tets.long()
-    low, high = int(tets.min()), int(tets.max())
-    if low < 0 or high >= num_nodes:
-        raise ValueError(
-            f"tets holds vertex indices outside [0, {num_nodes}): min {low}, max {high}"
-        )
-    return tets
+def _points_dim(points: Any) -> int:
+    shape = getattr(points, "shape", None)
+    if shape is None:
+        shape = np.shape(points)
+    return int(shape[1]) if len(shape) == 2 and shape[1] in (2, 3) else 3
 
 
-def _orient(points: Tensor, tets: Tensor) -> Tensor:
-    """Reject flat tetrahedra and swap the last two vertices of negative ones."""
-    with torch.no_grad():
-        exact = points.detach().to(torch.float64)
-        volumes = tet_volumes(exact, tets)
-        # Every edge is at most the bounding-box diagonal, so only tetrahedra below
-        # the bound for that length can be flat: measure their edges alone.
-        diagonal = float(torch.linalg.vector_norm(exact.amax(0) - exact.amin(0)))
-        candidates = torch.nonzero(volumes.abs() <= FLAT_TET_TOLERANCE * diagonal**3).flatten()
-        if candidates.numel() > 0:
-            longest = tet_edge_lengths_squared(exact, tets[candidates]).amax(-1) ** 1.5
-            flat = candidates[volumes[candidates].abs() <= FLAT_TET_TOLERANCE * longest]
-        else:
-            flat = candidates
-        if flat.numel() > 0:
-            shown = ", ".join(str(i) for i in flat[:5].tolist())
-            more = ", ..." if flat.numel() > 5 else ""
-            raise ValueError(
-                f"tets: {flat.numel()} tetrahedra have zero volume "
-                f"(|V| <= {FLAT_TET_TOLERANCE:g} * longest_edge**3), at indices {shown}{more}"
-            )
-        negative = volumes < 0
-        if bool(negative.any()):
-            swapped = torch.where(negative[:, None], tets[:, [3, 2]], tets[:, 2:])
-            tets = torch.cat([tets[:, :2], swapped], dim=1)
-    return tets
+def _moved(value: Any, device: torch.device) -> Any:
+    if isinstance(value, Tensor):
+        return value.to(device)
+    if isinstance(value, tuple) and hasattr(value, "_fields"):
+        return type(value)(*(_moved(v, device) for v in value))
+    if isinstance(value, (tuple, list)):
+        return type(value)(_moved(v, device) for v in value)
+    if isinstance(value, dict):
+        return {k: _moved(v, device) for k, v in value.items()}
+    return value
 
 
-def _face_structure(tets: Tensor, num_nodes: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Boundary faces and the interior face pairs of a tetrahedral mesh.
-
-    Returns the faces that belong to one tetrahedron (F, 3), outward oriented,
-    and for every face shared by two tetrahedra the positions ``first`` and
-    ``second`` of its two copies in the (4M, 3) array of outward faces (face
-    ``k`` of tet ``t`` is position ``4 t + k``; vertex ``k`` is opposite it).
-
-    Raises
-    ------
-    ValueError
-        If a face belongs to more than two tetrahedra (a non-manifold mesh or
-        duplicated tetrahedra).
-    """
-    device = tets.device
-    faces = tets[:, torch.tensor(TET_OUTWARD_FACES, device=device)].reshape(-1, 3)
-    ordered = torch.sort(faces, dim=1).values
-    if num_nodes <= _MAX_NODES_FOR_FACE_KEYS:
-        keys = (ordered[:, 0] * num_nodes + ordered[:, 1]) * num_nodes + ordered[:, 2]
-        keys, order = torch.sort(keys)
-        same = keys[1:] == keys[:-1]
-    else:  # lexicographic order by three stable sorts
-        order = torch.arange(faces.shape[0], device=device)
-        for column in (2, 1, 0):
-            order = order[torch.sort(ordered[order, column], stable=True).indices]
-        rows = ordered[order]
-        same = (rows[1:] == rows[:-1]).all(1)
-    shared_thrice = same[1:] & same[:-1]
-    if bool(shared_thrice.any()):
-        count = int(shared_thrice.sum())
-        raise ValueError(
-            f"tets: {count} face(s) belong to more than two tetrahedra "
-            "(a non-manifold mesh or duplicated tetrahedra)"
-        )
-    true = torch.ones(1, dtype=torch.bool, device=device)
-    single = torch.cat([true, ~same]) & torch.cat([~same, true])
-    return faces[order[single]], order[:-1][same], order[1:][same]
+def _facet_nodes(blocks: Sequence[CellBlock], device: torch.device) -> Tensor:
+    if not blocks:
+        return torch.empty(0, dtype=torch.int64, device=device)
+    return torch.unique(torch.cat([block.nodes.reshape(-1) for block in blocks]), sorted=True)
 
 
-def _checked_faces(points: Tensor, tets: Tensor) -> Tensor:
-    """Boundary faces, after checking that no reference tetrahedron is folded.
-
-    In a valid (positively oriented) mesh the two tetrahedra of an interior face
-    lie on opposite sides of it: the vertex of the second opposite the face is on
-    the outward side of the face as seen from the first. A tetrahedron folded over
-    its neighbour (an inverted reference element that orientation alone cannot
-    reveal) puts both on the same side.
-    """
-    boundary, first, second = _face_structure(tets, points.shape[0])
-    if first.numel() == 0:
-        return boundary
-    with torch.no_grad():
-        exact = points.detach().to(torch.float64)
-        outward = tets[:, torch.tensor(TET_OUTWARD_FACES, device=tets.device)].reshape(-1, 3)
-        opposite = tets[second // 4, second % 4]
-        sides = tet_volumes(exact, torch.cat([outward[first], opposite[:, None]], 1))
-        folded = torch.nonzero(sides <= 0).flatten()
-    if folded.numel() > 0:
-        pairs = ", ".join(
-            f"({int(first[k]) // 4}, {int(second[k]) // 4})" for k in folded[:5].tolist()
-        )
-        more = ", ..." if folded.numel() > 5 else ""
-        raise ValueError(
-            f"tets: {folded.numel()} interior face(s) have both of their tetrahedra on the same "
-            f"side (inverted, folded reference tetrahedra), e.g. tetrahedra {pairs}{more}"
-        )
-    return boundary
+def _check_name(name: Any, argument: str) -> None:
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{argument}: names must be non-empty strings, got {name!r}")
 
 
-_SOLID_ANGLE_TOLERANCE = 1e-8
-"""Relative tolerance of the full-sphere check of the solid angles at interior nodes."""
-
-
-def _check_interior_solid_angles(points: Tensor, tets: Tensor, boundary_faces: Tensor) -> None:
-    """Raise ``ValueError`` if the tetrahedra around a node cover more than one sphere
-    (4π: overlapping tetrahedra), or those around an interior node less (a gap)."""
-    if tets.numel() == 0:
-        return
-    with torch.no_grad():
-        exact = points.detach().to(torch.float64)
-        vertices = exact[tets]  # (M, 4, 3)
-        angles = []
-        for corner in range(4):
-            others = [k for k in range(4) if k != corner]
-            u, v, w = (vertices[:, k] - vertices[:, corner] for k in others)
-            lu, lv, lw = u.norm(dim=1), v.norm(dim=1), w.norm(dim=1)
-            triple = (u * torch.linalg.cross(v, w, dim=1)).sum(1).abs()
-            below = lu * lv * lw + (u * v).sum(1) * lw + (u * w).sum(1) * lv + (v * w).sum(1) * lu
-            angles.append(2.0 * torch.atan2(triple, below))  # Van Oosterom–Strackee
-        total = exact.new_zeros(points.shape[0]).index_add_(
-            0, tets.reshape(-1), torch.stack(angles, 1).reshape(-1)
-        )
-        interior = torch.zeros(points.shape[0], dtype=torch.bool, device=tets.device)
-        interior[tets.reshape(-1)] = True
-        interior[boundary_faces.reshape(-1)] = False
-        sphere = 4.0 * torch.pi
-        over = total > sphere * (1.0 + _SOLID_ANGLE_TOLERANCE)  # anywhere: overlap
-        under = interior & (total < sphere * (1.0 - _SOLID_ANGLE_TOLERANCE))
-        wrong = torch.nonzero(over | under).flatten()
-    if wrong.numel() > 0:
-        node = int(wrong[0])
-        raise ValueError(
-            f"tets: the tetrahedra around {wrong.numel()} node(s) cover more than one sphere "
-            f"(overlapping tetrahedra) or, at an interior node, less (a gap), e.g. node "
-            f"{node}: solid angle "
-            f"{float(total[node]) / sphere:.6g} x 4π"
-        )
-
-
-def _as_node_sets(
-    node_sets: Mapping[str, Tensor | np.ndarray | Sequence] | None,
-    num_nodes: int,
-    device: torch.device,
-) -> dict[str, Tensor]:
+def _as_node_sets(node_sets: Any, num_nodes: int, device: torch.device) -> dict[str, Tensor]:
     if node_sets is None:
         return {}
     if not isinstance(node_sets, Mapping):
@@ -540,74 +470,60 @@ def _as_node_sets(
         )
     result: dict[str, Tensor] = {}
     for key, value in node_sets.items():
-        if not isinstance(key, str) or not key:
-            raise ValueError(f"node_sets: names must be non-empty strings, got {key!r}")
+        _check_name(key, "node_sets")
         indices = as_index(value, f"node_sets[{key!r}]", size=num_nodes)
         result[key] = torch.unique(indices.to(device), sorted=True)
     return result
 
 
-def box_mesh(
-    cells: int | Sequence[int] = 4,
-    size: float | Sequence[float] = 1.0,
-    *,
-    origin: Sequence[float] = (0.0, 0.0, 0.0),
-) -> TetMesh:
-    """A structured tetrahedral mesh of a box, for examples and tests.
+def _as_face_sets(
+    face_sets: Any, num_nodes: int, device: torch.device, dim: int
+) -> dict[str, tuple[CellBlock, ...]]:
+    if face_sets is None:
+        return {}
+    if not isinstance(face_sets, Mapping):
+        raise TypeError(
+            f"face_sets must be a mapping of names to facet blocks, got {type(face_sets).__name__}"
+        )
+    allowed = {k for k, (corners, _, _) in FACET_KINDS.items() if (corners == 2) == (dim == 2)}
+    result: dict[str, tuple[CellBlock, ...]] = {}
+    for key, value in face_sets.items():
+        _check_name(key, "face_sets")
+        argument = f"face_sets[{key!r}]"
+        blocks = []
+        items = list(value.items()) if isinstance(value, Mapping) else list(value)
+        for position, item in enumerate(items):
+            kind, nodes = (item.type, item.data) if hasattr(item, "type") else item
+            if kind not in allowed:
+                raise ValueError(
+                    f"{argument}[{position}]: facet kind {kind!r} is not a facet of a "
+                    f"{dim}-D mesh; expected one of {', '.join(sorted(allowed))}"
+                )
+            nodes = as_index(np.asarray(nodes).reshape(-1), argument, size=num_nodes)
+            width = {"line": 2, "line3": 3, "triangle": 3, "triangle6": 6, "quad": 4}
+            width |= {"quad8": 8, "quad9": 9}
+            blocks.append(CellBlock(kind, nodes.reshape(-1, width[kind]).to(device)))
+        result[key] = tuple(blocks)
+    return result
 
-    The box ``origin + [0, size_x] × [0, size_y] × [0, size_z]`` is split into
-    ``cells`` hexahedra per axis, each cut into 6 tetrahedra around its main
-    diagonal (Kuhn split; conforming across cells).
 
-    Parameters
-    ----------
-    cells : int or (3,) ints
-        Number of cells along each axis (>= 1).
-    size : float or (3,) floats
-        Edge lengths of the box (> 0).
-    origin : (3,) floats
-        The corner with the smallest coordinates.
-
-    Returns
-    -------
-    TetMesh
-        ``(nx+1)(ny+1)(nz+1)`` nodes, ``6 nx ny nz`` tetrahedra (float64), with
-        the six faces as node sets ``"x0", "x1", "y0", "y1", "z0", "z1"``.
-    """
-    counts = np.broadcast_to(np.asarray(cells), (3,)).astype(np.int64)
-    lengths = np.broadcast_to(np.asarray(size, dtype=np.float64), (3,))
-    if (counts < 1).any():
-        raise ValueError(f"cells must be >= 1 along every axis, got {tuple(counts)}")
-    if not np.isfinite(lengths).all() or (lengths <= 0).any():
-        raise ValueError(f"size must be finite and > 0 along every axis, got {tuple(lengths)}")
-    nx, ny, nz = (int(c) for c in counts)
-    ticks = [np.arange(n + 1) / n for n in (nx, ny, nz)]
-    grid = np.meshgrid(*ticks, indexing="ij")
-    unit = np.stack([g.ravel() for g in grid], 1)
-    points = np.asarray(origin, dtype=np.float64) + unit * lengths
-    index = np.arange(unit.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
-    corner = {
-        (i, j, k): index[i : nx + i, j : ny + j, k : nz + k].ravel()
-        for i in (0, 1)
-        for j in (0, 1)
-        for k in (0, 1)
-    }
-    paths = (
-        ((1, 0, 0), (1, 1, 0)),
-        ((1, 0, 0), (1, 0, 1)),
-        ((0, 1, 0), (1, 1, 0)),
-        ((0, 1, 0), (0, 1, 1)),
-        ((0, 0, 1), (1, 0, 1)),
-        ((0, 0, 1), (0, 1, 1)),
-    )
-    tets = np.concatenate(
-        [
-            np.stack([corner[(0, 0, 0)], corner[a], corner[b], corner[(1, 1, 1)]], 1)
-            for a, b in paths
-        ]
-    )
-    node_sets = {}
-    for axis, name in enumerate("xyz"):
-        node_sets[f"{name}0"] = np.nonzero(unit[:, axis] == 0.0)[0]
-        node_sets[f"{name}1"] = np.nonzero(unit[:, axis] == 1.0)[0]
-    return TetMesh(points, tets, node_sets, name="box")
+def _as_groups(groups: Any, known: set[str]) -> dict[str, tuple[str, ...]]:
+    if groups is None:
+        return {}
+    if not isinstance(groups, Mapping):
+        raise TypeError(
+            f"groups must be a mapping of names to marker names, got {type(groups).__name__}"
+        )
+    result: dict[str, tuple[str, ...]] = {}
+    for key, members in groups.items():
+        _check_name(key, "groups")
+        if key in known:
+            raise ValueError(f"groups[{key!r}]: the name is a node or face set's already")
+        members = (members,) if isinstance(members, str) else tuple(members)
+        unknown = [m for m in members if m not in known and m not in groups]
+        if unknown:
+            raise ValueError(
+                f"groups[{key!r}]: unknown member marker(s) {', '.join(map(repr, unknown))}"
+            )
+        result[key] = members
+    return result

@@ -25,7 +25,7 @@ from torchmorph.meshing.gmsh_model import add_box, collect_tets, distance_thresh
 from torchmorph.meshing.surfaces import BOX_WALLS, CAD_FORMATS, WALL_NAMES, Surface
 
 if TYPE_CHECKING:
-    from torchmorph.mesh.model import TetMesh
+    from torchmorph.mesh.tetmesh import TetMesh
 
 __all__ = ["is_cad_file", "is_cad_input", "mesh_cad"]
 
@@ -233,8 +233,8 @@ def mesh_cad(
     ImportError
         Without gmsh.
     """
-    from torchmorph.mesh.model import TetMesh
     from torchmorph.mesh.quality import quality_report
+    from torchmorph.mesh.tetmesh import TetMesh
     from torchmorph.meshing.surfaces import box_bounds
 
     start = time.perf_counter()

@@ -60,7 +60,7 @@ from torchmorph.meshing.surfaces import (
 )
 
 if TYPE_CHECKING:
-    from torchmorph.mesh.model import TetMesh
+    from torchmorph.mesh.tetmesh import TetMesh
 
 __all__ = ["mesh_surfaces", "tetrahedralize"]
 
@@ -400,7 +400,7 @@ def mesh_surfaces(
     ImportError
         Without the ``tetwild`` extra.
     """
-    from torchmorph.mesh.model import TetMesh
+    from torchmorph.mesh.tetmesh import TetMesh
 
     if is_cad_input(surfaces):
         if feature_angle is not None or repair:

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from torchmorph._checks import check_choice
-from torchmorph.mesh.model import TetMesh
+from torchmorph.mesh.tetmesh import TetMesh
 from torchmorph.morph import MeshMorph
 from torchmorph.selection.plan import Region, SelectionPlan
 

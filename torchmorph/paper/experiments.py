@@ -12,8 +12,9 @@ import torch
 from torch import Tensor
 
 from torchmorph._timing import median_time
-from torchmorph.mesh.model import TetMesh
-from torchmorph.mesh.quality import edge_ratio, inverted, quality_summary, relative_l2_error
+from torchmorph.mesh.norms import relative_l2_error
+from torchmorph.mesh.quality import edge_ratio, inverted, quality_summary
+from torchmorph.mesh.tetmesh import TetMesh
 from torchmorph.morph import MeshMorph
 from torchmorph.paper.cases import (
     ENERGY_TOLERANCE,

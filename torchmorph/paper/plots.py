@@ -10,7 +10,7 @@ import numpy as np
 from torch import Tensor
 
 from torchmorph._atomic import atomic_output
-from torchmorph.mesh._cells import TET_EDGES
+from torchmorph.mesh.cells import TET_EDGES
 from torchmorph.morph import MeshMorph
 from torchmorph.paper.cases import HULL_CENTRE
 

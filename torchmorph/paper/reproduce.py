@@ -12,8 +12,9 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from torchmorph.mesh.model import TetMesh
-from torchmorph.mesh.quality import quality_summary, relative_l2_error
+from torchmorph.mesh.norms import relative_l2_error
+from torchmorph.mesh.quality import quality_summary
+from torchmorph.mesh.tetmesh import TetMesh
 from torchmorph.morph import MeshMorph
 from torchmorph.paper.cases import get_case, load_mesh_ticking
 from torchmorph.paper.experiments import (
