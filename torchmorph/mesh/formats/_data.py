@@ -36,6 +36,9 @@ class MeshData:
     point_data : dict of str to ndarray (N, ...)
     cell_data : dict of str to list of ndarray
         One array per block of ``cells``.
+    planar_coordinate : float, optional
+        For a planar mesh (2-D cells) that the file stores with three coordinates: the
+        constant third one, dropped from ``points`` and restored on writing.
     """
 
     points: np.ndarray
@@ -45,3 +48,4 @@ class MeshData:
     groups: dict[str, list[str]] = field(default_factory=dict)
     point_data: dict[str, np.ndarray] = field(default_factory=dict)
     cell_data: dict[str, list[np.ndarray]] = field(default_factory=dict)
+    planar_coordinate: float | None = None
