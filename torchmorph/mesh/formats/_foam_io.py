@@ -69,7 +69,7 @@ class FoamFile:
     body_start: int
 
     def fail(self, message: str) -> ValueError:
-        return ValueError(f"{self.path}: {message}")
+        return ValueError(f"case: {self.path}: {message}")
 
 
 def find_file(directory: Path, name: str) -> Path:
@@ -88,11 +88,11 @@ def read_foam_file(path: Path) -> FoamFile:
         try:
             raw = gzip.decompress(raw)
         except (OSError, EOFError) as error:
-            raise ValueError(f"{path}: not a readable gzip file ({error})") from None
+            raise ValueError(f"case: {path}: not a readable gzip file ({error})") from None
     position = _SKIP.match(raw, 0).end()
     token = _TOKEN.match(raw, position)
     if token is None or token.group() != b"FoamFile":
-        raise ValueError(f"{path}: no FoamFile header at the start of the file")
+        raise ValueError(f"case: {path}: no FoamFile header at the start of the file")
     header: dict[str, str] = {}
     position = _expect(raw, token.end(), b"{", path, "the FoamFile header")
     while True:
@@ -100,11 +100,11 @@ def read_foam_file(path: Path) -> FoamFile:
         if closing:
             break
         if len(words) < 2:
-            raise ValueError(f"{path}: FoamFile header entry {words!r} has no value")
+            raise ValueError(f"case: {path}: FoamFile header entry {words!r} has no value")
         header[words[0]] = " ".join(_unquote(word) for word in words[1:])
     form = header.get("format", "ascii")
     if form not in ("ascii", "binary"):
-        raise ValueError(f"{path}: format must be ascii or binary, got {form!r}")
+        raise ValueError(f"case: {path}: format must be ascii or binary, got {form!r}")
     return FoamFile(path, raw, header, _parse_format(header, compressed, path), position)
 
 
@@ -119,7 +119,7 @@ def read_labels(file: FoamFile, position: int, what: str) -> tuple[np.ndarray, i
         return data.astype(np.int64), position
     end = file.data.find(b")", position)
     if end < 0:
-        raise file.fail(f"{what}: the list is truncated (no closing parenthesis)")
+        raise file.fail(f"the {what} list is truncated (no closing parenthesis)")
     labels = _labels(file, file.data[position:end], what, count)
     return labels, end + 1
 
@@ -146,13 +146,13 @@ def read_faces(file: FoamFile, position: int) -> tuple[np.ndarray, np.ndarray]:
     files store them)."""
     kind = file.header.get("class", "faceList")
     if kind == "faceCompactList":
-        offsets, position = read_labels(file, position, "faces (offsets)")
-        labels, position = read_labels(file, position, "faces (labels)")
+        offsets, position = read_labels(file, position, "faces' offsets")
+        labels, position = read_labels(file, position, "faces' labels")
         if offsets.size == 0:
             offsets = np.zeros(1, dtype=np.int64)
         if offsets[0] != 0 or np.any(np.diff(offsets) < 0) or offsets[-1] != labels.size:
             raise file.fail(
-                f"faces: the offsets must rise from 0 to the {labels.size} labels, got "
+                f"the faces' offsets must rise from 0 to the {labels.size} labels, got "
                 f"{offsets[0]} .. {offsets[-1]}"
             )
         return offsets, labels
@@ -176,19 +176,19 @@ def read_boundary(file: FoamFile) -> list[dict]:
     data, position = file.data, file.body_start
     count, position, opening = _list_start(file, position, "boundary")
     if opening != b"(":
-        raise file.fail("boundary: expected a list of patch dictionaries")
+        raise file.fail("expected a list of patch dictionaries")
     patches: list[dict] = []
     while True:
         position = _SKIP.match(data, position).end()
         token = _TOKEN.match(data, position)
         if token is None:
-            raise file.fail("boundary: the list is truncated (no closing parenthesis)")
+            raise file.fail("the list of patches is truncated (no closing parenthesis)")
         if token.group() == b")":
             position = token.end()
             break
         name = _unquote(token.group().decode("latin-1"))
         if name in "{}();":
-            raise file.fail(f"boundary: expected a patch name, got {name!r}")
+            raise file.fail(f"expected a patch name, got {name!r}")
         opening_brace = _expect(data, token.end(), b"{", file.path, f"patch {name!r}")
         entries: dict[str, str] = {}
         position = opening_brace
@@ -202,7 +202,7 @@ def read_boundary(file: FoamFile) -> list[dict]:
         text = data[opening_brace : position - 1].decode("latin-1")
         patches.append({"name": name, "entries": entries, "text": text})
     if count >= 0 and count != len(patches):
-        raise file.fail(f"boundary: the list says {count} patches, it holds {len(patches)}")
+        raise file.fail(f"the list says {count} patches, it holds {len(patches)}")
     return patches
 
 
@@ -275,7 +275,9 @@ def _parse_format(header: dict[str, str], compressed: bool, path: Path) -> FoamF
     sizes = dict(re.findall(r"(label|scalar)\s*=\s*(\d+)", arch))
     label_bits, scalar_bits = int(sizes.get("label", 32)), int(sizes.get("scalar", 64))
     if label_bits not in (32, 64) or scalar_bits not in (32, 64):
-        raise ValueError(f"{path}: arch {arch!r} gives label={label_bits} scalar={scalar_bits}")
+        raise ValueError(
+            f"case: {path}: arch {arch!r} gives label={label_bits} scalar={scalar_bits}"
+        )
     return FoamFormat(
         binary=header.get("format") == "binary",
         label_bytes=label_bits // 8,
@@ -293,7 +295,7 @@ def _expect(data: bytes, position: int, mark: bytes, path: Path, where: str) -> 
     position = _SKIP.match(data, position).end()
     if data[position : position + 1] != mark:
         found = data[position : position + 20].decode("latin-1") or "the end of the file"
-        raise ValueError(f"{path}: {where}: expected {mark.decode()!r}, found {found!r}")
+        raise ValueError(f"case: {path}: {where}: expected {mark.decode()!r}, found {found!r}")
     return position + 1
 
 
@@ -307,21 +309,21 @@ def _entry(data: bytes, position: int, path: Path) -> tuple[list[str], int, bool
         position = _SKIP.match(data, position).end()
         token = _TOKEN.match(data, position)
         if token is None:
-            raise ValueError(f"{path}: a dictionary is truncated (no closing brace)")
+            raise ValueError(f"case: {path}: a dictionary is truncated (no closing brace)")
         text, position = token.group(), token.end()
         if not words and text == b"}":
             return words, position, True
         if not words and text == b";":
             continue
         if not words and text in b"{}()[]":
-            raise ValueError(f"{path}: expected a keyword, found {text.decode()!r}")
+            raise ValueError(f"case: {path}: expected a keyword, found {text.decode()!r}")
         words.append(text.decode("latin-1"))
         if text in (b"{", b"(", b"["):
             depth += 1
         elif text in (b"}", b")", b"]"):
             depth -= 1
             if depth < 0:
-                raise ValueError(f"{path}: unbalanced {text.decode()!r} in a dictionary")
+                raise ValueError(f"case: {path}: unbalanced {text.decode()!r} in a dictionary")
             if depth == 0 and text == b"}" and words[1] == "{":
                 return words, position, False  # a sub-dictionary ends without ";"
         elif text == b";" and depth == 0:
@@ -340,18 +342,18 @@ def _list_start(file: FoamFile, position: int, what: str) -> tuple[int, int, byt
     opening = data[position : position + 1]
     if opening not in (b"(", b"{"):
         found = data[position : position + 20].decode("latin-1") or "the end of the file"
-        raise file.fail(f"{what}: expected a list, found {found!r}")
+        raise file.fail(f"expected the {what} list, found {found!r}")
     if opening == b"{" and count < 0:
-        raise file.fail(f"{what}: a uniform list {{...}} needs its size before it")
+        raise file.fail(f"the uniform {what} list {{...}} needs its size before it")
     if file.format.binary and opening == b"(" and count < 0:
-        raise file.fail(f"{what}: a binary list needs its size before it")
+        raise file.fail(f"the binary {what} list needs its size before it")
     return count, position + 1, opening
 
 
 def _uniform(file: FoamFile, position: int, what: str) -> tuple[bytes, int]:
     end = file.data.find(b"}", position)
     if end < 0:
-        raise file.fail(f"{what}: the uniform list is truncated (no closing brace)")
+        raise file.fail(f"the uniform {what} list is truncated (no closing brace)")
     return file.data[position:end], end + 1
 
 
@@ -363,7 +365,7 @@ def _binary(
     if end >= len(file.data) or file.data[end : end + 1] != b")":
         have = max(len(file.data) - position, 0)
         raise file.fail(
-            f"{what}: the binary list is truncated or of another precision: {count} "
+            f"the binary {what} list is truncated or of another precision: {count} "
             f"entries of {dtype.itemsize} bytes need {size} bytes and a ')', {have} bytes follow"
         )
     return np.frombuffer(file.data, dtype=dtype, count=count, offset=position), end + 1
@@ -378,7 +380,7 @@ def _ascii_entries(file: FoamFile, position: int, what: str) -> tuple[bytes, int
         return b"", inner + 1
     end = _LIST_END.search(data, position)
     if end is None:
-        raise file.fail(f"{what}: the list is truncated (no closing parenthesis)")
+        raise file.fail(f"the {what} list is truncated (no closing parenthesis)")
     return data[position : end.start() + 1], end.end()
 
 
@@ -392,9 +394,9 @@ def _labels(file: FoamFile, text: bytes, what: str, count: int) -> np.ndarray:
         labels = np.array(tokens, dtype=np.int64)
     except ValueError:
         bad = next(t for t in tokens if not t.lstrip(b"-").isdigit())
-        raise file.fail(f"{what}: {bad.decode('latin-1')!r} is not a label") from None
+        raise file.fail(f"{bad.decode('latin-1')!r} in the {what} list is not a label") from None
     if count >= 0 and labels.size != count:
-        raise file.fail(f"{what}: the list says {count} entries, it holds {labels.size}")
+        raise file.fail(f"the {what} list says {count} entries, it holds {labels.size}")
     return labels
 
 
@@ -402,16 +404,18 @@ def _vectors(file: FoamFile, text: bytes, what: str, count: int) -> np.ndarray:
     text = _strip_comments(text)
     entries = text.count(b"(")
     if entries != text.count(b")"):
-        raise file.fail(f"{what}: unbalanced parentheses in the list")
+        raise file.fail(f"unbalanced parentheses in the {what} list")
     tokens = text.replace(b"(", b" ").replace(b")", b" ").split()
     if len(tokens) != 3 * entries:
-        raise file.fail(f"{what}: {entries} entries hold {len(tokens)} numbers, not 3 each")
+        raise file.fail(
+            f"{entries} entries of the {what} list hold {len(tokens)} numbers, not 3 each"
+        )
     if count >= 0 and entries != count:
-        raise file.fail(f"{what}: the list says {count} entries, it holds {entries}")
+        raise file.fail(f"the {what} list says {count} entries, it holds {entries}")
     try:
         return np.array(tokens, dtype=np.float64).reshape(entries, 3)
     except ValueError:
-        raise file.fail(f"{what}: an entry holds something that is not a number") from None
+        raise file.fail(f"an entry of the {what} list is not a number") from None
 
 
 def _face_entries(file: FoamFile, text: bytes, count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -432,22 +436,22 @@ def _face_entries(file: FoamFile, text: bytes, count: int) -> tuple[np.ndarray, 
             or np.any(opens[1:] != closes[:-1] + 2)
             or closes[-1] != tokens.size - 1
         ):
-            raise file.fail("faces: the entries are not of the form n(a b c ...)")
+            raise file.fail("the faces list's entries are not of the form n(a b c ...)")
         is_label = np.ones(tokens.size, dtype=bool)
         is_label[opens] = is_label[closes] = is_label[opens - 1] = False
         try:
             sizes = tokens[opens - 1].astype(np.int64)
             labels = tokens[is_label].astype(np.int64)
         except ValueError:
-            raise file.fail("faces: an entry holds something that is not a label") from None
+            raise file.fail("an entry of the faces list is not a label") from None
         bad = np.flatnonzero(sizes != closes - opens - 1)
         if bad.size:
             face = int(bad[0])
             raise file.fail(
-                f"faces: face {face} says {sizes[face]} vertices, it lists "
+                f"face {face} says {sizes[face]} vertices, it lists "
                 f"{closes[face] - opens[face] - 1}"
             )
         offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     if count >= 0 and faces != count:
-        raise file.fail(f"faces: the list says {count} entries, it holds {faces}")
+        raise file.fail(f"the faces list says {count} entries, it holds {faces}")
     return offsets, labels

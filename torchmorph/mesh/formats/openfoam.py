@@ -325,7 +325,10 @@ def write_foam_points(
         )
     bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
     if bad.size:
-        raise ValueError(f"points: {bad.size} rows are not finite (the first is row {bad[0]})")
+        raise ValueError(
+            f"points: {bad.size} of the {case.n_points} rows are not finite (the first is row "
+            f"{bad[0]})"
+        )
     target = case.points_file
     if out_case is not None:
         target = Path(out_case) / case.points_file.relative_to(case.root)
@@ -364,7 +367,8 @@ class Pseudo2D:
         ``cell_data["foam_cell"]`` their owner cells; ``face_sets``: every patch that is
         not empty, its faces' front edges as ``"line"`` facets, counter-clockwise
         around the domain (the domain on their left); ``groups`` as in 3-D, less the
-        empty patches.
+        empty patches; ``planar_coordinate``: the front plane's coordinate along
+        ``axis`` (the third coordinate after ``in_plane``).
     """
 
     case: FoamCase
@@ -492,6 +496,7 @@ def pseudo_2d(case: FoamCase, *, tolerance: float = 1e-6) -> Pseudo2D | None:
         face_sets=lines,
         groups={group: members for group, members in groups.items() if members},
         cell_data={"foam_cell": owners},
+        planar_coordinate=float(low),
     )
     return Pseudo2D(
         case=case,
@@ -514,11 +519,11 @@ def _patch(file: FoamFile, entry: dict) -> FoamPatch:
     values = {}
     for key in ("type", "nFaces", "startFace"):
         if key not in entries:
-            raise file.fail(f"boundary: patch {name!r} has no {key}")
+            raise file.fail(f"patch {name!r} has no {key}")
         values[key] = entries.pop(key)
     for key in ("nFaces", "startFace"):
         if not values[key].isdigit():
-            raise file.fail(f"boundary: patch {name!r}: {key} {values[key]!r} is not a count")
+            raise file.fail(f"patch {name!r}: {key} {values[key]!r} is not a count")
     groups = entries.pop("inGroups", "")
     groups = groups.removeprefix("List<word>").strip().lstrip("0123456789").strip()
     return FoamPatch(
