@@ -116,6 +116,10 @@ def test_keywords_any_case_comments_blank_lines(tmp_path):
     np.testing.assert_array_equal(deck.element_sets["Eall"], [10, 11])
     assert deck.element_blocks[0].type == "C3D4" and deck.element_blocks[0].elset == "Eall"
     assert deck.unsupported_elements == {} and deck.warnings == []
+    assert (
+        repr(deck)
+        == f"AbaqusDeck({str(tmp_path / 'tets.inp')!r}, 5 nodes, elements: C3D4 (2), 1 file(s))"
+    )
 
 
 def test_omitted_and_empty_coordinates_are_zero(tmp_path):
@@ -410,6 +414,10 @@ NODES = "*NODE\n1, 0., 0., 0.\n2, 1., 0., 0.\n3, 0., 1., 0.\n4, 0., 0., 1.\n"
         (NODES + "*ELEMENT, ELSET=E\n1, 1, 2, 3, 4\n", r"bad\.inp, line 6: \*ELEMENT without"),
         ("*NODE\n1, 0.5.\n", r"bad\.inp, line 2: coordinate '0\.5\.' is not a number"),
         ("*NODE\nA, 0.5\n", r"bad\.inp, line 2: node number 'A' is not an integer"),
+        ("*NODE\n1, 1e999\n", r"bad\.inp, line 2: coordinate '1e999' is out of range"),
+        ("*NODE\n" + "9" * 20 + ", 1.\n", r"bad\.inp, line 2: node number '9+' is out of"),
+        ("*NSET, NSET=A\n1, 1" + "0" * 20 + "\n", r"bad\.inp, line 2: set member '10+'"),
+        ("*NODE\n1, 0.\n*ELEMENT, TYPE=\n", r"bad\.inp, line 3: parameter TYPE has no value"),
         (
             NODES + "*ELEMENT, TYPE=C3D4\n1, 1, 2, 3, 4\n1, 1, 2, 4, 3\n",
             r"bad\.inp, line 8: element 1 is defined a second time",
@@ -419,6 +427,36 @@ NODES = "*NODE\n1, 0., 0., 0.\n2, 1., 0., 0.\n3, 0., 1., 0.\n4, 0., 0., 1.\n"
 def test_malformed_decks_name_file_and_line(tmp_path, text, message):
     with pytest.raises(ValueError, match=message):
         read_deck(write(tmp_path, "bad.inp", text))
+
+
+def test_damaged_decks_raise_only_value_errors(tmp_path):
+    """Random edits of a deck: it reads, or raises ValueError (never another exception);
+    what reads writes back and reads again."""
+    base = (
+        TET_DECK + "*NSET, NSET=G, GENERATE\n1, 5, 2\n*ELEMENT, TYPE=C3D10\n20, 1, 2, 3,\n4, 1, 2\n"
+    )
+    alphabet = "*,=\n 0123456789.-+eEdDNODELEMSTYPC3D4GENRAT\r\t"
+    rng = np.random.default_rng(11)
+    path = tmp_path / "damaged.inp"
+    for _ in range(300):
+        text = list(base)
+        for _ in range(rng.integers(1, 6)):
+            where = int(rng.integers(len(text)))
+            action = rng.integers(3)
+            if action == 0:
+                del text[where]
+            else:
+                text.insert(where, alphabet[rng.integers(len(alphabet))])
+                if action == 2:
+                    del text[where + 1]
+        path.write_text("".join(text), encoding="latin-1")
+        try:
+            deck = read_deck(path)
+            mesh = deck.to_mesh_data(ignore_unsupported=True)
+        except ValueError:
+            continue
+        write_deck(deck, mesh.points * 2.0, tmp_path / "out.inp")
+        np.testing.assert_array_equal(read_deck(tmp_path / "out.inp").points, deck.points * 2.0)
 
 
 def test_missing_file_nested_include_names_the_including_file(tmp_path):

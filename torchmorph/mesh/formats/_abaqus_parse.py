@@ -13,6 +13,7 @@ byte comes back unchanged) with the position of every node line.
 from __future__ import annotations
 
 import gzip
+import math
 import re
 import zlib
 from dataclasses import dataclass, field
@@ -33,6 +34,7 @@ __all__ = [
 MAX_INCLUDE_DEPTH = 9
 
 _INTEGER = re.compile(r"[+-]?\d+")
+_LARGEST = 2**63 - 1  # numbers are stored as int64
 #: A Fortran real as CalculiX's ``(f20.0)`` reads it: ``1.``, ``.5``, ``1.5E3``, ``1.5D3``
 #: and ``1.5+3`` (an exponent without its letter).
 _REAL = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eEdD][+-]?\d+|[+-]\d+)?")
@@ -109,7 +111,7 @@ class DeckFile:
     path: Path
     name: PurePosixPath | None
     compressed: bool
-    lines: list[str]
+    lines: list[str] = field(repr=False)
     reference: str | None = None
     included_by: int | None = None
 
@@ -247,7 +249,10 @@ def _parameters(parts: list[str], where: str) -> dict[str, str]:
 def _integer(text: str, what: str, where: str) -> int:
     if not _INTEGER.fullmatch(text):
         raise ValueError(f"{where}: {what} {text!r} is not an integer")
-    return int(text)
+    value = int(text)
+    if abs(value) > _LARGEST:
+        raise ValueError(f"{where}: {what} {text!r} is out of range")
+    return value
 
 
 def _real(text: str, where: str) -> float:
@@ -255,10 +260,13 @@ def _real(text: str, where: str) -> float:
         return 0.0  # an empty field reads as 0, as in CalculiX
     if not _REAL.fullmatch(text):
         raise ValueError(f"{where}: coordinate {text!r} is not a number")
-    text = text.replace("d", "e").replace("D", "e")
-    if "e" not in text and "E" not in text:
-        text = re.sub(r"(?<=[\d.])([+-])", r"e\1", text)
-    return float(text)
+    number = text.replace("d", "e").replace("D", "e")
+    if "e" not in number and "E" not in number:
+        number = re.sub(r"(?<=[\d.])([+-])", r"e\1", number)
+    value = float(number)
+    if not math.isfinite(value):
+        raise ValueError(f"{where}: coordinate {text!r} is out of range")
+    return value
 
 
 class _Parser:
@@ -495,7 +503,7 @@ class _Parser:
             return
         for text in parts:
             if _INTEGER.fullmatch(text):
-                definition.ids.append(int(text))
+                definition.ids.append(_integer(text, "set member", where))
             else:
                 definition.names.append((text, index, number))
 

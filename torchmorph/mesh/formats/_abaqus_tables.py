@@ -13,7 +13,7 @@ import numpy as np
 
 from torchmorph.mesh.formats._abaqus_parse import ParsedDeck, SetDefinition, is_network_type
 
-__all__ = ["DeckTables", "resolve"]
+__all__ = ["DeckTables", "find", "resolve"]
 
 
 @dataclass
@@ -35,12 +35,12 @@ def _members_of(pool: np.ndarray, first: int, last: int, step: int) -> np.ndarra
     return inside[(inside - first) % step == 0]
 
 
-def _find(sorted_ids: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def find(sorted_ids: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Positions of ``wanted`` in ``sorted_ids`` and whether each is there."""
-    positions = np.searchsorted(sorted_ids, wanted)
-    clipped = np.minimum(positions, max(len(sorted_ids) - 1, 0))
-    found = (positions < len(sorted_ids)) & (sorted_ids[clipped] == wanted)
-    return clipped, found
+    if not len(sorted_ids):
+        return np.zeros(wanted.shape, dtype=np.int64), np.zeros(wanted.shape, dtype=bool)
+    positions = np.minimum(np.searchsorted(sorted_ids, wanted), len(sorted_ids) - 1)
+    return positions, sorted_ids[positions] == wanted
 
 
 def _nodes_table(parsed: ParsedDeck) -> tuple[np.ndarray, np.ndarray]:
@@ -63,7 +63,7 @@ def _check_elements(parsed: ParsedDeck, node_ids: np.ndarray) -> np.ndarray:
     element numbers are unique. Returns the element numbers, ascending."""
     for block in parsed.blocks:
         wanted = block.nodes.ravel()
-        _, found = _find(node_ids, wanted)
+        _, found = find(node_ids, wanted)
         if is_network_type(block.type):
             found |= wanted == 0
         if not found.all():
@@ -123,7 +123,7 @@ def _resolve_definition(
     where = parsed.files[definition.file].where(definition.line)
     pieces = [np.zeros(0, dtype=np.int64)]
     explicit = np.asarray(definition.ids, dtype=np.int64)
-    _, found = _find(pool, explicit)
+    _, found = find(pool, explicit)
     if not found.all():
         missing = explicit[~found]
         warnings.append(

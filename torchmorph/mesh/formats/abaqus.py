@@ -31,7 +31,7 @@ from torchmorph.mesh.formats._abaqus_parse import (
     canonical_type,
     parse_deck,
 )
-from torchmorph.mesh.formats._abaqus_tables import resolve
+from torchmorph.mesh.formats._abaqus_tables import find, resolve
 from torchmorph.mesh.formats._data import MeshData
 
 __all__ = [
@@ -54,10 +54,10 @@ CALCULIX_FIELD_WIDTH = 20
 #: no permutation is applied: C3D10 corners then edges 1-2, 2-3, 3-1, 1-4, 2-4, 3-4; C3D20
 #: corners, bottom edges, top edges, vertical edges; C3D15 corners, edges of the bottom
 #: triangle, of the top one, then the three vertical edges. A wedge's first triangle
-#: (1, 2, 3) turns counter-clockwise seen from the second one (4, 5, 6), as in Gmsh and in
-#: meshio's own Abaqus and Gmsh readers; VTK's wedge is the mirror image of that (its
-#: first triangle's normal points away from the second), so a signed volume written for
-#: VTK's wedge comes out negative for these.
+#: (1, 2, 3) turns counter-clockwise seen from the second one (4, 5, 6), as in Gmsh, in
+#: meshio's own Abaqus and Gmsh readers and in :mod:`torchmorph.mesh.cells`; VTK's wedge
+#: is the mirror image of that (its first triangle's normal points away from the
+#: second), so a signed volume written for VTK's wedge comes out negative for these.
 _KIND_PATTERNS: tuple[tuple[re.Pattern[str], dict[int, str]], ...] = (
     (
         re.compile(r"C3D(4|5|6|8|10|15|20)[A-Z]*"),
@@ -121,7 +121,14 @@ def format_coordinate(value: float) -> str:
     return text
 
 
-@dataclass(eq=False)
+def _type_counts(blocks: list[ElementBlock]) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for block in blocks:
+        counts[block.type] = counts.get(block.type, 0) + len(block.ids)
+    return counts
+
+
+@dataclass(eq=False, repr=False)
 class AbaqusDeck:
     """A deck as read by :func:`read_deck`: its files' text and its mesh.
 
@@ -160,15 +167,19 @@ class AbaqusDeck:
     element_sets: dict[str, np.ndarray]
     warnings: list[str]
 
+    def __repr__(self) -> str:
+        types = ", ".join(f"{t} ({n})" for t, n in _type_counts(self.element_blocks).items())
+        return (
+            f"AbaqusDeck({str(self.path)!r}, {len(self.node_ids)} nodes, elements: "
+            f"{types or 'none'}, {len(self.files)} file(s))"
+        )
+
     @property
     def unsupported_elements(self) -> dict[str, int]:
         """Element types that are no cell of the domain (:func:`element_kind` is None),
         with how many elements of each the deck holds."""
-        counts: dict[str, int] = {}
-        for block in self.element_blocks:
-            if element_kind(block.type) is None:
-                counts[block.type] = counts.get(block.type, 0) + len(block.ids)
-        return counts
+        blocks = [b for b in self.element_blocks if element_kind(b.type) is None]
+        return _type_counts(blocks)
 
     @property
     def dimension(self) -> int:
@@ -183,12 +194,10 @@ class AbaqusDeck:
         """Rows of ``points`` for node numbers ``node_ids`` (any shape; ValueError for a
         number no node has)."""
         wanted = np.asarray(node_ids, dtype=np.int64)
-        rows = np.searchsorted(self.node_ids, wanted)
-        clipped = np.minimum(rows, max(len(self.node_ids) - 1, 0))
-        found = (rows < len(self.node_ids)) & (self.node_ids[clipped] == wanted)
+        rows, found = find(self.node_ids, wanted)
         if not found.all():
             raise ValueError(f"node_ids: {wanted[~found].ravel()[0]} is no node of the deck")
-        return clipped.astype(np.int64)
+        return rows.astype(np.int64)
 
     def to_mesh_data(self, *, ignore_unsupported: bool = False) -> MeshData:
         """The deck's mesh: nodes, solid (or plane) cells and node sets.
@@ -425,8 +434,8 @@ def write_deck(deck: AbaqusDeck, points: Any, path: str | os.PathLike) -> None:
     Only the lines of nodes whose coordinates changed are rewritten: the node number and
     the layout (spacing, other fields, line end) stay, each changed coordinate is
     replaced by :func:`format_coordinate`'s text (full float64 precision where it fits
-    in CalculiX's 20-character field, 13 to 15 significant digits where it does not); a
-    coordinate omitted on the line gets a field if its new value is not 0. Every file is
+    in CalculiX's 20-character field, 13 to 15 significant digits where it does not);
+    coordinates omitted on the line get fields up to the last one that changed. Every file is
     written atomically (included files first, the main deck last), but not all of them as
     one: a failure part-way can leave new included files beside an old main deck. Does
     not check the morphed elements' shape: see :mod:`torchmorph.mesh.quality`.
