@@ -554,7 +554,7 @@ def test_more_modes_than_snapshots_or_rank(cloud, rank_two):
 
 def test_wrong_shapes_and_arguments(cloud, rank_two):
     n = cloud.num_controls
-    with pytest.raises(ValueError, match=r"displacements must have shape \(n_train, N_in, 3\)"):
+    with pytest.raises(ValueError, match=r"displacements must have shape \(n_train, N_in, D\)"):
         PODReducer().fit(cloud, torch.zeros(n, 3, dtype=F64))
     # the morph checks its own input rows
     with pytest.raises(ValueError, match=rf"displacements must have shape \({n}, 3\) or"):

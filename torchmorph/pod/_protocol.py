@@ -1,9 +1,11 @@
-"""PODReducer's side of the linear-map protocol, and the checks of a saved state.
+"""The reducers' side of the linear-map protocol, and the checks of a saved state.
 
-:class:`torchmorph.pod.PODReducer` reduces any linear map ``morph(d)``, (B, N_in, 3)
-to (B, N_out, 3). These helpers evaluate training families, ask the map for its
-optional parts (``copied_rows``, ``adjoint``, ``weights_matrix``/``weight_columns``)
-and check a state before it is loaded; none of them asks which class the map is.
+:class:`torchmorph.pod.PODReducer` (and :class:`~torchmorph.distributed.ShardedPOD`)
+reduce any linear map ``morph(d)``, (B, N_in, D) to (B, N_out, D), D the fields'
+dimension (2 or 3). These helpers evaluate training families, ask the map for its
+optional parts (``copied_rows``, ``adjoint``, ``weights``, ``weights_matrix`` /
+``weight_columns``) and check a state before it is loaded; none of them asks which
+class the map is.
 """
 
 from __future__ import annotations
@@ -38,7 +40,9 @@ __all__ = [
     "expand_by_runs",
     "index_runs",
     "is_single_value",
+    "morph_snapshots",
     "reference_tensor",
+    "spread_modes",
     "training_data",
     "training_inputs",
     "weights_of",
@@ -84,11 +88,12 @@ def reference_tensor(morph: Any) -> Tensor | None:
 
 
 def training_inputs(value: Any, name: str) -> Tensor:
+    """Training inputs (n_train, N_in, D), floating, finite, detached."""
     if not isinstance(value, Tensor):
         value = torch.as_tensor(np.asarray(value, dtype=np.float64))
-    if value.ndim != 3 or value.shape[2] != 3 or value.shape[0] == 0 or value.shape[1] == 0:
+    if value.ndim != 3 or 0 in value.shape:
         raise ValueError(
-            f"{name} must have shape (n_train, N_in, 3) with n_train >= 1, got {tuple(value.shape)}"
+            f"{name} must have shape (n_train, N_in, D) with n_train >= 1, got {tuple(value.shape)}"
         )
     check_float_dtype(value, name)
     check_finite(value, name)
@@ -98,7 +103,7 @@ def training_inputs(value: Any, name: str) -> Tensor:
 def training_data(
     displacements: Any, family: Family | None, parameters: Any, batched: bool
 ) -> tuple[Tensor, int | None]:
-    """Training inputs (n, N_in, 3) from displacements or a family, and the number of
+    """Training inputs (n, N_in, D) from displacements or a family, and the number of
     parameters P (0 for scalars, None without a family), with every argument checked."""
     if family is None:
         if parameters is not None:
@@ -107,7 +112,7 @@ def training_data(
             )
         if displacements is None:
             raise ValueError(
-                "no training data: pass displacements (n_train, N_in, 3) or family= and parameters="
+                "no training data: pass displacements (n_train, N_in, D) or family= and parameters="
             )
         return training_inputs(displacements, "displacements"), None
     if displacements is not None:
@@ -144,36 +149,40 @@ def is_single_value(mu: Tensor, num_parameters: int | None) -> bool:
     return mu.ndim == single_ndim
 
 
-def evaluate_family(family: Family, parameters: Tensor, count: int | None, batched: bool) -> Tensor:
-    """Inputs (n, count, 3) for a batch of parameter values: one call with the whole
+def evaluate_family(
+    family: Family, parameters: Tensor, count: int | None, batched: bool, *, dim: int | None = None
+) -> Tensor:
+    """Inputs (n, count, dim) for a batch of parameter values: one call with the whole
     batch (``batched``) or one call per value. Exceptions of the family propagate.
-    ``count`` None: any number of rows, the same for every value."""
+    ``count`` or ``dim`` None: any, the same for every value."""
     rows = "N_in" if count is None else count
+    width = "D" if dim is None else dim
     if batched:
         out = family(parameters)
         if (
             not isinstance(out, Tensor)
             or out.ndim != 3
             or out.shape[0] != parameters.shape[0]
-            or out.shape[2] != 3
             or (count is not None and out.shape[1] != count)
+            or (dim is not None and out.shape[2] != dim)
         ):
             got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
             raise ValueError(
                 f"family(parameters) must return shape ({parameters.shape[0]}, "
-                f"{rows}, 3) when batched=True, got {got}; for a family of one "
+                f"{rows}, {width}) when batched=True, got {got}; for a family of one "
                 "parameter value at a time pass batched=False"
             )
         return out
     outputs = []
     for value in parameters:
         out = family(value)
-        if count is None and isinstance(out, Tensor) and out.ndim == 2:
-            count = out.shape[0]
-        if not isinstance(out, Tensor) or tuple(out.shape) != (count, 3):
+        if isinstance(out, Tensor) and out.ndim == 2:
+            count = out.shape[0] if count is None else count
+            dim = out.shape[1] if dim is None else dim
+        if not isinstance(out, Tensor) or tuple(out.shape) != (count, dim):
             got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
             raise ValueError(
-                f"family(mu) must return a tensor of shape ({rows}, 3) for one "
+                f"family(mu) must return a tensor of shape ({rows}, {width}) for one "
                 f"parameter value, the same for every value, got {got}"
             )
         outputs.append(out)
@@ -210,21 +219,66 @@ def copied_rows(
     return output_rows.clone(), input_rows.clone(), torch.nonzero(keep).flatten()
 
 
+def morph_snapshots(
+    morph: Any, inputs: Tensor
+) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor], int]:
+    """Step (b) of Algorithm 3: the morph of the training inputs (n, N_in, D).
+
+    Returns
+    -------
+    snapshots : Tensor, shape (n, N_red, D)
+        The outputs on the reduced rows (checked finite).
+    rows : (Tensor, Tensor, Tensor)
+        The copied output rows, their input rows and the reduced rows
+        (:func:`copied_rows`).
+    num_outputs : int
+        N_out.
+    """
+    outputs = morph(inputs)
+    count, dim = inputs.shape[0], inputs.shape[2]
+    if (
+        not isinstance(outputs, Tensor)
+        or outputs.ndim != 3
+        or outputs.shape[0] != count
+        or outputs.shape[2] != dim
+    ):
+        got = tuple(outputs.shape) if isinstance(outputs, Tensor) else type(outputs).__name__
+        raise ValueError(
+            f"morph(displacements) must return shape ({count}, N_out, {dim}), got {got}"
+        )
+    num_outputs = outputs.shape[1]
+    rows = copied_rows(morph, inputs.shape[1], num_outputs, outputs.device)
+    snapshots = outputs if rows[0].numel() == 0 else outputs.index_select(1, rows[2])
+    check_finite(snapshots, "snapshots (the morph of the training data)")
+    return snapshots, rows, num_outputs
+
+
+def spread_modes(modes: Tensor, reduced: Tensor, num_outputs: int) -> Tensor:
+    """Modes (N, N_red, D) of the reduced rows as fields over all N_out output rows,
+    zero on the copied rows."""
+    if reduced.numel() == num_outputs:
+        return modes
+    fields = modes.new_zeros(modes.shape[0], num_outputs, modes.shape[-1])
+    return fields.index_copy_(1, reduced, modes)
+
+
 def adjoint(morph: Any, fields: Tensor, num_inputs: int, reduced: Tensor) -> Tensor:
-    """Lᵀ applied to N output fields (N, N_out, 3) that are zero outside the reduced
-    rows: (N, N_in, 3), the projection matrix P = Zᵀ L.
+    """Lᵀ applied to N output fields (N, N_out, D) that are zero outside the reduced
+    rows: (N, N_in, D), the projection matrix P = Zᵀ L.
 
     In order of preference: the morph's stored W (a tensor attribute ``weights``,
     reading the inputs ``weight_columns``): one GEMM; the morph's own ``adjoint``;
     otherwise, since the morph is linear, the vector-Jacobian product at any input,
     by autograd for all N fields in one batched call (a matrix-free IDW never forms W).
+    A sharded map's ``weights`` and ``adjoint`` are its rank's share (no
+    communication); :class:`~torchmorph.distributed.ShardedPOD` sums them over ranks.
     """
     stored = getattr(morph, "weights", None)
     method = getattr(morph, "adjoint", None)
     if isinstance(stored, Tensor) and stored.ndim == 2 and stored.shape[0] == reduced.numel():
         columns = getattr(morph, "weight_columns", None)
         columns = torch.arange(num_inputs) if columns is None else torch.as_tensor(columns)
-        result = fields.new_zeros(fields.shape[0], num_inputs, 3)
+        result = fields.new_zeros(fields.shape[0], num_inputs, fields.shape[-1])
         result.index_copy_(
             1,
             columns.long().to(result.device),
@@ -234,13 +288,14 @@ def adjoint(morph: Any, fields: Tensor, num_inputs: int, reduced: Tensor) -> Ten
         result = method(fields)
     else:
         with torch.enable_grad():
-            probe = fields.new_zeros(fields.shape[0], num_inputs, 3, requires_grad=True)
+            probe = fields.new_zeros(
+                fields.shape[0], num_inputs, fields.shape[-1], requires_grad=True
+            )
             (result,) = torch.autograd.grad(morph(probe), probe, grad_outputs=fields)
-    if not isinstance(result, Tensor) or tuple(result.shape) != (fields.shape[0], num_inputs, 3):
+    expected = (fields.shape[0], num_inputs, fields.shape[-1])
+    if not isinstance(result, Tensor) or tuple(result.shape) != expected:
         got = tuple(result.shape) if isinstance(result, Tensor) else type(result).__name__
-        raise ValueError(
-            f"the morph's adjoint must return shape ({fields.shape[0]}, {num_inputs}, 3), got {got}"
-        )
+        raise ValueError(f"the morph's adjoint must return shape {expected}, got {got}")
     return result.detach().contiguous()
 
 
@@ -299,14 +354,14 @@ def expand(
     copied_input_rows: Tensor,
     out: Tensor | None,
 ) -> Tensor:
-    """(B, N) coefficients -> output fields (B, N_out, 3): ``beta @ basis`` over every
+    """(B, N) coefficients -> output fields (B, N_out, D): ``beta @ basis`` over every
     output row (the basis is zero on the copied rows), then the copied rows."""
-    count, batch = output_basis.shape[0], beta.shape[0]
+    count, batch, dim = output_basis.shape[0], beta.shape[0], output_basis.shape[-1]
     basis = output_basis.reshape(count, -1)
     # one mode: a broadcast product (BLAS with an inner dimension of 1 is slower)
     product = torch.mul if count == 1 else torch.matmul
     if out is None:
-        field = product(beta, basis).reshape(batch, -1, 3)
+        field = product(beta, basis).reshape(batch, -1, dim)
     else:
         product(beta, basis, out=out.view(batch, -1))
         field = out
@@ -330,9 +385,9 @@ def expand_by_runs(
     """:func:`expand` when the copied and reduced rows form a few contiguous runs
     (``(copied runs, reduced runs)`` of :func:`index_runs`): slice products and copies
     instead of a full-size product and an indexed scatter. No autograd."""
-    count, batch = modes.shape[0], beta.shape[0]
+    count, batch, dim = modes.shape[0], beta.shape[0], modes.shape[-1]
     if out is None:
-        out = beta.new_empty(batch, num_outputs, 3)
+        out = beta.new_empty(batch, num_outputs, dim)
     flat_out = out.view(batch, -1)
     flat_in = displacement.reshape(batch, -1)
     modes = modes.reshape(count, -1)
@@ -341,11 +396,13 @@ def expand_by_runs(
     for node, row, length in reduced_runs:
         product(
             beta,
-            modes[:, 3 * row : 3 * (row + length)],
-            out=flat_out[:, 3 * node : 3 * (node + length)],
+            modes[:, dim * row : dim * (row + length)],
+            out=flat_out[:, dim * node : dim * (node + length)],
         )
     for node, row, length in copied_runs:
-        flat_out[:, 3 * node : 3 * (node + length)].copy_(flat_in[:, 3 * row : 3 * (row + length)])
+        flat_out[:, dim * node : dim * (node + length)].copy_(
+            flat_in[:, dim * row : dim * (row + length)]
+        )
     return out
 
 
@@ -421,23 +478,27 @@ def check_reducer_state(state_dict, prefix: str, version: int) -> None:
             "reduced_rows_",
             f"reduced_rows_ and copied_output_rows_ must split the {num_outputs} output rows",
         )
-    shape("modes_", (count, reduced.numel(), 3))
+    modes = tensor("modes_")
+    if modes.ndim != 3 or modes.shape[-1] < 1:
+        fail("modes_", f"must have shape (N, N_red, D), got {tuple(modes.shape)}")
+    dim = modes.shape[-1]
+    shape("modes_", (count, reduced.numel(), dim))
     values = tensor("singular_values_")
     if values.ndim != 1 or values.numel() < count:
         fail("singular_values_", f"must be 1-D with at least {count} values")
     shape("energy_captured_", tuple(values.shape))
     if extra["online"] == "projection":
-        shape("projection_", (count, num_inputs, 3))
+        shape("projection_", (count, num_inputs, dim))
     else:
         shape("system_matrix_", (count, count))
-        shape("rhs_matrix_", (count, num_inputs, 3))
+        shape("rhs_matrix_", (count, num_inputs, dim))
 
 
 def relative_field_error(reduced: Tensor, full: Tensor, norm: str, mesh: Any, morph: Any) -> Tensor:
-    """Per-sample relative error of ``reduced`` against ``full`` (B, N, 3) in the nodal
+    """Per-sample relative error of ``reduced`` against ``full`` (B, N, D) in the nodal
     or the P1 mass-matrix norm (``mesh``, or the morph's own points and tets)."""
-    from torchmorph.mesh.model import TetMesh
-    from torchmorph.mesh.quality import relative_l2_error
+    from torchmorph.mesh.norms import relative_l2_error
+    from torchmorph.mesh.tetmesh import TetMesh
 
     if norm == "l2":
         warnings.warn(
@@ -449,6 +510,8 @@ def relative_field_error(reduced: Tensor, full: Tensor, norm: str, mesh: Any, mo
         norm = "mass"
     check_choice(norm, "norm", ("nodal", "mass"))
     if norm == "mass":
+        if mesh is None and callable(getattr(morph, "reference_mesh", None)):
+            mesh = morph.reference_mesh()
         if mesh is None:
             points, tets = getattr(morph, "points", None), getattr(morph, "tets", None)
             if not isinstance(points, Tensor) or not isinstance(tets, Tensor):
@@ -466,7 +529,7 @@ def relative_field_error(reduced: Tensor, full: Tensor, norm: str, mesh: Any, mo
 def check_out(out: Tensor, displacement: Tensor, num_outputs: int, reference: Tensor) -> Tensor:
     """``out=`` of a reduced morph: the output's shape, the reducer's dtype and device,
     contiguous, and no autograd."""
-    expected = (*displacement.shape[:-2], num_outputs, 3)
+    expected = (*displacement.shape[:-2], num_outputs, displacement.shape[-1])
     if not isinstance(out, Tensor) or tuple(out.shape) != expected:
         got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
         raise ValueError(f"out must have shape {expected}, got {got}")

@@ -6,12 +6,12 @@ projection onto it (:func:`projection_matrix`), and the matrices of the paper's 
 online system (eq. 16, :func:`paper_matrices`). :class:`torchmorph.pod.PODReducer` is
 the estimator built on them.
 
-Layout. A displacement field on M points is a tensor (M, 3); flattened it is the
-component-interleaved vector of length 3M (x1, y1, z1, x2, ...). The POD basis
-``Z`` (3·N_int × N in the paper) is stored as ``modes`` of shape (N, N_int, 3):
-``modes[l]`` is the l-th mode as a displacement field. ``W`` acts on each component
-separately (the operator on flattened fields is W ⊗ I_3); no Kronecker matrix is
-ever formed.
+Layout. A displacement field on M points of dimension D (2 or 3) is a tensor (M, D);
+flattened it is the component-interleaved vector of length D·M (x1, y1, z1, x2, ...).
+The POD basis ``Z`` (3·N_int × N in the paper, whose meshes are 3-D) is stored as
+``modes`` of shape (N, N_int, D): ``modes[l]`` is the l-th mode as a displacement
+field. ``W`` acts on each component separately (the operator on flattened fields is
+W ⊗ I_D); no Kronecker matrix is ever formed.
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def _check_rank(
 def _svd_basis(
     matrix: Tensor, energy_tolerance: float, num_modes: int | None, dtype: torch.dtype
 ) -> tuple[Tensor, Tensor]:
-    """Thin SVD of the (scaled, float64) n × 3M matrix Uᵀ: rows of modes, all σ."""
+    """Thin SVD of the (scaled, float64) n × D·M matrix Uᵀ: rows of modes, all σ."""
     _, singular_values, vh = torch.linalg.svd(matrix, full_matrices=False)
     kept = _kept_modes(singular_values.square(), energy_tolerance, num_modes, matrix.shape[0])
     _check_rank(num_modes, singular_values, tuple(matrix.shape), dtype)
@@ -111,14 +111,14 @@ def _correlation_basis(
     num_modes: int | None,
     dtype: torch.dtype,
 ) -> tuple[Tensor, Tensor] | None:
-    """Method of snapshots on the float64 n × 3M matrix Uᵀ and its correlation
+    """Method of snapshots on the float64 n × D·M matrix Uᵀ and its correlation
     matrix UᵀU, or None where it would lose accuracy on the kept modes.
 
     The eigen-decomposition UᵀU = V Σ² Vᵀ gives the modes as Σ⁻¹ Vᵀ Uᵀ at the cost of
     two passes over U, but squares the condition number: the span of the first N
     modes is accurate to about eps · σ_1² / (σ_N² − σ_{N+1}²). Where that exceeds the
     tolerance, None is returned (the caller runs the thin SVD). The modes are
-    re-orthonormalised by a QR factorisation (3M × N, cheap for few modes).
+    re-orthonormalised by a QR factorisation (D·M × N, cheap for few modes).
     """
     count = matrix.shape[0]
     eigenvalues, vectors = torch.linalg.eigh(correlation)
@@ -132,8 +132,8 @@ def _correlation_basis(
     singular_values = eigenvalues.sqrt()
     _check_rank(num_modes, singular_values, tuple(matrix.shape), dtype)
     leading = vectors[:, count - kept :].flip(1)  # (n, N), descending
-    rough = (leading.mT @ matrix) / singular_values[:kept].unsqueeze(1)  # (N, 3M)
-    basis, triangle = torch.linalg.qr(rough.mT)  # (3M, N): orthonormal columns
+    rough = (leading.mT @ matrix) / singular_values[:kept].unsqueeze(1)  # (N, D·M)
+    basis, triangle = torch.linalg.qr(rough.mT)  # (D·M, N): orthonormal columns
     signs = torch.sign(triangle.diagonal())  # QR may flip a column: keep each mode's sign
     basis = basis * torch.where(signs == 0, 1.0, signs)
     return basis.mT, singular_values
@@ -150,9 +150,9 @@ def pod_basis(
 
     Parameters
     ----------
-    snapshots : Tensor, shape (n, M, 3)
-        ``n`` fields on ``M`` points, the columns of the snapshot matrix ``U``
-        (each flattened component-interleaved to length 3M).
+    snapshots : Tensor, shape (n, M, D)
+        ``n`` fields on ``M`` points of dimension D, the columns of the snapshot
+        matrix ``U`` (each flattened component-interleaved to length D·M).
     energy_tolerance : float
         ε in (0, 1): N is the smallest number of modes with
         ``sum_{i>N} σ_i² <= ε · sum_i σ_i²``. Ignored when ``num_modes`` is given.
@@ -162,26 +162,26 @@ def pod_basis(
         ``"svd"``: thin SVD of Uᵀ. ``"correlation"``: the method of snapshots
         (eigen-decomposition of the n × n correlation matrix, then a Rayleigh–Ritz
         step), falling back to the SVD when it would lose accuracy on the kept
-        modes (see Notes). ``"auto"`` (default): ``"correlation"`` when 3M >= 4n.
+        modes (see Notes). ``"auto"`` (default): ``"correlation"`` when D·M >= 4n.
 
     Returns
     -------
-    modes : Tensor, shape (N, M, 3)
+    modes : Tensor, shape (N, M, D)
         Orthonormal modes (the first N left singular vectors of U), in the
         snapshots' dtype.
-    singular_values : Tensor, shape (min(n, 3M),)
+    singular_values : Tensor, shape (min(n, D·M),)
         All singular values of U, descending (float64 arithmetic, snapshots' dtype).
-    energy_captured : Tensor, shape (min(n, 3M),)
+    energy_captured : Tensor, shape (min(n, D·M),)
         ``energy_captured[k] = sum_{i<=k+1} σ_i² / sum_i σ_i²``: the energy fraction
         kept by k + 1 modes.
 
     Raises
     ------
     ValueError
-        If the snapshots are not (n, M, 3), are half precision, hold NaN/inf, are
+        If the snapshots are not (n, M, D), are half precision, hold NaN/inf, are
         all zero, if ε is outside (0, 1), or ``num_modes`` exceeds the number of
         snapshots or their numerical rank (singular values above
-        σ_1 · sqrt(3M·n) · eps).
+        σ_1 · sqrt(D·M·n) · eps).
 
     Notes
     -----
@@ -201,20 +201,21 @@ def pod_basis(
     """
     if not isinstance(snapshots, Tensor):
         raise TypeError(f"snapshots must be a torch.Tensor, got {type(snapshots).__name__}")
-    if snapshots.ndim != 3 or snapshots.shape[-1] != 3 or snapshots.shape[0] == 0:
+    if snapshots.ndim != 3 or 0 in (snapshots.shape[0], snapshots.shape[2]):
         raise ValueError(
-            f"snapshots must have shape (n, M, 3) with n >= 1, got {tuple(snapshots.shape)}"
+            f"snapshots must have shape (n, M, D) with n >= 1, got {tuple(snapshots.shape)}"
         )
     check_float_dtype(snapshots, "snapshots")
     energy_tolerance = check_energy_tolerance(energy_tolerance)
     num_modes = check_num_modes(num_modes)
     check_choice(method, "method", ("auto", "svd", "correlation"))
-    count, num_points = snapshots.shape[0], snapshots.shape[1]
+    count, num_points, dim = snapshots.shape
+    length = dim * num_points
 
-    # U^T = V Σ Z^T: the rows of Vh are the modes, already in the (N, M·3) layout
+    # U^T = V Σ Z^T: the rows of Vh are the modes, already in the (N, M·D) layout
     snapshots = snapshots.detach()
     # the layout first (a strided copy is fastest in the narrower dtype), then float64
-    work = snapshots.contiguous().reshape(count, 3 * num_points).to(torch.float64)
+    work = snapshots.contiguous().reshape(count, length).to(torch.float64)
     correlation = work @ work.mT
     largest = float(correlation.diagonal().max())  # the largest squared snapshot norm
     extent = 1.0
@@ -226,13 +227,11 @@ def pod_basis(
         if max(-float(low), float(high)) == 0.0:
             raise ValueError("snapshots are all zero: there is no displacement to reduce")
         extent = 2.0 ** math.frexp(max(-float(low), float(high)))[1]
-        work = snapshots.reshape(count, 3 * num_points).to(torch.float64, copy=True)
+        work = snapshots.reshape(count, length).to(torch.float64, copy=True)
         work = work.div_(extent)
         correlation = work @ work.mT
     result = None
-    if method == "correlation" or (
-        method == "auto" and 3 * num_points >= _CORRELATION_MIN_ASPECT * count
-    ):
+    if method == "correlation" or (method == "auto" and length >= _CORRELATION_MIN_ASPECT * count):
         result = _correlation_basis(work, correlation, energy_tolerance, num_modes, snapshots.dtype)
     if result is None:
         result = _svd_basis(work, energy_tolerance, num_modes, snapshots.dtype)
@@ -240,7 +239,7 @@ def pod_basis(
     kept = rows.shape[0]
     energy = scaled_values.square()
     energy_captured = torch.cumsum(energy, 0) / energy.sum()
-    modes = rows.reshape(kept, num_points, 3).to(snapshots.dtype).contiguous()
+    modes = rows.reshape(kept, num_points, dim).to(snapshots.dtype).contiguous()
     return (
         modes,
         (scaled_values * extent).to(snapshots.dtype),
@@ -249,20 +248,20 @@ def pod_basis(
 
 
 def _fields_as_columns(fields: Tensor) -> Tensor:
-    """(N, M, 3) -> (M, 3N): column c·... of each component side by side, per row point."""
-    count, num_points, _ = fields.shape
-    return fields.permute(1, 0, 2).reshape(num_points, 3 * count)
+    """(N, M, D) -> (M, D·N): the N fields' components side by side, one row per point."""
+    count, num_points, dim = fields.shape
+    return fields.permute(1, 0, 2).reshape(num_points, dim * count)
 
 
 def _columns_as_fields(columns: Tensor, count: int) -> Tensor:
-    """Inverse of :func:`_fields_as_columns`: (M, 3N) -> (N, M, 3), contiguous."""
+    """Inverse of :func:`_fields_as_columns`: (M, D·N) -> (N, M, D), contiguous."""
     num_points = columns.shape[0]
-    return columns.reshape(num_points, count, 3).permute(1, 0, 2).contiguous()
+    return columns.reshape(num_points, count, -1).permute(1, 0, 2).contiguous()
 
 
 def _check_modes_weights(modes: Tensor, weights: Tensor) -> None:
-    if modes.ndim != 3 or modes.shape[-1] != 3:
-        raise ValueError(f"modes must have shape (N, N_int, 3), got {tuple(modes.shape)}")
+    if modes.ndim != 3 or modes.shape[-1] == 0:
+        raise ValueError(f"modes must have shape (N, N_int, D), got {tuple(modes.shape)}")
     if weights.ndim != 2 or weights.shape[0] != modes.shape[1]:
         raise ValueError(
             f"weights must have shape ({modes.shape[1]}, N_sel) to match modes "
@@ -271,31 +270,31 @@ def _check_modes_weights(modes: Tensor, weights: Tensor) -> None:
 
 
 def projection_matrix(modes: Tensor, weights: Tensor) -> Tensor:
-    """Online matrix of the ``projection`` variant: P = Zᵀ (W ⊗ I_3) (section 3 of the paper, Algorithm 3, step (e)).
+    """Online matrix of the ``projection`` variant: P = Zᵀ (W ⊗ I_D) (section 3 of the paper, Algorithm 3, step (e)).
 
     Parameters
     ----------
-    modes : Tensor, shape (N, N_int, 3)
+    modes : Tensor, shape (N, N_int, D)
         Orthonormal POD modes (``Z``).
     weights : Tensor, shape (N_int, N_sel)
         The (S)IDW matrix ``W``.
 
     Returns
     -------
-    Tensor, shape (N, N_sel, 3)
+    Tensor, shape (N, N_sel, D)
         ``P[l, k, c] = sum_i modes[l, i, c] · W[i, k]``, so that for a control
-        displacement ``d`` (N_sel, 3) the coefficients are
+        displacement ``d`` (N_sel, D) the coefficients are
         ``β = P.reshape(N, -1) @ d.reshape(-1) = Zᵀ vec(W d)``: the orthogonal
         projection of the full morph onto the POD space.
 
     Notes
     -----
-    One GEMM, (3N × N_int) · (N_int × N_sel): W is streamed once for all 3N
-    columns (mat-vecs per column would stream it 3N times).
+    One GEMM, (D·N × N_int) · (N_int × N_sel): W is streamed once for all D·N
+    columns (mat-vecs per column would stream it D·N times).
     """
     _check_modes_weights(modes, weights)
-    fields = _fields_as_columns(modes.to(weights.dtype))  # (N_int, 3N)
-    columns = (fields.mT @ weights).mT  # (N_sel, 3N)
+    fields = _fields_as_columns(modes.to(weights.dtype))  # (N_int, D·N)
+    columns = (fields.mT @ weights).mT  # (N_sel, D·N)
     return _columns_as_fields(columns, modes.shape[0])
 
 
@@ -320,7 +319,7 @@ def paper_matrices(modes: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
 
     Parameters
     ----------
-    modes : Tensor, shape (N, N_int, 3)
+    modes : Tensor, shape (N, N_int, D)
         Orthonormal POD modes (``Z``).
     weights : Tensor, shape (N_int, N_sel)
         The (S)IDW matrix ``W``; ``W⁺`` (N_sel × N_int) is its Moore–Penrose
@@ -330,7 +329,7 @@ def paper_matrices(modes: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     -------
     system_matrix : Tensor, shape (N, N)
         ``A = Zᵀ (W⁺)ᵀ W⁺ Z`` (symmetric positive definite).
-    rhs_matrix : Tensor, shape (N, N_sel, 3)
+    rhs_matrix : Tensor, shape (N, N_sel, D)
         ``B = Zᵀ (W⁺)ᵀ`` in the displacement layout: the right-hand side of (16)
         is ``B.reshape(N, -1) @ d_sel.reshape(-1)``.
 
@@ -348,8 +347,8 @@ def paper_matrices(modes: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     """
     _check_modes_weights(modes, weights)
     count = modes.shape[0]
-    preimage = _pseudo_inverse_apply(weights, _fields_as_columns(modes))  # (N_sel, 3N)
-    rhs = _columns_as_fields(preimage, count)  # (N, N_sel, 3) = Z^T (W^+)^T
+    preimage = _pseudo_inverse_apply(weights, _fields_as_columns(modes))  # (N_sel, D·N)
+    rhs = _columns_as_fields(preimage, count)  # (N, N_sel, D) = Z^T (W^+)^T
     flat = rhs.reshape(count, -1)
     system = flat @ flat.mT
     system = 0.5 * (system + system.mT)
