@@ -12,21 +12,40 @@ Launch with ``torchrun`` (or ``torch.multiprocessing``) and call
 
     dist.init_process_group("gloo")            # "nccl" with one GPU per rank
     morph = ShardedMeshMorph(mesh, plan)       # every rank: the same mesh and plan
-    local = morph(boundary_displacement)       # (N_owned, 3): rows morph.owned_nodes
-    full = morph.gather(local)                 # (N, 3) on rank 0, None elsewhere
+    local = morph(boundary_displacement)       # (N_owned, D): rows morph.owned_nodes
+    full = morph.gather(local)                 # (N, D) on rank 0, None elsewhere
+
+Fields have D components (2 or 3: the points' dimension).
+
+The ranks agree first
+---------------------
+Every collective entry point (building a module, ``ShardedPOD.fit``,
+:func:`gather_rows`, :func:`save_partitioned`) begins with one all-reduce of a
+fingerprint: checksums of the replicated tensors (controls, mesh points and cells,
+training displacements), the hyper-parameters that change the result (``power``,
+``coincidence_tolerance``, ``energy_tolerance``, ``num_modes``), the shapes and dtypes,
+and each rank's verdict on its own inputs. Then either no rank raises or every rank
+raises a ``ValueError`` that names what differs (a rank whose own input is bad raises
+its own error, the others name it and the rank): no rank is left waiting in a
+collective for one that raised. Row partitions (``target_rows``, ``owned_nodes``,
+the rows given to :func:`gather_rows`) are checked by an all-reduce of one 32-bit
+count per row.
 
 What the ranks exchange
 -----------------------
-* Building a module: the global bounding box of the targets (two all-reduces of
-  three numbers; it sets the coincidence radius exactly as the single-process
-  module does), the ranks' target counts, the selected control points (a
-  broadcast from rank 0) and, for a mesh, one check that the owned nodes
-  partition the mesh (an all-reduce of N integers).
+* Building a module: the fingerprint (it also carries the ranks' target counts),
+  the global bounding box of the targets (an all-reduce of 2·D numbers; it sets
+  the coincidence radius exactly as the single-process module does), the selected
+  control points (a broadcast from rank 0) and the partition checks (with
+  ``owned_nodes`` or ``target_rows`` given: an all-reduce of one integer per row).
 * Backward: one all-reduce of the gradients to the replicated inputs
   (displacements, moved control or mesh positions).
-* :class:`ShardedPOD` fit: one all-gather of an n × n triangle per rank and one
-  all-reduce of the online matrix; its online phase is local.
-* :func:`gather_rows` / :func:`save_partitioned`: only when asked.
+* :class:`ShardedPOD` fit: the fingerprint, one all-gather of an n × n triangle per
+  rank and one all-reduce of the online matrix; its online phase is local and needs
+  only its state (a restored ``ShardedPOD`` runs without its morph).
+* :func:`gather_rows` / :func:`save_partitioned`: only when asked (the fingerprint,
+  the partition of the rows, the data); :func:`load_partitioned` checks that the
+  parts were written together (every part records every part's checksums).
 
 Boundary data known only on the ranks that own the boundary nodes is replicated
 with ``gather_rows(values, rows, N_b, dst=None)`` (an all-gather; not

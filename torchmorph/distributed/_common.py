@@ -1,6 +1,7 @@
 """Collectives and partitioned rows shared by the sharded modules of
-:mod:`torchmorph.distributed`: rank/world queries, even row shards, replication with
-summed gradients, gathering, and atomic partitioned files."""
+:mod:`torchmorph.distributed`: even row shards, replication with summed gradients, the
+global coincidence radius, gathering, and atomic partitioned files. Every collective
+here first checks that the ranks agree (:mod:`torchmorph.distributed._agreement`)."""
 
 from __future__ import annotations
 
@@ -8,38 +9,23 @@ import os
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 import torch.distributed as dist
 from torch import Tensor
 
 from torchmorph._atomic import atomic_output
+from torchmorph.distributed._agreement import (
+    Agreement,
+    _comm_device,
+    _group_info,
+    agree_on_rows,
+    digest,
+    local_rows,
+)
 
-if TYPE_CHECKING:
-    pass
-
-
-# --------------------------------------------------------------------------- #
-# process group helpers
-# --------------------------------------------------------------------------- #
-def _group_info(group) -> tuple[int, int]:
-    """(rank, world size) in ``group``, with a clear error when there is no process group."""
-    if not (dist.is_available() and dist.is_initialized()):
-        raise RuntimeError(
-            "torch.distributed is not initialized: call "
-            "torch.distributed.init_process_group first (or launch with torchrun)"
-        )
-    return dist.get_rank(group), dist.get_world_size(group)
-
-
-def _comm_device(group, like: Tensor) -> torch.device:
-    """The device collectives run on: the current CUDA device for NCCL, else the CPU
-    (gloo, whatever device ``like`` lives on)."""
-    del like
-    if dist.get_backend(group) == "nccl":
-        return torch.device("cuda", torch.cuda.current_device())
-    return torch.device("cpu")
+__all__ = ["gather_rows", "load_partitioned", "replicate", "save_partitioned", "shard_rows"]
 
 
 def shard_rows(
@@ -128,9 +114,9 @@ def _attach(output: Tensor, *inputs: Tensor | None) -> Tensor:
     return output + zero.to(output.dtype)
 
 
-def _global_tolerance(controls: Tensor, targets: Tensor, tolerance: float, group) -> float:
+def _global_tolerance(controls: Tensor, targets: Tensor, tolerance: float, group: Any) -> float:
     """The coincidence tolerance that gives this rank's IDW the radius of the single-
-    process IDW over all ranks' targets.
+    process IDW over all ranks' targets (collective: one all-reduce of 2·D numbers).
 
     :class:`~torchmorph.idw.IDW` measures the coincidence radius as a fraction of the
     bounding-box diagonal of its controls and targets; a rank sees only its targets,
@@ -138,17 +124,19 @@ def _global_tolerance(controls: Tensor, targets: Tensor, tolerance: float, group
     """
     device = _comm_device(group, controls)
     with torch.no_grad():
-        c = controls.detach().double()
-        t = targets.detach().double()
-        inf = torch.full((3,), torch.inf, dtype=torch.float64)
-        low = t.amin(0).cpu() if t.shape[0] else inf.clone()
-        high = t.amax(0).cpu() if t.shape[0] else -inf
-        global_low, global_high = low.to(device), high.to(device)
-        dist.all_reduce(global_low, op=dist.ReduceOp.MIN, group=group)
-        dist.all_reduce(global_high, op=dist.ReduceOp.MAX, group=group)
-        c_low, c_high = c.amin(0).cpu(), c.amax(0).cpu()
+        c = controls.detach().double().cpu()
+        t = targets.detach().double().cpu()
+        dim = c.shape[1]
+        inf = torch.full((dim,), torch.inf, dtype=torch.float64)
+        low = t.amin(0) if t.shape[0] else inf.clone()
+        high = t.amax(0) if t.shape[0] else -inf
+        both = torch.cat([high, -low]).to(device)  # the largest of both: max and -min
+        dist.all_reduce(both, op=dist.ReduceOp.MAX, group=group)
+        both = both.cpu()
+        global_high, global_low = both[:dim], -both[dim:]
+        c_low, c_high = c.amin(0), c.amax(0)
         local = torch.maximum(c_high, high) - torch.minimum(c_low, low)
-        whole = torch.maximum(c_high, global_high.cpu()) - torch.minimum(c_low, global_low.cpu())
+        whole = torch.maximum(c_high, global_high) - torch.minimum(c_low, global_low)
         local_diagonal = float(torch.linalg.vector_norm(local))
         global_diagonal = float(torch.linalg.vector_norm(whole))
     if local_diagonal == 0.0:
@@ -159,20 +147,42 @@ def _global_tolerance(controls: Tensor, targets: Tensor, tolerance: float, group
 # --------------------------------------------------------------------------- #
 # gathering and writing distributed fields
 # --------------------------------------------------------------------------- #
-def _as_rows(rows: Tensor | Sequence[int], name: str, count: int, num_rows: int) -> Tensor:
-    rows = torch.as_tensor(rows).detach().cpu()
-    if rows.ndim != 1 or rows.shape[0] != count or (rows.numel() and rows.is_floating_point()):
+def _check_count(value: Any, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+    return value
+
+
+def _check_field(local: Any) -> Tensor:
+    if not isinstance(local, Tensor) or local.ndim not in (2, 3):
+        shape = tuple(local.shape) if isinstance(local, Tensor) else type(local).__name__
         raise ValueError(
-            f"{name} must be a 1-D integer tensor of {count} global row ids, got "
-            f"shape {tuple(rows.shape)} and dtype {rows.dtype}"
+            f"local must be a tensor of shape (n_local, K) or (B, n_local, K), got {shape}"
         )
-    rows = rows.long()
-    if rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= num_rows):
-        raise ValueError(
-            f"{name} must lie in [0, {num_rows}), got ids from {int(rows.min())} "
-            f"to {int(rows.max())}"
-        )
-    return rows
+    return local
+
+
+def _check_destination(dst: Any, world: int) -> None:
+    if dst is not None and (
+        isinstance(dst, bool) or not isinstance(dst, int) or not 0 <= dst < world
+    ):
+        raise ValueError(f"dst must be a rank in [0, {world}) or None, got {dst!r}")
+
+
+def _distributed_field(
+    agreement: Agreement, local: Any, rows: Any, num_rows: Any
+) -> tuple[Tensor | None, Tensor | None]:
+    """This rank's checks of a row-distributed field and its part of the fingerprint:
+    ``num_rows`` and the shape of ``local`` but its rows, and its dtype, must agree."""
+    count = agreement.attempt("num_rows", _check_count, num_rows, "num_rows")
+    local = agreement.attempt("local", _check_field, local)
+    rows = agreement.attempt(
+        "rows", local_rows, rows, "rows", None if local is None else local.shape[-2], count
+    )
+    agreement.same("num_rows", count)
+    agreement.same_tensor("local", local, rows_dim=-2)
+    agreement.per_rank("rows", 0 if rows is None else rows.numel())
+    return local, rows
 
 
 def gather_rows(
@@ -181,7 +191,7 @@ def gather_rows(
     num_rows: int,
     *,
     dst: int | None = 0,
-    group=None,
+    group: Any = None,
 ) -> Tensor | None:
     """Assemble a row-distributed field on one rank (or on all).
 
@@ -192,7 +202,7 @@ def gather_rows(
     rows : Tensor, shape (n_local,)
         Their global row ids (``morph.owned_nodes``, or ``morph.target_rows``).
     num_rows : int
-        Rows of the full field; rows no rank provides are zero.
+        Rows of the full field; together the ranks' ``rows`` must hold each exactly once.
     dst : int or None
         The rank that receives the field; ``None``: every rank does.
 
@@ -200,21 +210,31 @@ def gather_rows(
     -------
     Tensor, shape (num_rows, K) or (B, num_rows, K), on ``dst`` (every rank when
     ``dst`` is None); None on the other ranks. Not differentiable.
+
+    Raises
+    ------
+    ValueError
+        On every rank, before any data moves: ``local`` or ``rows`` malformed on a
+        rank (that rank's own message; the others name it), ``local`` of another
+        width, batch size or dtype than on other ranks, ``num_rows`` or ``dst`` that
+        differ across ranks, or rows that no rank or several ranks provide.
+
+    Notes
+    -----
+    Communication: one all-reduce of a fingerprint (a few numbers per rank), one of
+    ``num_rows`` 32-bit counts (the partition), then the gather of the data.
     """
     rank, world = _group_info(group)
-    if not isinstance(local, Tensor) or local.ndim not in (2, 3):
-        shape = tuple(local.shape) if isinstance(local, Tensor) else type(local).__name__
-        raise ValueError(
-            f"local must be a tensor of shape (n_local, K) or (B, n_local, K), got {shape}"
-        )
-    rows = _as_rows(rows, "rows", local.shape[-2], num_rows)
+    context = "gathering rows"
+    agreement = Agreement(group, context)
+    local, rows = _distributed_field(agreement, local, rows, num_rows)
+    agreement.attempt("dst", _check_destination, dst, world)
+    agreement.same("dst", dst)
+    sizes = [int(size) for size in agreement.exchange()["rows"]]
+    agree_on_rows(rows, num_rows, name="rows", what="rows", group=group, context=context)
     device = _comm_device(group, local)
     with torch.no_grad():
         moved = local.detach().movedim(-2, 0)  # (n_local, [B,] K)
-        counts = torch.tensor([moved.shape[0]], dtype=torch.int64, device=device)
-        sizes = [torch.zeros_like(counts) for _ in range(world)]
-        dist.all_gather(sizes, counts, group=group)
-        sizes = [int(s) for s in sizes]
         longest = max(sizes)
         padded = moved.new_zeros(longest, *moved.shape[1:]).to(device)
         padded[: moved.shape[0]] = moved.to(device)
@@ -248,76 +268,145 @@ def save_partitioned(
     rows: Tensor | Sequence[int],
     num_rows: int,
     *,
-    group=None,
+    group: Any = None,
 ) -> Path:
     """Write each rank's rows of a field to its own file, atomically.
 
     Rank r writes ``directory/part-{r:05d}-of-{world:05d}.pt`` (a ``torch.save`` dict
-    with ``rows``, ``values`` and ``num_rows``) through a temporary file renamed over
-    the target, so a crash never leaves a half-written part; all ranks then wait for
-    each other (a barrier). :func:`load_partitioned` reads the parts back.
+    with ``rows``, ``values``, ``num_rows``, ``rank``, ``world_size`` and ``run``: the
+    checksums of every rank's rows and values, the same in each part) through a
+    temporary file renamed over the target, so a crash never leaves a half-written
+    part. :func:`load_partitioned` reads the parts back and checks with ``run`` that
+    they were written together.
 
     Returns
     -------
     Path
         This rank's file.
+
+    Raises
+    ------
+    ValueError
+        On every rank, before anything is written, as :func:`gather_rows`; on every
+        rank after the writes when a rank could not write its part.
     """
     rank, world = _group_info(group)
-    if not isinstance(local, Tensor) or local.ndim not in (2, 3):
-        shape = tuple(local.shape) if isinstance(local, Tensor) else type(local).__name__
-        raise ValueError(
-            f"local must be a tensor of shape (n_local, K) or (B, n_local, K), got {shape}"
-        )
-    rows = _as_rows(rows, "rows", local.shape[-2], num_rows)
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    path = directory / f"part-{rank:05d}-of-{world:05d}.pt"
-    with atomic_output(path) as temporary:
-        torch.save(
-            {"rows": rows, "values": local.detach().cpu(), "num_rows": int(num_rows)}, temporary
-        )
-    dist.barrier(group=group)
+    context = "saving partitioned rows"
+    agreement = Agreement(group, context)
+    local, rows = _distributed_field(agreement, local, rows, num_rows)
+    sums = (0, 0) if local is None or rows is None else digest(rows, local)
+    agreement.per_rank("first checksum", sums[0])
+    agreement.per_rank("second checksum", sums[1])
+    shared = agreement.exchange()
+    agree_on_rows(rows, num_rows, name="rows", what="rows", group=group, context=context)
+    run = [
+        [int(first), int(second)]
+        for first, second in zip(shared["first checksum"], shared["second checksum"], strict=True)
+    ]
+    path = Path(directory) / f"part-{rank:05d}-of-{world:05d}.pt"
+    failure = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        part = {
+            "rows": rows,
+            "values": local.detach().cpu(),
+            "num_rows": int(num_rows),
+            "rank": rank,
+            "world_size": world,
+            "run": run,
+        }
+        with atomic_output(path) as temporary:
+            torch.save(part, temporary)
+    except Exception as error:  # noqa: BLE001  every rank hears of it (this replaces a barrier)
+        failure = ("writing a part", error)
+    agree_on_rows(None, 0, name="", what="", group=group, context=context, failure=failure)
     return path
 
 
 def load_partitioned(directory: str | os.PathLike) -> Tensor:
     """The full field from the parts :func:`save_partitioned` wrote (any process).
 
+    Returns
+    -------
+    Tensor, shape (num_rows, K) or (B, num_rows, K)
+
     Raises
     ------
     FileNotFoundError
         If ``directory`` holds no parts.
     ValueError
-        If parts are missing or come from runs with different world sizes or sizes.
+        If parts are missing, come from different runs (another world size or number
+        of rows, or checksums that do not match the ``run`` every part records), hold
+        values of different shapes or dtypes, or do not cover every row exactly once.
     """
     directory = Path(directory)
+    where = f"directory {str(directory)!r}"
     parts = (
         sorted(p for p in directory.iterdir() if _PART.search(p.name)) if directory.is_dir() else []
     )
     if not parts:
-        raise FileNotFoundError(f"directory {str(directory)!r} holds no part-*-of-*.pt files")
+        raise FileNotFoundError(f"{where} holds no part-*-of-*.pt files")
     worlds = {int(_PART.search(p.name).group(2)) for p in parts}
     if len(worlds) != 1:
-        raise ValueError(
-            f"directory {str(directory)!r} mixes parts of runs with world sizes {sorted(worlds)}"
-        )
+        raise ValueError(f"{where} mixes parts of runs with world sizes {sorted(worlds)}")
     (world,) = worlds
     ranks = sorted(int(_PART.search(p.name).group(1)) for p in parts)
     if ranks != list(range(world)):
         missing = sorted(set(range(world)) - set(ranks))
-        raise ValueError(
-            f"directory {str(directory)!r}: parts of ranks {missing} are missing "
-            f"(world size {world})"
-        )
+        raise ValueError(f"{where}: parts of ranks {missing} are missing (world size {world})")
     pieces = [torch.load(p, weights_only=True) for p in parts]
     num_rows = {piece["num_rows"] for piece in pieces}
     if len(num_rows) != 1:
-        raise ValueError(
-            f"directory {str(directory)!r}: parts disagree on the number of rows "
-            f"({sorted(num_rows)})"
-        )
+        raise ValueError(f"{where}: parts disagree on the number of rows ({sorted(num_rows)})")
+    (num_rows,) = num_rows
+    _check_run(pieces, where)
     first = pieces[0]["values"]
-    full = first.new_zeros(*first.shape[:-2], num_rows.pop(), first.shape[-1])
+    counts = torch.zeros(num_rows, dtype=torch.int64)
+    for rank, piece in enumerate(pieces):
+        values, rows = piece["values"], piece["rows"]
+        if (
+            not isinstance(values, Tensor)
+            or values.ndim != first.ndim
+            or values.shape[:-2] != first.shape[:-2]
+            or values.shape[-1] != first.shape[-1]
+            or values.dtype != first.dtype
+        ):
+            shape = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__
+            raise ValueError(
+                f"{where}: part {rank} holds values of shape {shape} and dtype "
+                f"{getattr(values, 'dtype', None)}, part 0 of shape {tuple(first.shape)} and "
+                f"dtype {first.dtype}: only the number of rows may differ"
+            )
+        rows = local_rows(rows, f"{where}: part {rank}'s rows", values.shape[-2], num_rows)
+        counts.index_add_(0, rows, torch.ones_like(rows))
+        piece["rows"] = rows
+    orphans, shared = int((counts == 0).sum()), int((counts > 1).sum())
+    if orphans or shared:
+        raise ValueError(
+            f"{where}: the parts must hold each of the {num_rows} rows exactly once: "
+            f"{orphans} are in no part and {shared} in several"
+        )
+    full = first.new_zeros(*first.shape[:-2], num_rows, first.shape[-1])
     for piece in pieces:
         full.index_copy_(-2, piece["rows"], piece["values"])
     return full
+
+
+def _check_run(pieces: list[dict], where: str) -> None:
+    """Every part records the same ``run`` (parts of 0.1.0 record none: then all must
+    lack it), and each part's rows and values match its own checksums there."""
+    runs = [piece.get("run") for piece in pieces]
+    for rank, run in enumerate(runs):
+        if run != runs[0]:
+            raise ValueError(
+                f"{where}: parts 0 and {rank} were written by different runs of "
+                "save_partitioned (each part records the checksums of every part of its run)"
+            )
+    if runs[0] is None:
+        return
+    for rank, piece in enumerate(pieces):
+        if list(digest(piece["rows"], piece["values"])) != list(runs[0][rank]):
+            raise ValueError(
+                f"{where}: part {rank}'s rows or values do not match the checksums its run "
+                "recorded (a part of another run with the same checksums list, or changed since)"
+            )

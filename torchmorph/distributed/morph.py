@@ -1,188 +1,85 @@
-"""Sharded IDW and mesh morph (the paper's Algorithm 2) of :mod:`torchmorph.distributed`."""
+"""The sharded mesh morph of :mod:`torchmorph.distributed` (the paper's Algorithm 2 on a
+mesh partitioned across ranks).
+
+It follows the morph protocol of :class:`~torchmorph.pod.PODReducer` for its own rows
+(``weights``, ``weight_columns``, ``copied_rows()``, ``adjoint``): the transpose of the
+whole morph is the sum over ranks of the ranks' ``adjoint`` (what
+:class:`~torchmorph.distributed.ShardedPOD` computes), and ``add_fingerprint`` adds
+what the ranks must share to an agreement check.
+"""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
-from torchmorph._checks import check_vectors
-from torchmorph.idw.module import DEFAULT_COINCIDENCE_TOLERANCE, IDW, Implementation, Mode
-from torchmorph.mesh.model import TetMesh
-
-if TYPE_CHECKING:
-    from torchmorph.selection.plan import SelectionPlan
-
-from torchmorph.distributed._common import (
-    _as_rows,
-    _attach,
+from torchmorph._checks import check_positive, check_vectors
+from torchmorph.distributed._agreement import (
+    Agreement,
     _comm_device,
-    _global_tolerance,
     _group_info,
+    agree_on_rows,
+    local_rows,
+)
+from torchmorph.distributed._common import (
+    _attach,
     gather_rows,
     replicate,
     save_partitioned,
     shard_rows,
 )
+from torchmorph.distributed.idw import ShardedIDW, _check_tolerance, _local_transpose
+from torchmorph.idw.module import DEFAULT_COINCIDENCE_TOLERANCE, Implementation, Mode
+from torchmorph.mesh.tetmesh import TetMesh
+
+if TYPE_CHECKING:
+    from torchmorph.selection.plan import SelectionPlan
 
 __all__ = ["ShardedIDW", "ShardedMeshMorph"]
 
 
 # --------------------------------------------------------------------------- #
-# sharded IDW
-# --------------------------------------------------------------------------- #
-class ShardedIDW(nn.Module):
-    """IDW (the paper's eqs. 1–2) with the targets split across ranks.
-
-    Every rank holds all controls and its own targets, and builds an
-    :class:`~torchmorph.idw.IDW` over them: its rows of W, dense or matrix-free.
-    The result of a rank equals the single-process IDW's rows for its targets.
-
-    Parameters
-    ----------
-    controls : Tensor, shape (N_c, 3)
-        Control points, the same on every rank.
-    targets : Tensor, shape (n_local, 3)
-        This rank's targets (may be empty).
-    target_rows : Tensor, shape (n_local,), optional
-        Global ids of this rank's targets (for :meth:`gather`); default: ranks in
-        order, each continuing the previous rank's count.
-    power, mode, block_bytes, dense_bytes, coincidence_tolerance, implementation
-        As in :class:`~torchmorph.idw.IDW`; ``mode="auto"`` decides per rank.
-    group : ProcessGroup, optional
-        Default: the world.
-
-    Attributes
-    ----------
-    idw : IDW
-        This rank's IDW (its ``coincidence_tolerance`` is rescaled so that the
-        coincidence radius equals the single-process one, see Notes).
-    num_global_targets : int
-        Targets over all ranks.
-
-    Notes
-    -----
-    :class:`~torchmorph.idw.IDW` measures the coincidence radius relative to the
-    bounding box of its points; the constructor all-reduces the targets' global box
-    so that every rank uses the radius of the single-process module (W does not
-    depend on the box otherwise: the points are scaled by a power of two).
-    """
-
-    def __init__(
-        self,
-        controls: Tensor,
-        targets: Tensor,
-        *,
-        target_rows: Tensor | Sequence[int] | None = None,
-        power: float = 4.0,
-        mode: Mode = "auto",
-        block_bytes: int | None = None,
-        dense_bytes: int | None = None,
-        coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
-        implementation: Implementation = "auto",
-        group=None,
-    ) -> None:
-        super().__init__()
-        self.rank, self.world_size = _group_info(group)
-        self.group = group
-        if not isinstance(targets, Tensor) or not isinstance(controls, Tensor):
-            raise TypeError("controls and targets must be tensors")
-        tolerance = _global_tolerance(controls, targets, float(coincidence_tolerance), group)
-        self.idw = IDW(
-            controls,
-            targets,
-            power=power,
-            mode=mode,
-            block_bytes=block_bytes,
-            dense_bytes=dense_bytes,
-            coincidence_tolerance=tolerance,
-            implementation=implementation,
-        )
-        device = _comm_device(group, controls)
-        counts = torch.zeros(self.world_size, dtype=torch.int64, device=device)
-        counts[self.rank] = self.idw.num_targets
-        dist.all_reduce(counts, group=group)
-        counts = counts.cpu()
-        self.num_global_targets = int(counts.sum())
-        if target_rows is None:
-            start = int(counts[: self.rank].sum())
-            target_rows = torch.arange(start, start + self.idw.num_targets)
-        target_rows = _as_rows(
-            target_rows, "target_rows", self.idw.num_targets, self.num_global_targets
-        )
-        self.register_buffer("target_rows", target_rows.to(controls.device))
-
-    @property
-    def num_controls(self) -> int:
-        return self.idw.num_controls
-
-    @property
-    def num_targets(self) -> int:
-        """This rank's targets."""
-        return self.idw.num_targets
-
-    def forward(
-        self,
-        displacements: Tensor,
-        *,
-        controls: Tensor | None = None,
-        targets: Tensor | None = None,
-    ) -> Tensor:
-        """This rank's rows of ``W @ displacements``.
-
-        Parameters
-        ----------
-        displacements : Tensor, shape (N_c, 3) or (B, N_c, 3)
-            Control displacements, the same on every rank (replicated: their
-            gradient is summed over ranks).
-        controls : Tensor, shape (N_c, 3), optional
-            Moved control positions, the same on every rank (replicated).
-        targets : Tensor, shape (n_local, 3), optional
-            Moved positions of this rank's targets (local: not reduced).
-
-        Returns
-        -------
-        Tensor, shape (n_local, 3) or (B, n_local, 3)
-        """
-        displacements, controls = replicate(displacements, controls, group=self.group)
-        if self.num_targets == 0:  # no rows here (IDW's functional path needs one block)
-            out = displacements.new_zeros(*displacements.shape[:-2], 0, 3)
-        else:
-            out = self.idw(displacements, controls=controls, targets=targets)
-        return _attach(out, displacements, controls, targets)
-
-    def gather(self, local: Tensor, *, dst: int | None = 0) -> Tensor | None:
-        """The full (N_t, 3) field on ``dst`` (all ranks if None), from each rank's rows."""
-        return gather_rows(
-            local, self.target_rows, self.num_global_targets, dst=dst, group=self.group
-        )
-
-    def extra_repr(self) -> str:
-        return (
-            f"rank={self.rank}, world_size={self.world_size}, "
-            f"num_global_targets={self.num_global_targets}"
-        )
-
-
-# --------------------------------------------------------------------------- #
 # sharded mesh morph
 # --------------------------------------------------------------------------- #
-def _broadcast_ids(ids: Tensor | None, group, device: torch.device) -> Tensor:
-    """Rank 0's 1-D int64 tensor on every rank."""
+def _broadcast_selection(select: Callable[[], Tensor], group: Any, context: str) -> Tensor:
+    """The 1-D int64 tensor ``select()`` returns on rank 0, on every rank (the others do
+    not call it); a failure on rank 0 raises on every rank."""
     rank, _ = _group_info(group)
     source = dist.get_global_rank(group, 0) if group is not None else 0
-    count = torch.tensor([0 if ids is None else ids.numel()], dtype=torch.int64, device=device)
+    device = _comm_device(group, torch.empty(0))
+    ids, error = None, None
+    if rank == 0:
+        try:
+            ids = select()
+        except Exception as failure:  # noqa: BLE001  raised below, on every rank
+            error = failure
+    count = -1 if error is not None else (0 if ids is None else ids.numel())
+    count = torch.tensor([count], dtype=torch.int64, device=device)
     dist.broadcast(count, src=source, group=group)
-    buffer = (
-        ids.to(device) if rank == 0 else torch.empty(int(count), dtype=torch.int64, device=device)
-    )
+    if int(count) < 0:
+        if error is not None:
+            raise error
+        raise ValueError(
+            "plan: the selection failed on rank 0 (that rank raised the error that says "
+            f"why); every rank stops {context}"
+        )
+    if rank == 0:
+        buffer = ids.to(device)
+    else:
+        buffer = torch.empty(int(count), dtype=torch.int64, device=device)
     dist.broadcast(buffer, src=source, group=group)
     return buffer.cpu()
+
+
+def _check_mesh(mesh: Any) -> None:
+    if not isinstance(mesh, TetMesh):
+        raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
 
 
 class ShardedMeshMorph(nn.Module):
@@ -197,17 +94,20 @@ class ShardedMeshMorph(nn.Module):
     Parameters
     ----------
     mesh : TetMesh
-        The reference mesh, the same on every rank.
+        The reference mesh, the same on every rank (bit for bit: its points and cells
+        are compared by checksums).
     plan : SelectionPlan, optional
-        Control-point selection (SIDW/ESIDW); None: every boundary node.
+        Control-point selection (SIDW/ESIDW); None: every boundary node. Rank 0's
+        plan is the one used.
     owned_nodes : Tensor, shape (n_owned,), optional
-        Global ids of the nodes this rank owns (its partition); together the
-        ranks' sets must partition the mesh nodes. Default: an even share of the
-        interior nodes (where the work is) and of the boundary nodes, each a
-        contiguous slice (:func:`shard_rows`) of the sorted ids.
+        Global ids of the nodes this rank owns (its partition); given on every rank
+        or none, and together the ranks' sets must partition the mesh nodes.
+        Default: an even share of the interior nodes (where the work is) and of the
+        boundary nodes, each a contiguous slice (:func:`shard_rows`) of the sorted ids.
     power, mode, generator, block_bytes, dense_bytes, coincidence_tolerance, implementation
         As in :class:`~torchmorph.morph.MeshMorph` and :class:`~torchmorph.idw.IDW`
-        (``generator`` is used on rank 0 only).
+        (``generator`` is used on rank 0 only; ``power`` and ``coincidence_tolerance``
+        must be the same on every rank).
     group : ProcessGroup, optional
         Default: the world.
 
@@ -225,9 +125,13 @@ class ShardedMeshMorph(nn.Module):
     Raises
     ------
     ValueError
-        If ``owned_nodes`` are not integers in [0, N), or the ranks' sets do not
+        On every rank at once: if the mesh (points or cells), ``power`` or
+        ``coincidence_tolerance`` differ across ranks, ``owned_nodes`` is given on
+        some ranks only, is not distinct integers in [0, N) on a rank (that rank
+        raises its own error, the others name it), or the ranks' sets do not
         partition the nodes (the message counts the nodes owned by no rank and by
-        several); if the plan selects no control points or non-boundary nodes.
+        several); if the plan selects no control points or non-boundary nodes, or
+        fails on rank 0.
     """
 
     def __init__(
@@ -243,27 +147,43 @@ class ShardedMeshMorph(nn.Module):
         dense_bytes: int | None = None,
         coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
         implementation: Implementation = "auto",
-        group=None,
+        group: Any = None,
     ) -> None:
         super().__init__()
-        if not isinstance(mesh, TetMesh):
-            raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
         self.rank, self.world_size = _group_info(group)
         self.group = group
-        points = mesh.points.detach()
-        num_nodes = points.shape[0]
-        device = _comm_device(group, points)
+        context = "building a ShardedMeshMorph"
+        agreement = Agreement(group, context)
+        agreement.attempt("mesh", _check_mesh, mesh)
+        points = None if agreement.error is not None else mesh.points.detach()
+        cells = () if points is None else [(b.kind, b.nodes) for b in mesh.cells]
+        num_nodes = 0 if points is None else points.shape[0]
+        power = agreement.attempt("power", check_positive, power, "power")
+        tolerance = agreement.attempt(
+            "coincidence_tolerance", _check_tolerance, coincidence_tolerance
+        )
+        owned = None
+        if owned_nodes is not None:
+            owned = agreement.attempt(
+                "owned_nodes", local_rows, owned_nodes, "owned_nodes", None, num_nodes
+            )
+        agreement.same_tensor("mesh.points", points)
+        agreement.same_digest("mesh.cells", *(part for block in cells for part in block))
+        agreement.same("power", power)
+        agreement.same("coincidence_tolerance", tolerance)
+        agreement.same_presence("owned_nodes", owned_nodes is not None)
+        agreement.exchange()
+
         boundary = mesh.boundary_nodes.cpu()
         interior = mesh.interior_nodes.cpu()
-        control_nodes = None
-        if self.rank == 0:
+
+        def select() -> Tensor:
             if plan is None:
-                control_nodes = boundary
-            else:
-                control_nodes = torch.as_tensor(
-                    plan.select(mesh, generator=generator), dtype=torch.long
-                ).unique()
-        control_nodes = _broadcast_ids(control_nodes, group, device)
+                return boundary
+            chosen = plan.select(mesh, generator=generator)
+            return torch.as_tensor(chosen, dtype=torch.long).cpu().unique()
+
+        control_nodes = _broadcast_selection(select, group, context)
         if control_nodes.numel() == 0:
             raise ValueError("plan selected no control points")
         selected = torch.searchsorted(boundary, control_nodes)
@@ -272,41 +192,21 @@ class ShardedMeshMorph(nn.Module):
         ):
             raise ValueError("plan selected nodes that are not boundary nodes")
 
-        if owned_nodes is None:  # an even share of the interior (the work) and of the boundary
-            owned = (
-                torch.cat(
-                    [
-                        boundary[shard_rows(boundary.numel(), group=group)],
-                        interior[shard_rows(interior.numel(), group=group)],
-                    ]
-                )
-                .sort()
-                .values
-            )
+        if owned is None:  # an even share of the interior (the work) and of the boundary
+            mine = [
+                boundary[shard_rows(boundary.numel(), group=group)],
+                interior[shard_rows(interior.numel(), group=group)],
+            ]
+            owned = torch.cat(mine).sort().values
         else:
-            owned = torch.as_tensor(owned_nodes).detach().cpu()
-            if owned.ndim != 1 or (owned.numel() and owned.is_floating_point()):
-                raise ValueError(
-                    f"owned_nodes must be a 1-D integer tensor of node ids, got "
-                    f"shape {tuple(owned.shape)} and dtype {owned.dtype}"
-                )
-            owned = owned.long()
-            if owned.numel() and (int(owned.min()) < 0 or int(owned.max()) >= num_nodes):
-                raise ValueError(
-                    f"owned_nodes must lie in [0, {num_nodes}), got ids from "
-                    f"{int(owned.min())} to {int(owned.max())}"
-                )
-        owners = torch.zeros(num_nodes, dtype=torch.int32)
-        owners.index_add_(0, owned, torch.ones_like(owned, dtype=torch.int32))
-        owners = owners.to(device)
-        dist.all_reduce(owners, group=group)
-        owners = owners.cpu()
-        orphans, shared = int((owners == 0).sum()), int((owners > 1).sum())
-        if orphans or shared:
-            raise ValueError(
-                f"owned_nodes must partition the {num_nodes} mesh nodes across "
-                f"the ranks: {orphans} nodes are owned by no rank and {shared} by "
-                f"several"
+            agree_on_rows(
+                owned,
+                num_nodes,
+                name="owned_nodes",
+                what="mesh nodes",
+                verb="owned",
+                group=group,
+                context=context,
             )
 
         is_boundary = torch.zeros(num_nodes, dtype=torch.bool)
@@ -348,7 +248,7 @@ class ShardedMeshMorph(nn.Module):
             mode=mode,
             block_bytes=block_bytes,
             dense_bytes=dense_bytes,
-            coincidence_tolerance=coincidence_tolerance,
+            coincidence_tolerance=tolerance,
             implementation=implementation,
             group=group,
         )
@@ -371,13 +271,18 @@ class ShardedMeshMorph(nn.Module):
     def num_owned(self) -> int:
         return self.owned_nodes.shape[0]
 
+    @property
+    def dim(self) -> int:
+        """D, the mesh's dimension."""
+        return self.points.shape[1]
+
     def controls_from_boundary(self, boundary_displacement: Tensor) -> Tensor:
-        """The displacement of the selected control points, (N_sel, 3) or (B, N_sel, 3)."""
+        """The displacement of the selected control points, (N_sel, D) or (B, N_sel, D)."""
         return boundary_displacement.index_select(-2, self.selected)
 
     def _assemble(self, boundary_displacement: Tensor, interior: Tensor) -> Tensor:
         """This rank's rows: boundary values copied, interior values from ``interior``."""
-        shape = (*boundary_displacement.shape[:-2], self.num_owned, 3)
+        shape = (*boundary_displacement.shape[:-2], self.num_owned, boundary_displacement.shape[-1])
         out = boundary_displacement.new_zeros(shape)
         out = out.index_copy(
             -2, self._boundary_slots, boundary_displacement.index_select(-2, self._boundary_rows)
@@ -389,20 +294,24 @@ class ShardedMeshMorph(nn.Module):
 
         Parameters
         ----------
-        boundary_displacement : Tensor, shape (N_b, 3) or (B, N_b, 3)
+        boundary_displacement : Tensor, shape (N_b, D) or (B, N_b, D)
             Prescribed displacement of every boundary node (ordered as
             ``boundary_nodes``), the same on every rank (replicated).
-        points : Tensor, shape (N, 3), optional
+        points : Tensor, shape (N, D), optional
             Moved reference coordinates of all nodes, the same on every rank
             (replicated; shape optimisation): this rank's W rows are rebuilt
             differentiably from them.
 
         Returns
         -------
-        Tensor, shape (n_owned, 3) or (B, n_owned, 3)
+        Tensor, shape (n_owned, D) or (B, n_owned, D)
         """
         check_vectors(
-            boundary_displacement, "boundary_displacement", self.num_boundary, what="boundary nodes"
+            boundary_displacement,
+            "boundary_displacement",
+            self.num_boundary,
+            dim=self.dim,
+            what="boundary nodes",
         )
         if points is not None and (
             not isinstance(points, Tensor) or points.shape != self.points.shape
@@ -412,7 +321,7 @@ class ShardedMeshMorph(nn.Module):
         boundary_displacement, points = replicate(boundary_displacement, points, group=self.group)
         controls = self.controls_from_boundary(boundary_displacement)
         if self.idw.num_targets == 0:
-            interior = controls.new_zeros(*controls.shape[:-2], 0, 3)
+            interior = controls.new_zeros(*controls.shape[:-2], 0, self.dim)
         elif points is None:
             interior = self.idw(controls)
         else:
@@ -422,8 +331,55 @@ class ShardedMeshMorph(nn.Module):
         out = self._assemble(boundary_displacement, interior)
         return _attach(out, boundary_displacement, points)
 
+    # ---------------------------------------------------- the morph protocol, per rank
+    def copied_rows(self) -> tuple[Tensor, Tensor]:
+        """(output rows, input rows) that :meth:`forward` copies unchanged: this rank's
+        boundary nodes, as positions among its output rows and as rows of the boundary
+        displacement."""
+        return self._boundary_slots, self._boundary_rows
+
+    @property
+    def weights(self) -> Tensor | None:
+        """This rank's rows of W, (n_int_local, N_sel), in dense mode (else None):
+        ``forward(d)[:, reduced rows] = W @ d[:, weight_columns]``."""
+        return self.idw.weights
+
+    @property
+    def weight_columns(self) -> Tensor:
+        """The input rows (boundary indices) that W reads: the selected controls."""
+        return self.selected
+
+    def adjoint(self, fields: Tensor) -> Tensor:
+        """This rank's share of the transpose: fields on its nodes, (n_owned, D) or
+        (B, n_owned, D), to (N_b, D) or (B, N_b, D). Boundary rows pass through,
+        interior rows go through W_rᵀ onto the controls; summed over ranks it is the
+        transpose of the whole morph. No communication."""
+        check_vectors(fields, "fields", self.num_owned, dim=self.dim, what="nodes of this rank")
+        batch = fields if fields.ndim == 3 else fields.unsqueeze(0)
+        result = batch.new_zeros(batch.shape[0], self.num_boundary, self.dim)
+        result.index_add_(1, self._boundary_rows, batch.index_select(1, self._boundary_slots))
+        interior = _local_transpose(self.idw, batch.index_select(1, self._interior_slots))
+        result.index_add_(1, self.selected, interior)
+        return result if fields.ndim == 3 else result[0]
+
+    @property
+    def output_rows(self) -> Tensor:
+        """The global ids of this rank's output rows (``owned_nodes``)."""
+        return self.owned_nodes
+
+    @property
+    def num_global_outputs(self) -> int:
+        """Output rows over all ranks: the mesh nodes."""
+        return self.num_nodes
+
+    def add_fingerprint(self, agreement: Agreement) -> None:
+        """Add what the ranks' modules must share (points, controls, IDW settings)."""
+        agreement.same_tensor("morph.points", self.points)
+        agreement.same_tensor("morph.control_nodes", self.control_nodes)
+        self.sharded.add_fingerprint(agreement)
+
     def gather(self, local: Tensor, *, dst: int | None = 0) -> Tensor | None:
-        """The full nodal field (N, 3) or (B, N, 3) on ``dst`` (all ranks if None)."""
+        """The full nodal field (N, D) or (B, N, D) on ``dst`` (all ranks if None)."""
         return gather_rows(local, self.owned_nodes, self.num_nodes, dst=dst, group=self.group)
 
     def save(self, directory: str | os.PathLike, local: Tensor) -> Path:

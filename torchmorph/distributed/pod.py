@@ -3,40 +3,55 @@ row-sharded snapshots and the reducer built on it (the paper's Algorithm 3)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import time
+from collections.abc import Callable
+from typing import Any
 
 import torch
 import torch.distributed as dist
-from torch import Tensor, nn
+from torch import Tensor
 
-from torchmorph._checks import check_vectors
+from torchmorph._checks import check_finite, check_float_dtype
+from torchmorph.distributed._agreement import Agreement, _comm_device, _group_info
+from torchmorph.distributed._common import gather_rows
+from torchmorph.pod._base import PODBase
+from torchmorph.pod._protocol import (
+    adjoint,
+    morph_snapshots,
+    reference_tensor,
+    spread_modes,
+    training_inputs,
+)
 from torchmorph.pod.functional import (
     _num_modes_for_energy,
     _numerical_rank,
     check_energy_tolerance,
     check_num_modes,
-    projection_matrix,
 )
 
-if TYPE_CHECKING:
-    pass
-
-from torchmorph.distributed._common import (
-    _comm_device,
-    _group_info,
-)
-from torchmorph.distributed.morph import ShardedIDW, ShardedMeshMorph
+__all__ = ["ShardedPOD", "sharded_pod_basis"]
 
 
 # --------------------------------------------------------------------------- #
-# sharded POD
+# sharded POD basis
 # --------------------------------------------------------------------------- #
+def _check_snapshots(snapshots: Any) -> Tensor:
+    if not isinstance(snapshots, Tensor) or snapshots.ndim != 3 or 0 in snapshots.shape[::2]:
+        shape = (
+            tuple(snapshots.shape) if isinstance(snapshots, Tensor) else type(snapshots).__name__
+        )
+        raise ValueError(f"snapshots must have shape (n, m_local, D) with n >= 1, got {shape}")
+    check_float_dtype(snapshots, "snapshots")
+    check_finite(snapshots, "snapshots")
+    return snapshots
+
+
 def sharded_pod_basis(
     snapshots: Tensor,
     *,
     energy_tolerance: float = 1e-5,
     num_modes: int | None = None,
-    group=None,
+    group: Any = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """POD basis of snapshots whose points are split across ranks (paper eqs. 9–12).
 
@@ -55,17 +70,26 @@ def sharded_pod_basis(
 
     Parameters
     ----------
-    snapshots : Tensor, shape (n, m_local, 3)
-        This rank's points of the n snapshot fields (m_local may be 0).
+    snapshots : Tensor, shape (n, m_local, D)
+        This rank's points of the n snapshot fields (m_local may be 0); n, D and
+        the dtype are the same on every rank.
     energy_tolerance, num_modes
-        As in :func:`torchmorph.pod.pod_basis`.
+        As in :func:`torchmorph.pod.pod_basis`, the same on every rank.
 
     Returns
     -------
-    modes : Tensor, shape (N, m_local, 3)
+    modes : Tensor, shape (N, m_local, D)
         This rank's rows of the orthonormal modes (orthonormal over all ranks).
-    singular_values, energy_captured : Tensor, shape (min(n, 3M),)
+    singular_values, energy_captured : Tensor, shape (min(n, D·M),)
         As in :func:`~torchmorph.pod.pod_basis`, the same on every rank.
+
+    Raises
+    ------
+    ValueError
+        On every rank at once: snapshots malformed or not finite on a rank (that
+        rank raises its own error, the others name it), n, D, the dtype,
+        ``energy_tolerance`` or ``num_modes`` that differ across ranks, all-zero
+        snapshots, or ``num_modes`` above the snapshots' count or rank.
 
     Notes
     -----
@@ -73,36 +97,37 @@ def sharded_pod_basis(
     positive (the single-process :func:`~torchmorph.pod.pod_basis` keeps the
     SVD's arbitrary signs: compare modes up to sign).
     """
-    rank, world = _group_info(group)
-    if (
-        not isinstance(snapshots, Tensor)
-        or snapshots.ndim != 3
-        or snapshots.shape[-1] != 3
-        or snapshots.shape[0] == 0
-    ):
-        shape = (
-            tuple(snapshots.shape) if isinstance(snapshots, Tensor) else type(snapshots).__name__
-        )
-        raise ValueError(f"snapshots must have shape (n, m_local, 3) with n >= 1, got {shape}")
-    energy_tolerance = check_energy_tolerance(energy_tolerance)
-    num_modes = check_num_modes(num_modes)
-    count, num_points = snapshots.shape[0], snapshots.shape[1]
-    device = _comm_device(group, snapshots)
-    matrix = snapshots.detach().reshape(count, 3 * num_points).double().mT.to(device)
-    stats = torch.tensor(
-        [float(num_points), float(not bool(matrix.isfinite().all()))],
-        dtype=torch.float64,
-        device=device,
+    agreement = Agreement(group, "computing a sharded POD basis")
+    snapshots = agreement.attempt("snapshots", _check_snapshots, snapshots)
+    energy_tolerance = agreement.attempt(
+        "energy_tolerance", check_energy_tolerance, energy_tolerance
     )
-    dist.all_reduce(stats, group=group)
-    total_points = int(stats[0])
-    if float(stats[1]):
-        raise ValueError("snapshots must be finite; NaN or inf on at least one rank")
+    num_modes = agreement.attempt("num_modes", check_num_modes, num_modes)
+    agreement.same_tensor("snapshots", snapshots, rows_dim=1)
+    agreement.same("energy_tolerance", energy_tolerance)
+    agreement.same("num_modes", num_modes)
+    agreement.per_rank("points", 0 if snapshots is None else snapshots.shape[1])
+    points = agreement.exchange()["points"]
+    return _tsqr_basis(snapshots, int(sum(points)), energy_tolerance, num_modes, group)
 
+
+def _tsqr_basis(
+    snapshots: Tensor,
+    total_points: int,
+    energy_tolerance: float,
+    num_modes: int | None,
+    group: Any,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`sharded_pod_basis` on checked snapshots the ranks agree on (collective:
+    one all-gather of n × n triangles); ``total_points`` = Σ m_local."""
+    rank, world = _group_info(group)
+    count, num_points, dim = snapshots.shape
+    device = _comm_device(group, snapshots)
+    matrix = snapshots.detach().reshape(count, dim * num_points).double().mT.to(device)
     if matrix.shape[0] >= count:
-        q, r = torch.linalg.qr(matrix, mode="reduced")  # (3m, n), (n, n)
+        q, r = torch.linalg.qr(matrix, mode="reduced")  # (D·m, n), (n, n)
     else:
-        q, r = torch.linalg.qr(matrix, mode="complete")  # (3m, 3m), (3m, n)
+        q, r = torch.linalg.qr(matrix, mode="complete")  # (D·m, D·m), (D·m, n)
         q = torch.cat([q, q.new_zeros(q.shape[0], count - q.shape[1])], 1)
         r = torch.cat([r, r.new_zeros(count - r.shape[0], count)], 0)
     triangles = [torch.empty_like(r) for _ in range(world)]
@@ -118,9 +143,10 @@ def sharded_pod_basis(
     if total == 0.0:
         raise ValueError("snapshots are all zero: there is no displacement to reduce")
     energy_captured = torch.cumsum(singular_values.square(), 0) / total
-    singular_values = singular_values[: min(count, 3 * total_points)]
+    length = dim * total_points
+    singular_values = singular_values[: min(count, length)]
     energy_captured = energy_captured[: singular_values.shape[0]]
-    numerical_rank = _numerical_rank(singular_values, (count, 3 * total_points), snapshots.dtype)
+    numerical_rank = _numerical_rank(singular_values, (count, length), snapshots.dtype)
     if num_modes is None:
         kept = _num_modes_for_energy(singular_values.square(), energy_tolerance)
     else:
@@ -134,8 +160,8 @@ def sharded_pod_basis(
             )
         kept = num_modes
     block = left[rank * count : (rank + 1) * count, :kept]
-    columns = q @ block  # (3m, N)
-    modes = columns.mT.reshape(kept, num_points, 3).to(snapshots.device, snapshots.dtype)
+    columns = q @ block  # (D·m, N)
+    modes = columns.mT.reshape(kept, num_points, dim).to(snapshots.device, snapshots.dtype)
     return (
         modes.contiguous(),
         singular_values.to(snapshots.device, snapshots.dtype),
@@ -143,207 +169,235 @@ def sharded_pod_basis(
     )
 
 
-class ShardedPOD(nn.Module):
-    """POD-reduced morph (Algorithm 3 of the paper, ``projection`` online variant) of a
-    sharded IDW or mesh morph.
+# --------------------------------------------------------------------------- #
+# sharded POD reducer
+# --------------------------------------------------------------------------- #
+def _sum_over_ranks(
+    value: Tensor | None, failure: Exception | None, group: Any, context: str
+) -> Tensor:
+    """``value`` summed over ranks (collective: one all-reduce, with one more entry that
+    counts the ranks whose ``value`` failed; then every rank raises)."""
+    flat = torch.zeros(1, dtype=torch.float64) if value is None else value.reshape(-1)
+    flag = flat.new_tensor([0.0 if failure is None else 1.0])
+    summed = torch.cat([flat, flag]).to(_comm_device(group, flat))
+    dist.all_reduce(summed, group=group)
+    if float(summed[-1]) > 0:
+        if failure is not None:
+            raise failure
+        raise ValueError(
+            f"the morph's adjoint failed on another rank (it raised the error that says "
+            f"why); every rank stops {context}"
+        )
+    return summed[:-1].to(value.device).reshape(value.shape)
 
-    Offline (:meth:`fit`): the snapshots are morphed shard by shard, the basis comes
-    from :func:`sharded_pod_basis` (TSQR), and the online matrix ``P = Zᵀ W`` is
-    summed over ranks (each rank applies its rows of Wᵀ to its rows of the modes).
+
+class ShardedPOD(PODBase):
+    """POD-reduced morph (Algorithm 3 of the paper, ``projection`` online variant) of a
+    sharded IDW or mesh morph: each rank keeps the reduced morph of its own rows.
+
+    Offline (:meth:`fit`, every rank at once): the snapshots are morphed shard by
+    shard, the basis comes from :func:`sharded_pod_basis` (TSQR), and the online
+    matrix ``P = Zᵀ L`` is summed over ranks (each rank applies its share of the
+    transpose, the morph's ``weights`` or ``adjoint``, to its rows of the modes).
     Online (:meth:`forward`): β = P d from the replicated input, then this rank's
-    rows ``Z_r β`` — no communication.
+    rows ``Z_r β`` and the rows its morph copies — no communication, and nothing
+    but the state: a ``ShardedPOD`` restored by ``load_state_dict`` runs without
+    its morph. The state, the load rule and the online phase are those of
+    :class:`~torchmorph.pod.PODReducer` (one base, :mod:`torchmorph.pod._base`).
 
     Parameters
     ----------
     energy_tolerance, num_modes
-        As in :class:`~torchmorph.pod.PODReducer`.
+        As in :class:`~torchmorph.pod.PODReducer`; the same on every rank.
 
     Attributes
     ----------
-    modes_ : Tensor (N, n_local, 3)
-        This rank's rows of the basis.
+    modes_ : Tensor (N, n_red, D)
+        This rank's rows of the basis (its output rows ``reduced_rows_``).
     singular_values_, energy_captured_ : Tensor
         As in :class:`~torchmorph.pod.PODReducer` (the same on every rank).
-    projection_ : Tensor (N, N_sel, 3)
-        P, the same on every rank.
+    projection_ : Tensor (N, N_in, D)
+        P over every input row (zero where W reads nothing), the same on every rank.
+    copied_output_rows_, copied_input_rows_, reduced_rows_ : Tensor
+        As in :class:`~torchmorph.pod.PODReducer`, among this rank's output rows.
+    output_rows_ : Tensor (n_out,)
+        The global ids of this rank's output rows (the morph's ``output_rows``:
+        ``target_rows`` or ``owned_nodes``), for :meth:`gather`.
+    num_global_outputs_ : int
+        Output rows over all ranks.
+    rank_, world_size_ : int
+        The rank that fitted this state, and the group's size.
 
     Notes
     -----
+    The morph protocol of :class:`~torchmorph.pod.PODReducer`, per rank: ``morph(d)``
+    returns the rank's rows; ``copied_rows()``, ``weights``/``weight_columns`` and
+    ``adjoint`` describe them, and the sum of the ranks' ``adjoint`` is the
+    transpose (no communication inside them: the sum is the one all-reduce of
+    ``fit``). :class:`~torchmorph.distributed.ShardedIDW` and
+    :class:`~torchmorph.distributed.ShardedMeshMorph` follow it; their
+    ``add_fingerprint`` lets ``fit`` check that the ranks hold the same morph, and
+    their ``group`` is the group ``fit`` works in.
+
     The paper's own online variant (eq. 16) needs the pseudo-inverse of the whole W
     and is not offered here. The reduced output equals what
     :class:`~torchmorph.pod.PODReducer` (``online="projection"``) fitted to the
     single-process morph returns for the same rows (the projection does not depend
-    on the modes' signs).
+    on the modes' signs). States saved before version 2 (without the rows the
+    morph copies) cannot run without their morph and are refused: fit again.
     """
 
+    _FITTED = (*PODBase._FITTED, "num_global_outputs_", "rank_", "world_size_")
+    _INDEX_BUFFERS = (*PODBase._INDEX_BUFFERS, "output_rows_")
+    _FIT_HINT = "call fit(morph, displacements) on every rank first"
+
     def __init__(self, *, energy_tolerance: float = 1e-5, num_modes: int | None = None) -> None:
-        super().__init__()
-        self.energy_tolerance = check_energy_tolerance(energy_tolerance)
-        self.num_modes = check_num_modes(num_modes)
-        for name in self._BUFFERS:
-            self.register_buffer(name, torch.empty(0))
-        self.num_modes_: int | None = None
-        self._morph: nn.Module | None = None
+        super().__init__(energy_tolerance=energy_tolerance, num_modes=num_modes)
+        self.group: Any = None
 
-    @property
-    def is_fitted(self) -> bool:
-        return self.num_modes_ is not None
-
-    # ---------------------------------------------------------------- state
-    _BUFFERS = ("modes_", "singular_values_", "energy_captured_", "projection_")
-
-    def get_extra_state(self) -> dict:
-        return {
-            "energy_tolerance": self.energy_tolerance,
-            "num_modes": self.num_modes,
-            "num_modes_": self.num_modes_,
-        }
-
-    def set_extra_state(self, state: dict) -> None:
-        if not isinstance(state, dict) or "num_modes_" not in state:
-            raise ValueError("ShardedPOD state: the extra state is missing or not a dict")
-        for field in ("energy_tolerance", "num_modes"):
-            if state.get(field) != getattr(self, field):
+    def _check_state(self, state_dict, prefix: str) -> None:
+        extra = state_dict[prefix + "_extra_state"]
+        if isinstance(extra, dict) and "version" not in extra and "num_modes_" in extra:
+            raise ValueError(
+                f"state_dict[{prefix + '_extra_state'!r}]: a ShardedPOD state saved before "
+                "version 2 holds neither the rows its morph copies nor the input rows W "
+                "reads, so it cannot run without its morph; fit the ShardedPOD again"
+            )
+        super()._check_state(state_dict, prefix)
+        if extra.get("num_modes_") is None:
+            return
+        for name in ("num_global_outputs_", "rank_", "world_size_"):
+            value = extra.get(name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
                 raise ValueError(
-                    f"{field}: the state was saved with {field}={state.get(field)!r} but this "
-                    f"module has {field}={getattr(self, field)!r}"
+                    f"state_dict[{prefix + '_extra_state'!r}]: {name} must be an integer or "
+                    f"None, got {value!r}"
                 )
-        self.num_modes_ = state["num_modes_"]
+        rows = state_dict.get(prefix + "output_rows_")
+        if not isinstance(rows, Tensor) or rows.numel() not in (0, extra["num_outputs_"]):
+            raise ValueError(
+                f"state_dict[{prefix + 'output_rows_'!r}]: must hold the global ids of the "
+                f"{extra['num_outputs_']} output rows (or none)"
+            )
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        for name in self._BUFFERS:  # the state's shapes and dtype, on this module's device
-            incoming, current = state_dict.get(prefix + name), self._buffers.get(name)
-            if isinstance(incoming, Tensor) and current is not None:
-                self._buffers[name] = torch.empty(
-                    incoming.shape, dtype=incoming.dtype, device=current.device
-                )
-        modes, projection = (
-            state_dict.get(prefix + "modes_"),
-            state_dict.get(prefix + "projection_"),
-        )
-        extra = state_dict.get(prefix + "_extra_state")
-        if isinstance(modes, Tensor) and isinstance(projection, Tensor) and isinstance(extra, dict):
-            count = extra.get("num_modes_")
-            fitted = count is not None
-            if fitted and (modes.shape[:1] != (count,) or projection.shape[:1] != (count,)):
-                raise ValueError(
-                    f"ShardedPOD state: modes_ {tuple(modes.shape)} and projection_ "
-                    f"{tuple(projection.shape)} do not both hold num_modes_={count} modes"
-                )
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-
-    def fit(self, morph: ShardedIDW | ShardedMeshMorph, displacements: Tensor) -> ShardedPOD:
-        """Offline phase on every rank (collective: all ranks call it).
+    def fit(self, morph: Callable[[Tensor], Tensor], displacements: Tensor) -> ShardedPOD:
+        """Offline phase on every rank (collective: all ranks of ``morph.group`` call it).
 
         Parameters
         ----------
-        morph : ShardedIDW or ShardedMeshMorph
-        displacements : Tensor, shape (n_train, N_in, 3)
-            Training inputs, the same on every rank: control displacements
-            (ShardedIDW) or boundary displacements (ShardedMeshMorph).
+        morph : sharded linear map
+            A :class:`~torchmorph.distributed.ShardedIDW`,
+            :class:`~torchmorph.distributed.ShardedMeshMorph` or another map that
+            follows the protocol of the class notes; its ``group`` (default: the
+            world) is the group the ranks work in.
+        displacements : Tensor, shape (n_train, N_in, D)
+            Training inputs, the same on every rank (bit for bit): control
+            displacements (ShardedIDW) or boundary displacements (ShardedMeshMorph).
 
         Returns
         -------
         ShardedPOD
             ``self``, fitted.
+
+        Raises
+        ------
+        ValueError
+            On every rank at once: training displacements, ``energy_tolerance``,
+            ``num_modes`` or the morph (its fingerprint) that differ across ranks,
+            or a rank whose own data or morph fails (NaN snapshots on one rank, say:
+            that rank raises its own error, the others name it); all-zero
+            snapshots, or ``num_modes`` above the snapshots' count or rank.
         """
-        if isinstance(morph, ShardedMeshMorph):
-            count_in, idw = morph.num_boundary, morph.idw
-        elif isinstance(morph, ShardedIDW):
-            count_in, idw = morph.num_controls, morph.idw
-        else:
-            raise TypeError(
-                f"morph must be a ShardedIDW or a ShardedMeshMorph, got {type(morph).__name__}"
-            )
-        if (
-            not isinstance(displacements, Tensor)
-            or displacements.ndim != 3
-            or displacements.shape[1:] != (count_in, 3)
-        ):
-            shape = (
-                tuple(displacements.shape)
-                if isinstance(displacements, Tensor)
-                else type(displacements).__name__
-            )
-            raise ValueError(f"displacements must have shape (n_train, {count_in}, 3), got {shape}")
-        group = morph.group
+        group = getattr(morph, "group", None)
+        context = "fitting a ShardedPOD"
+        start = time.perf_counter()
+        agreement = Agreement(group, context)
+        agreement.attempt("morph", _check_callable, morph)
+        reference = reference_tensor(morph)
         with torch.no_grad():
-            inputs = displacements.to(idw.controls.device, idw.controls.dtype)
-            if isinstance(morph, ShardedMeshMorph):
-                inputs = morph.controls_from_boundary(inputs)
-            snapshots = idw(inputs)
-            modes, singular_values, energy = sharded_pod_basis(
-                snapshots,
-                energy_tolerance=self.energy_tolerance,
-                num_modes=self.num_modes,
-                group=group,
+            inputs = agreement.attempt(
+                "displacements", training_inputs, displacements, "displacements"
             )
-            if idw.num_targets:
-                projection = _transpose_apply(idw, modes)
-            else:
-                projection = modes.new_zeros(modes.shape[0], idw.num_controls, 3)
-            device = _comm_device(group, projection)
-            summed = projection.contiguous().to(device)
-            dist.all_reduce(summed, group=group)
-            projection = summed.to(projection.device)
-        self.modes_, self.singular_values_, self.energy_captured_ = modes, singular_values, energy
-        self.projection_ = projection
-        self.num_modes_ = int(modes.shape[0])
-        self.__dict__["_morph"] = morph
+            if inputs is not None and reference is not None:
+                inputs = inputs.to(device=reference.device, dtype=reference.dtype)
+            fitted = None
+            if inputs is not None:
+                fitted = agreement.attempt("morph(displacements)", morph_snapshots, morph, inputs)
+        agreement.same_tensor(
+            "displacements", displacements if isinstance(displacements, Tensor) else None
+        )
+        agreement.same("energy_tolerance", self.energy_tolerance)
+        agreement.same("num_modes", self.num_modes)
+        fingerprint = getattr(morph, "add_fingerprint", None)
+        if fingerprint is not None:
+            fingerprint(agreement)
+        agreement.per_rank("rows", 0 if fitted is None else fitted[0].shape[1])
+        total_rows = int(sum(agreement.exchange()["rows"]))
+        snapshots, rows, num_outputs = fitted
+        after_snapshots = time.perf_counter()
+
+        with torch.no_grad():
+            modes, singular_values, energy_captured = _tsqr_basis(
+                snapshots, total_rows, self.energy_tolerance, self.num_modes, group
+            )
+            after_svd = time.perf_counter()
+            num_inputs = inputs.shape[1]
+            share, failure = None, None
+            try:  # this rank's share of P = Zᵀ L
+                share = adjoint(
+                    morph, spread_modes(modes, rows[2], num_outputs), num_inputs, rows[2]
+                )
+            except Exception as error:  # noqa: BLE001  raised by _sum_over_ranks, on every rank
+                failure = error
+                share = modes.new_zeros(modes.shape[0], num_inputs, modes.shape[-1])
+            projection = _sum_over_ranks(share, failure, group, context)
+            after_online = time.perf_counter()
+
+        self._store_fit(
+            modes=modes,
+            singular_values=singular_values,
+            energy_captured=energy_captured,
+            copied_rows=rows,
+            num_inputs=num_inputs,
+            num_outputs=num_outputs,
+            projection=projection,
+        )
+        output_rows = getattr(morph, "output_rows", None)
+        self.output_rows_ = (
+            torch.as_tensor(output_rows).long().to(modes.device)
+            if output_rows is not None
+            else torch.empty(0, dtype=torch.int64, device=modes.device)
+        )
+        self.num_global_outputs_ = getattr(morph, "num_global_outputs", None)
+        self.rank_, self.world_size_ = _group_info(group)
+        self.group = group
+        self.offline_time_ = {
+            "snapshots": after_snapshots - start,
+            "svd": after_svd - after_snapshots,
+            "online_matrices": after_online - after_svd,
+            "total": after_online - start,
+        }
         return self
 
-    def coefficients(self, displacement: Tensor) -> Tensor:
-        """β = P d_sel, shape (N,) or (B, N), from a replicated input (no communication)."""
-        if not self.is_fitted:
-            raise RuntimeError(
-                "this ShardedPOD is not fitted yet: call fit(morph, displacements) first"
+    def gather(self, local: Tensor, *, dst: int | None = 0, group: Any = None) -> Tensor | None:
+        """The full field (N_global, D) or (B, N_global, D) on ``dst`` (all ranks if None)
+        from each rank's output (collective, :func:`gather_rows` over ``output_rows_``;
+        ``group`` defaults to the one of ``fit``, or the world after loading a state)."""
+        self._check_fitted()
+        if self.num_global_outputs_ is None:
+            raise ValueError(
+                "gather needs the global ids of the output rows: the morph given to fit "
+                "had no output_rows / num_global_outputs"
             )
-        morph = self.__dict__["_morph"]
-        if isinstance(morph, ShardedMeshMorph):
-            check_vectors(displacement, "displacement", morph.num_boundary, what="boundary nodes")
-            displacement = morph.controls_from_boundary(displacement)
-        else:
-            check_vectors(displacement, "displacement", morph.num_controls, what="control points")
-        flat = displacement.reshape(*displacement.shape[:-2], -1)
-        return flat @ self.projection_.reshape(self.num_modes_, -1).mT
-
-    def forward(self, displacement: Tensor) -> Tensor:
-        """This rank's rows of the reduced morph (what the sharded morph returns).
-
-        Parameters
-        ----------
-        displacement : Tensor, shape (N_in, 3) or (B, N_in, 3)
-
-        Returns
-        -------
-        Tensor, shape (n_local, 3) or (B, n_local, 3)
-            ShardedIDW: its targets; ShardedMeshMorph: its owned nodes (boundary
-            rows exactly ``displacement``'s).
-        """
-        beta = self.coefficients(displacement)
-        interior = (beta @ self.modes_.reshape(self.num_modes_, -1)).reshape(
-            *beta.shape[:-1], -1, 3
-        )
-        morph = self.__dict__["_morph"]
-        if isinstance(morph, ShardedMeshMorph):
-            return morph._assemble(displacement, interior)
-        return interior
-
-    def extra_repr(self) -> str:
-        return (
-            f"energy_tolerance={self.energy_tolerance:g}, num_modes={self.num_modes}, "
-            f"num_modes_={self.num_modes_}"
+        return gather_rows(
+            local,
+            self.output_rows_,
+            self.num_global_outputs_,
+            dst=dst,
+            group=self.group if group is None else group,
         )
 
 
-def _transpose_apply(idw, modes: Tensor) -> Tensor:
-    """P = Zᵀ (W ⊗ I_3) for a local IDW's rows, in the (N, N_c, 3) layout: one GEMM with a
-    stored W, else the vector-Jacobian product of the (linear) morph for all N modes in
-    one batched call (W is never formed)."""
-    weights = getattr(idw, "weights", None)
-    if isinstance(weights, Tensor):
-        return projection_matrix(modes, weights)
-    with torch.enable_grad():
-        probe = modes.new_zeros(modes.shape[0], idw.num_controls, 3, requires_grad=True)
-        (projection,) = torch.autograd.grad(idw(probe), probe, grad_outputs=modes)
-    return projection.contiguous()
+def _check_callable(morph: Any) -> None:
+    if not callable(morph):
+        raise TypeError(f"morph must be a callable linear map, got {type(morph).__name__}")
