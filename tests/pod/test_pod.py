@@ -811,3 +811,116 @@ def test_a_tampered_reducer_state_fails_to_load(cube, key, change, message):
     with pytest.raises(ValueError, match=message):
         fresh.load_state_dict(state)
     assert not fresh.is_fitted and fresh.modes_.numel() == 0
+
+
+# ------------------------------------------------------------------ fields of 2-D meshes
+
+
+def square_cloud(seed: int = 60) -> tuple[torch.Tensor, torch.Tensor]:
+    """40 controls on the unit square's sides, 70 targets inside (2-D points)."""
+    generator = torch.Generator().manual_seed(seed)
+    along = torch.rand(40, generator=generator, dtype=F64)
+    side = torch.arange(40) % 4
+    x = torch.where(
+        side == 0, along, torch.where(side == 1, 1.0, torch.where(side == 2, along, 0.0))
+    )
+    y = torch.where(side == 0, 0.0, torch.where(side == 2, 1.0, along))
+    targets = 0.05 + 0.9 * torch.rand(70, 2, generator=generator, dtype=F64)
+    return torch.stack([x, y], 1), targets
+
+
+class PlanarMorph(torch.nn.Module):
+    """A 2-D mesh morph by the protocol: the 40 boundary rows copy the inputs, the 70
+    interior rows are W d of the 14 controls every third boundary row (W of IDW)."""
+
+    def __init__(self) -> None:
+        from torchmorph.idw import idw_weights
+
+        super().__init__()
+        boundary, interior = square_cloud()
+        self.register_buffer("selected", torch.arange(0, 40, 3))
+        self.register_buffer(
+            "weights", idw_weights(controls=boundary[self.selected], targets=interior)
+        )
+
+    @property
+    def weight_columns(self) -> torch.Tensor:
+        return self.selected
+
+    def weights_matrix(self) -> torch.Tensor:
+        return self.weights
+
+    def copied_rows(self):
+        return torch.arange(40), torch.arange(40)
+
+    def forward(self, d: torch.Tensor) -> torch.Tensor:
+        interior = torch.einsum("ij,bjc->bic", self.weights, d[:, self.selected])
+        return torch.cat([d, interior], 1)
+
+
+def planar_family(mu: torch.Tensor) -> torch.Tensor:
+    """Boundary displacements of 2-D points, linear in two parameters (rank 2)."""
+    boundary, _ = square_cloud()
+    bend = torch.stack([torch.zeros(40, dtype=F64), boundary[:, 0].square()], 1)
+    stretch = torch.stack([boundary[:, 0] - 0.5, torch.zeros(40, dtype=F64)], 1)
+    return mu[..., 0, None, None] * bend + mu[..., 1, None, None] * stretch
+
+
+@pytest.mark.parametrize("online", ONLINE)
+def test_planar_morph_reduced_exactly_with_two_components(online):
+    morph = PlanarMorph()
+    reducer = PODReducer(online=online).fit(
+        morph, family=planar_family, parameters=random_parameters(6, 2, 61)
+    )
+    assert reducer.dim == 2 and reducer.num_modes_ == 2
+    assert reducer.modes_.shape == (2, 70, 2) and reducer.num_outputs == 110
+    mu = random_parameters(4, 2, 62)
+    d = planar_family(mu)
+    reduced, full = reducer(d), morph(d)
+    assert reduced.shape == (4, 110, 2)
+    assert torch.equal(reduced[:, :40], d)  # the boundary rows are copied, exactly
+    assert relative(reduced, full) < 1e-12
+    torch.testing.assert_close(reducer(d[1]), reduced[1], rtol=1e-13, atol=1e-15)
+    torch.testing.assert_close(reducer.morph_parameters(mu), reduced, rtol=0, atol=0)
+    out = torch.empty(4, 110, 2, dtype=F64)
+    assert reducer(d, out=out) is out and torch.equal(out, reduced)
+    with pytest.raises(ValueError, match=r"displacement must have shape \(40, 2\) or \(B, 40, 2\)"):
+        reducer(torch.zeros(40, 3, dtype=F64))
+    # the state alone runs the reduced morph, in a reducer fitted to 3-D points before
+    fresh = PODReducer(online=online)
+    fresh.load_state_dict(saved_state(reducer))
+    assert fresh.dim == 2 and torch.equal(fresh(d), reduced)
+
+
+def test_planar_functional_matrices_match_dense_kronecker_formulas():
+    morph = PlanarMorph()
+    weights = morph.weights
+    generator = torch.Generator().manual_seed(63)
+    modes = torch.linalg.qr(torch.randn(2 * 70, 3, generator=generator, dtype=F64))[0]
+    modes = modes.T.reshape(3, 70, 2)
+    z = modes.reshape(3, -1).T  # (2 N_int, N), component-interleaved rows
+    big = torch.kron(weights, torch.eye(2, dtype=F64))
+    projection = projection_matrix(modes, weights)
+    assert projection.shape == (3, 14, 2)
+    torch.testing.assert_close(projection.reshape(3, -1), z.T @ big, rtol=1e-12, atol=1e-13)
+    system, rhs = paper_matrices(modes, weights)
+    big_pinv = torch.linalg.pinv(big)
+    torch.testing.assert_close(rhs.reshape(3, -1), z.T @ big_pinv.T, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(system, z.T @ big_pinv.T @ big_pinv @ z, rtol=1e-9, atol=1e-10)
+    snapshots = morph(planar_family(random_parameters(5, 2, 64)))[:, 40:]
+    basis, values, _ = pod_basis(snapshots, method="svd")
+    torch.testing.assert_close(
+        values, torch.linalg.svdvals(snapshots.reshape(5, -1)), rtol=1e-12, atol=1e-13
+    )
+    assert basis.shape[1:] == (70, 2)
+
+
+def test_pod_reducer_fitted_to_a_planar_idw():
+    boundary, interior = square_cloud()
+    try:
+        idw = IDW(boundary, interior, mode="dense")
+    except ValueError as error:  # the IDW module before it took 2-D points
+        pytest.skip(f"torchmorph.idw.IDW refuses 2-D points: {error}")
+    reducer = PODReducer().fit(idw, family=planar_family, parameters=random_parameters(6, 2, 65))
+    d = planar_family(random_parameters(3, 2, 66))
+    assert reducer.dim == 2 and relative(reducer(d), idw(d)) < 1e-12
