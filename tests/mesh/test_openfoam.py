@@ -704,7 +704,7 @@ def test_labels_out_of_range_are_named(box_dir):
     ):
         read_foam_case(box_dir)
     edit(mesh_dir / "faces", "\n4(999 ", "\n4(x7 ")
-    with pytest.raises(ValueError, match="faces: an entry of the faces list is not a label"):
+    with pytest.raises(ValueError, match="polyMesh/faces: 'x7' in the faces list is not a label"):
         read_foam_case(box_dir)
 
 

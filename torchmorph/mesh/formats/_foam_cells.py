@@ -54,11 +54,11 @@ def cell_blocks(
         known |= mask
     if not known.all():
         _unknown_cell(np.flatnonzero(~known), n_faces, triangles, quads)
-    # every face padded to four vertices (a triangle repeats its first), turned inward
-    padded = np.empty((sizes.size, 4), dtype=np.int64)
-    small = sizes <= 4
-    columns = np.minimum(np.arange(4), sizes[small, None] - 1) * (np.arange(4) < sizes[small, None])
-    padded[small] = labels[offsets[:-1][small, None] + columns]
+    # every face (all are triangles or quadrilaterals now) padded to four vertices, a
+    # triangle repeating its first; turned inward where it leaves its owner
+    width = sizes[:, None]
+    padded = labels[offsets[:-1, None] + np.minimum(np.arange(4), width - 1)]
+    turned = np.where(width == 3, padded[:, [0, 2, 1, 0]], padded[:, [0, 3, 2, 1]])
     blocks = []
     for kind, mask in shapes.items():
         ids = np.flatnonzero(mask)
@@ -66,11 +66,9 @@ def cell_blocks(
             continue
         count = n_faces[ids[0]]
         slots = first[ids, None] + np.arange(count)
-        cell_faces = padded[faces[slots]]  # (M, count, 4)
         cell_faces = np.where(
-            outward[slots, None], cell_faces[..., [0, 3, 2, 1]], cell_faces[..., [0, 1, 2, 3]]
-        )
-        cell_faces = _fix_turned_triangles(cell_faces, face_size[slots])
+            outward[slots, None], turned[faces[slots]], padded[faces[slots]]
+        )  # (M, count, 4)
         connectivity = _build(kind, cell_faces, face_size[slots], ids)
         blocks.append((kind, connectivity, ids))
     return blocks
@@ -110,48 +108,39 @@ def _unknown_cell(
     )
 
 
-def _fix_turned_triangles(cell_faces: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-    """A triangle padded [a, b, c, a] and turned with [0, 3, 2, 1] reads [a, a, c, b]:
-    make it [a, c, b, a] again (first three distinct, the fourth repeating the first)."""
-    turned = (sizes == 3) & (cell_faces[..., 0] == cell_faces[..., 1])
-    cell_faces[turned] = cell_faces[turned][:, [0, 2, 3, 0]]
-    return cell_faces
-
-
 def _build(kind: str, cell_faces: np.ndarray, sizes: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """Connectivity (M, n) of cells of one kind from their inward faces (M, k, 4)."""
+    """Connectivity (M, n) of cells of one kind from their inward faces (M, k, 4).
+
+    The base is a triangle (tetrahedron, wedge) or quadrilateral (pyramid, hexahedron)
+    face; a tetrahedron or pyramid adds the one vertex off the base. A wedge or
+    hexahedron adds, for every base vertex, the vertex its edge off the base leads to:
+    each such edge is written once leaving the base in one of the inward faces."""
     rows = np.arange(ids.size)
+    corners = 4 if kind in ("pyramid", "hexahedron") else 3
+    base = cell_faces[rows, np.argmax(sizes == corners, axis=1)][:, :corners]
+    in_base = (cell_faces[..., None] == base[:, None, None, :]).any(-1)  # (M, k, 4)
     if kind in ("tetra", "pyramid"):
-        base_face = np.argmax(sizes == (3 if kind == "tetra" else 4), axis=1)
-        base = cell_faces[rows, base_face][:, : 3 if kind == "tetra" else 4]
-        candidates = cell_faces.reshape(ids.size, -1)
-        outside = ~(candidates[:, :, None] == base[:, None, :]).any(-1)
-        apex = candidates[rows, np.argmax(outside, axis=1)]
-        closed = outside.any(1) & ~(outside & (candidates != apex[:, None])).any(1)
+        off_base = cell_faces.reshape(ids.size, -1)
+        outside = ~in_base.reshape(ids.size, -1)
+        apex = off_base[rows, np.argmax(outside, axis=1)]
+        closed = outside.any(1) & ~(outside & (off_base != apex[:, None])).any(1)
         if not closed.all():
             _not_closed(kind, ids[~closed])
         connectivity = np.concatenate([base, apex[:, None]], axis=1)
     else:
-        corners = 3 if kind == "wedge" else 4
-        base_face = np.argmax(sizes == corners, axis=1)
-        base = cell_faces[rows, base_face][:, :corners]
-        ends = np.stack([cell_faces, np.roll(cell_faces, -1, axis=2)], axis=-1).reshape(
-            ids.size, -1, 2
-        )
-        in_base = (ends[..., None] == base[:, None, None, :]).any(-1)  # (M, E, 2)
-        rising = in_base[..., 0] != in_base[..., 1]
-        foot = np.where(in_base[..., 0], ends[..., 0], ends[..., 1])
-        head = np.where(in_base[..., 0], ends[..., 1], ends[..., 0])
-        tops = []
-        for corner in range(corners):
-            joins = rising & (foot == base[:, corner, None])
-            high = np.where(joins, head, -1).max(1)
-            low = np.where(joins, head, np.iinfo(np.int64).max).min(1)
-            wrong = (high < 0) | (high != low)
-            if wrong.any():
-                _not_closed(kind, ids[wrong])
-            tops.append(high)
-        connectivity = np.concatenate([base, np.stack(tops, axis=1)], axis=1)
+        leaving = in_base & ~np.roll(in_base, -1, axis=2)  # edge (v, next) leaves the base
+        closed = leaving.sum(axis=(1, 2)) == corners
+        if not closed.all():
+            _not_closed(kind, ids[~closed])
+        foot = cell_faces[leaving].reshape(ids.size, corners)
+        head = np.roll(cell_faces, -1, axis=2)[leaving].reshape(ids.size, corners)
+        position = np.argmax(foot[:, :, None] == base[:, None, :], axis=2)
+        closed = (np.sort(position, axis=1) == np.arange(corners)).all(1)
+        if not closed.all():
+            _not_closed(kind, ids[~closed])
+        top = np.empty_like(base)
+        top[rows[:, None], position] = head
+        connectivity = np.concatenate([base, top], axis=1)
     distinct = np.sort(connectivity, axis=1)
     repeated = (distinct[:, 1:] == distinct[:, :-1]).any(1)
     if repeated.any():

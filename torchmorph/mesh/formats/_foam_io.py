@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import gzip
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,6 +37,11 @@ _TOKEN = re.compile(rb'"(?:[^"\\]|\\.)*"|[{}();\[\]]|(?:[^\s{}();"/\[\]]|/(?![/*
 _COUNT = re.compile(rb"\d+")
 #: The end of a list of parenthesised entries: the last entry's ")" and the list's own.
 _LIST_END = re.compile(rb"\)\s*\)")
+#: Which bytes separate tokens: white space, and white space or parentheses.
+_WHITE = np.zeros(256, dtype=bool)
+_WHITE[list(b" \t\n\r\f\v")] = True
+_WHITE_OR_PARENTHESIS = _WHITE.copy()
+_WHITE_OR_PARENTHESIS[list(b"()")] = True
 #: ``gzip``'s magic number.
 _GZIP_MAGIC = b"\x1f\x8b"
 
@@ -388,13 +394,48 @@ def _strip_comments(text: bytes) -> bytes:
     return re.sub(rb"//[^\n]*|/\*.*?\*/", b" ", text, flags=re.S) if b"/" in text else text
 
 
+def _token_starts(text: bytes, separators: np.ndarray) -> np.ndarray:
+    """Where the tokens of ``text`` start, tokens being separated by the bytes that
+    ``separators`` marks (a table of 256 booleans)."""
+    apart = separators[np.frombuffer(text, dtype=np.uint8)]
+    return np.flatnonzero(~apart & np.concatenate([[True], apart[:-1]]))
+
+
+def _numbers(
+    file: FoamFile, text: bytes, dtype: type, what: str, expected: int | None = None
+) -> np.ndarray:
+    """Every white-space-separated token of ``text`` as a number of ``dtype``, parsed in C
+    by ``np.fromstring``. A token that is not a number raises; so does a count other than
+    ``expected`` (the tokens are counted when no count is expected, to be sure none was
+    skipped)."""
+    if not text.strip():
+        values = np.zeros(0, dtype=dtype)
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # older numpy warned, stopped
+            try:
+                values = np.fromstring(text, dtype=dtype, sep=" ")
+            except ValueError:
+                values = None
+    if values is None or values.size != (
+        expected if expected is not None else _token_starts(text, _WHITE).size
+    ):
+        kind = "label" if dtype is np.int64 else "number"
+        tokens = text.split()
+        for token in tokens:
+            try:
+                int(token) if dtype is np.int64 else float(token)
+            except ValueError:
+                raise file.fail(
+                    f"{token.decode('latin-1')!r} in the {what} list is not a {kind}"
+                ) from None
+        if values is None or values.size != len(tokens):
+            raise file.fail(f"the {what} list holds something that is not a {kind}")
+    return values
+
+
 def _labels(file: FoamFile, text: bytes, what: str, count: int) -> np.ndarray:
-    tokens = _strip_comments(text).split()
-    try:
-        labels = np.array(tokens, dtype=np.int64)
-    except ValueError:
-        bad = next(t for t in tokens if not t.lstrip(b"-").isdigit())
-        raise file.fail(f"{bad.decode('latin-1')!r} in the {what} list is not a label") from None
+    labels = _numbers(file, _strip_comments(text), np.int64, what, count if count >= 0 else None)
     if count >= 0 and labels.size != count:
         raise file.fail(f"the {what} list says {count} entries, it holds {labels.size}")
     return labels
@@ -405,52 +446,54 @@ def _vectors(file: FoamFile, text: bytes, what: str, count: int) -> np.ndarray:
     entries = text.count(b"(")
     if entries != text.count(b")"):
         raise file.fail(f"unbalanced parentheses in the {what} list")
-    tokens = text.replace(b"(", b" ").replace(b")", b" ").split()
-    if len(tokens) != 3 * entries:
+    text = text.replace(b"(", b" ").replace(b")", b" ")
+    numbers = _numbers(file, text, np.float64, what, 3 * entries)
+    if numbers.size != 3 * entries:
         raise file.fail(
-            f"{entries} entries of the {what} list hold {len(tokens)} numbers, not 3 each"
+            f"{entries} entries of the {what} list hold {numbers.size} numbers, not 3 each"
         )
     if count >= 0 and entries != count:
         raise file.fail(f"the {what} list says {count} entries, it holds {entries}")
-    try:
-        return np.array(tokens, dtype=np.float64).reshape(entries, 3)
-    except ValueError:
-        raise file.fail(f"an entry of the {what} list is not a number") from None
+    return numbers.reshape(entries, 3)
 
 
 def _face_entries(file: FoamFile, text: bytes, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Faces written ``n(a b ...)``: offsets (F + 1,) and labels (L,)."""
-    text = _strip_comments(text).replace(b"(", b" ( ").replace(b")", b" ) ")
-    tokens = np.array(text.split())
-    if tokens.size == 0:
-        faces = 0
+    """Faces written ``n(a b ...)``: offsets (F + 1,) and labels (L,).
+
+    The parentheses are found in the bytes and the tokens counted between them, so
+    that every face's size is checked against what it lists without a loop."""
+    text = _strip_comments(text)
+    data = np.frombuffer(text, dtype=np.uint8)
+    opens = np.flatnonzero(data == ord("("))
+    closes = np.flatnonzero(data == ord(")"))
+    faces = opens.size
+    if faces == 0 and closes.size == 0 and not text.strip():
         offsets, labels = np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64)
     else:
-        opens = np.flatnonzero(tokens == b"(")
-        closes = np.flatnonzero(tokens == b")")
-        faces = opens.size
+        starts = _token_starts(text, _WHITE_OR_PARENTHESIS)
+        before_open = np.searchsorted(starts, opens)  # tokens before each "("
+        before_close = np.searchsorted(starts, closes)
+        previous_close = np.concatenate([[0], before_close[:-1]])
         if (
             closes.size != faces
             or faces == 0
-            or opens[0] != 1
-            or np.any(opens[1:] != closes[:-1] + 2)
-            or closes[-1] != tokens.size - 1
+            or np.any(closes < opens)
+            or np.any(opens[1:] < closes[:-1])
+            or np.any(before_open - previous_close != 1)  # one size before each "("
+            or before_close[-1] != starts.size  # nothing after the last ")"
         ):
             raise file.fail("the faces list's entries are not of the form n(a b c ...)")
-        is_label = np.ones(tokens.size, dtype=bool)
-        is_label[opens] = is_label[closes] = is_label[opens - 1] = False
-        try:
-            sizes = tokens[opens - 1].astype(np.int64)
-            labels = tokens[is_label].astype(np.int64)
-        except ValueError:
-            raise file.fail("an entry of the faces list is not a label") from None
-        bad = np.flatnonzero(sizes != closes - opens - 1)
+        listed = before_close - before_open
+        text = text.replace(b"(", b" ").replace(b")", b" ")
+        tokens = _numbers(file, text, np.int64, "faces", starts.size)
+        sizes = tokens[before_open - 1]
+        bad = np.flatnonzero(sizes != listed)
         if bad.size:
             face = int(bad[0])
-            raise file.fail(
-                f"face {face} says {sizes[face]} vertices, it lists "
-                f"{closes[face] - opens[face] - 1}"
-            )
+            raise file.fail(f"face {face} says {sizes[face]} vertices, it lists {listed[face]}")
+        is_label = np.ones(tokens.size, dtype=bool)
+        is_label[before_open - 1] = False
+        labels = tokens[is_label]
         offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     if count >= 0 and faces != count:
         raise file.fail(f"the faces list says {count} entries, it holds {faces}")
