@@ -247,6 +247,8 @@ def test_mixed_cells_from_gmshtofoam_match_checkmesh_and_the_cells_given(tmp_pat
     np.testing.assert_allclose(total, 3.0, rtol=1e-12)
     np.testing.assert_allclose(total, checkmesh_volume(log), rtol=1e-12)
     assert case.patch("walls").entries == {"physicalType": "patch"}
+    assert [(kind, len(block)) for kind, block in mesh.face_sets["outlet"]] == [("triangle", 2)]
+    assert [(kind, len(block)) for kind, block in mesh.face_sets["inlet"]] == [("quad", 1)]
 
 
 # -- file formats -------------------------------------------------------------------
@@ -412,6 +414,10 @@ def test_write_points_checks_its_arguments(box_dir, tmp_path):
         write_foam_points(case, case.points, out_case=box_dir / "copy")
     with pytest.raises(TypeError, match="case: expected a FoamCase"):
         write_foam_points(str(box_dir), case.points)
+    with pytest.raises(KeyError, match="name: no patch 'inlet'; the patches are 'zmin', 'ymin'"):
+        case.patch("inlet")
+    # the polyMesh directory of a case reads as the case
+    assert read_foam_case(box_dir / "constant" / "polyMesh").root == box_dir
     # the same case as out_case writes in place; an empty directory is filled
     write_foam_points(case, case.points, out_case=box_dir)
     (tmp_path / "empty").mkdir()

@@ -90,11 +90,11 @@ class FoamPatch:
     n_faces: int
     start_face: int
     in_groups: tuple[str, ...] = ()
-    entries: dict[str, str] = field(default_factory=dict)
+    entries: dict[str, str] = field(default_factory=dict, hash=False)
     text: str = ""
 
 
-@dataclass
+@dataclass(eq=False)
 class FoamCase:
     """An OpenFOAM mesh as read by :func:`read_foam_case`.
 
@@ -311,8 +311,10 @@ def write_foam_points(
     they were, as ``points.gz`` when it was gzipped); ``faces``, ``owner``,
     ``neighbour``, ``boundary`` and every other file stay byte for byte. The case's
     time directories are not touched: fields in ``0/`` still fit the mesh, which has
-    the same cells and faces. An ASCII list is written with 17 significant digits, as
-    OpenFOAM writes it with ``writePrecision 17``.
+    the same cells and faces; but a ``polyMesh`` of a moving-mesh run in a time
+    directory takes precedence over ``constant/polyMesh`` from that time on. An ASCII
+    list is written with 17 significant digits, as OpenFOAM writes it with
+    ``writePrecision 17``.
     """
     if not isinstance(case, FoamCase):
         raise TypeError(f"case: expected a FoamCase, got {type(case).__name__}")
@@ -341,7 +343,7 @@ def write_foam_points(
     return target
 
 
-@dataclass
+@dataclass(eq=False)
 class Pseudo2D:
     """A one-cell-thick case with ``empty`` patches front and back, seen in 2-D.
 
@@ -450,15 +452,15 @@ def pseudo_2d(case: FoamCase, *, tolerance: float = 1e-6) -> Pseudo2D | None:
         return None
     offsets, labels = case.face_offsets, case.face_labels
     normals = newell_normals(points, offsets, labels, faces)
-    axis = int(np.argmax(np.abs(normals).sum(axis=0)))
+    # the empty direction as OpenFOAM finds it: the sum of the faces' |area vectors|
+    direction = np.abs(normals).sum(axis=0)
+    direction = direction / max(float(np.linalg.norm(direction)), np.finfo(float).tiny)
+    axis = int(np.argmax(direction))
     in_plane = ((axis + 1) % 3, (axis + 2) % 3)
-    lengths = np.linalg.norm(normals, axis=1)
-    askew = np.abs(normals[:, list(in_plane)]).max(axis=1) > 1e-6 * lengths
-    if askew.any() or not (lengths > 0).all():
-        face = int(faces[np.argmax(askew | ~(lengths > 0))])
+    if direction[list(in_plane)].max() > 1e-6:
         raise ValueError(
-            f"case: the empty patches' faces are not normal to a coordinate axis (face "
-            f"{face} has the normal {tuple(normals[faces == face][0].round(12))})"
+            "case: the empty patches' faces are not normal to a coordinate axis (their mean "
+            f"direction is {tuple(float(f'{c:.6g}') for c in direction)})"
         )
     used = np.unique(face_points(offsets, labels, faces))
     low, high = points[used, axis].min(), points[used, axis].max()
