@@ -147,6 +147,7 @@ def _equivalence(rank: int, outdir: str, results: dict) -> None:
         ShardedPOD,
         gather_rows,
         save_partitioned,
+        sharded_pod_basis,
     )
 
     controls, targets, displacements, weights = idw_data()
@@ -177,6 +178,8 @@ def _equivalence(rank: int, outdir: str, results: dict) -> None:
                 results[f"pod/{split}/projection"] = pod.projection_
                 results[f"pod/{split}/state"] = pod.state_dict()
                 results[f"pod/{split}/gathered"] = pod.gather(pod(displacements))
+                snapshots = sharded(training(controls))
+                results[f"basis/{split}"] = sharded_pod_basis(snapshots, num_modes=4)
 
     mesh, boundary, node_weights = mesh_data()
     for layout in ("default", "interleaved", "empty"):
@@ -229,6 +232,7 @@ def _mismatches(rank: int, outdir: str, results: dict) -> None:
         ShardedPOD,
         gather_rows,
         save_partitioned,
+        sharded_pod_basis,
     )
 
     controls, targets, _, _ = idw_data()
@@ -280,6 +284,7 @@ def _mismatches(rank: int, outdir: str, results: dict) -> None:
     cases["pod_num_modes"] = lambda: ShardedPOD(num_modes=3 + other).fit(sharded, train)
     cases["pod_inf"] = lambda: ShardedPOD(num_modes=3).fit(sharded, with_nan)
     morph = ShardedMeshMorph(mesh, mode="dense")
+    cases["basis_dim"] = lambda: sharded_pod_basis(torch.ones(4, 3 - rank, 2 + other))
     cases["pod_mesh_points_moved"] = lambda: ShardedPOD(num_modes=3).fit(
         _moved_on_rank_one(morph, other), mesh_training(boundary)
     )

@@ -63,11 +63,12 @@ SHAPE_SLOTS = 4
 """Dimensions a tensor record holds (further ones are folded into the last)."""
 
 CHECKSUM_BLOCK = 1 << 20
-"""16-bit words summed per step: bounds the temporaries (8 MiB of int64) and keeps
-every block sum below 2**52."""
+"""16-bit words per block: each block's weighted sums stay below 2**51, so float64
+products and sums are exact integers in any order (BLAS, threads, devices)."""
 
 _PRIMES = (65521, 65519)
 _MULTIPLIERS = (40503, 52711)
+_BLOCK_FACTORS = (1_000_003, 999_983)
 _MODULUS = 1 << 48
 
 
@@ -94,26 +95,34 @@ def tensor_checksums(value: Tensor) -> tuple[int, int]:
     """Two checksums of ``value``'s bits, each in [0, 2**48): sums of its 16-bit words
     (bytes for one-byte dtypes) times weights that depend on the word's position.
 
-    Exact integer arithmetic, so the result is the same on any device, dtype layout
-    and thread count; a value moved, swapped or changed in any bit changes both
-    (barring a crafted collision). -0.0 is counted as 0.0.
+    The sums are exact integers (one float64 matrix-vector product per block of
+    :data:`CHECKSUM_BLOCK` words, every partial sum an integer below 2**53), so the
+    result is the same on any device and thread count; a value moved, swapped or
+    changed in any bit changes both (barring a crafted collision). -0.0 counts as 0.0.
     """
     flat = value.detach().reshape(-1)
     if flat.is_floating_point() or flat.is_complex():
         flat = flat + 0  # -0.0 + 0 = +0.0
     flat = flat.contiguous()
     words = flat.view(torch.int16) if flat.element_size() >= 2 else flat.view(torch.uint8)
-    totals = [torch.zeros((), dtype=torch.int64, device=flat.device) for _ in _PRIMES]
-    for start in range(0, words.numel(), CHECKSUM_BLOCK):
-        block = words[start : start + CHECKSUM_BLOCK].long() & 0xFFFF
-        position = torch.arange(
-            start, start + block.numel(), dtype=torch.int64, device=block.device
-        )
-        for index, (prime, multiplier) in enumerate(zip(_PRIMES, _MULTIPLIERS, strict=True)):
-            weights = (position * multiplier) % prime + 1
-            totals[index] = (totals[index] + (block * weights).sum()) % _MODULUS
-    first, second = torch.stack(totals).tolist()
-    return int(first), int(second)
+    length = min(words.numel(), CHECKSUM_BLOCK)
+    position = torch.arange(length, dtype=torch.int64, device=words.device)
+    weights = torch.stack(
+        [
+            (position * multiplier) % prime + 1
+            for prime, multiplier in zip(_PRIMES, _MULTIPLIERS, strict=True)
+        ],
+        1,
+    ).double()  # (length, 2), entries below 2**16
+    sums = [
+        words[start : start + length].double() @ weights[: min(length, words.numel() - start)]
+        for start in range(0, words.numel(), length or 1)
+    ]
+    totals = [0, 0]
+    for block, pair in enumerate(torch.stack(sums).tolist() if sums else []):
+        for index, (factor, part) in enumerate(zip(_BLOCK_FACTORS, pair, strict=True)):
+            totals[index] = (totals[index] + (block * factor + 1) * int(part)) % _MODULUS
+    return totals[0], totals[1]
 
 
 def digest(*tensors: Tensor | str) -> tuple[int, int]:
