@@ -27,10 +27,14 @@ HEADER = """FoamFile
 """
 
 
-def needs_openfoam() -> None:
-    """Skip the calling test unless OpenFOAM's environment and blockMesh are installed."""
-    if not BASHRC.is_file() or shutil.which("blockMesh") is None:
-        pytest.skip("OpenFOAM (its bashrc and blockMesh) is not installed")
+def needs_openfoam(*tools: str) -> None:
+    """Skip the calling test unless OpenFOAM's environment, blockMesh, checkMesh and
+    ``tools`` are installed."""
+    if not BASHRC.is_file():
+        pytest.skip(f"OpenFOAM is not installed (no {BASHRC})")
+    for tool in ("blockMesh", "checkMesh", *tools):
+        if shutil.which(tool) is None:
+            pytest.skip(f"OpenFOAM's {tool} is not installed")
 
 
 def foam(command: str, case: Path, *, check: bool = True) -> str:

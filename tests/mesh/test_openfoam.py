@@ -1,7 +1,8 @@
 """OpenFOAM polyMesh cases: reading (ASCII, binary, gzipped), cells and patches, points
 written back, pseudo-2-D cases. References: blockMesh's and checkMesh's counts,
 gmshToFoam's conversion of known cells, analytic volumes, byte comparisons, and
-polyMesh files written by hand (those tests need no OpenFOAM)."""
+polyMesh files written by hand (those tests need no OpenFOAM). Every test that runs
+OpenFOAM's tools is marked slow (they spawn processes), and skipped without them."""
 
 from __future__ import annotations
 
@@ -115,6 +116,7 @@ def flat_box(tmp_path: Path, counts=(4, 3, 1)) -> FoamCase:
 # -- reading blockMesh cases --------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_channel_counts_and_patches_match_blockmesh(channel_case):
     case_dir, log = channel_case
     case = read_foam_case(case_dir)
@@ -142,6 +144,7 @@ def test_channel_counts_and_patches_match_blockmesh(channel_case):
     assert case.root == case_dir and case.points_file == case_dir / "constant/polyMesh/points"
 
 
+@pytest.mark.slow
 def test_channel_cells_are_positive_hexahedra_filling_the_box(channel_case):
     mesh = read_foam_case(channel_case[0]).to_mesh_data()
     assert [kind for kind, _ in mesh.cells] == ["hexahedron"]
@@ -156,6 +159,7 @@ def test_channel_cells_are_positive_hexahedra_filling_the_box(channel_case):
     np.testing.assert_array_equal(mesh.cell_data["foam_cell"][0], np.arange(120))
 
 
+@pytest.mark.slow
 def test_channel_face_sets_lie_on_their_planes_facing_out(channel_case):
     mesh = read_foam_case(channel_case[0]).to_mesh_data()
     planes = {
@@ -180,6 +184,7 @@ def test_channel_face_sets_lie_on_their_planes_facing_out(channel_case):
     }
 
 
+@pytest.mark.slow
 def test_axisymmetric_wedge_case_has_prisms_on_the_axis(tmp_path):
     needs_openfoam()
     case_dir = tmp_path / "wedge"
@@ -215,8 +220,9 @@ def test_axisymmetric_wedge_case_has_prisms_on_the_axis(tmp_path):
     assert [kind for kind, _ in mesh.face_sets["inlet"]] == ["triangle", "quad"]
 
 
+@pytest.mark.slow
 def test_mixed_cells_from_gmshtofoam_match_checkmesh_and_the_cells_given(tmp_path):
-    needs_openfoam()
+    needs_openfoam("gmshToFoam")
     case_dir = tmp_path / "mixed"
     points, cells = mixed_cells()
     gmsh_case(case_dir, points, cells)
@@ -341,6 +347,7 @@ def test_ascii_syntax_variants_read_alike(tmp_path):
 # -- writing points -----------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_unchanged_round_trip_leaves_every_file_byte_identical(channel_case, tmp_path):
     case = read_foam_case(channel_case[0])
     out = tmp_path / "copy"
@@ -476,6 +483,7 @@ def test_moved_binary_and_gzipped_cases_pass_checkmesh(channel_case, tmp_path):
 # -- pseudo-2-D cases ---------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_pseudo_2d_channel(tmp_path):
     needs_openfoam()
     case_dir = tmp_path / "flat"
@@ -513,6 +521,7 @@ def test_pseudo_2d_channel(tmp_path):
     assert mesh.groups == {"walls": ["lower", "upper"], "wall": ["lower", "upper"]}
 
 
+@pytest.mark.slow
 def test_pseudo_2d_triangles_and_quads_from_a_collapsed_block(tmp_path):
     needs_openfoam()
     case_dir = tmp_path / "slab"
