@@ -234,6 +234,7 @@ def _mismatches(rank: int, outdir: str, results: dict) -> None:
         save_partitioned,
         sharded_pod_basis,
     )
+    from torchmorph.pod import PODReducer
 
     controls, targets, _, _ = idw_data()
     mine = targets[:23] if rank == 0 else targets[23:]
@@ -284,6 +285,7 @@ def _mismatches(rank: int, outdir: str, results: dict) -> None:
     cases["pod_num_modes"] = lambda: ShardedPOD(num_modes=3 + other).fit(sharded, train)
     cases["pod_inf"] = lambda: ShardedPOD(num_modes=3).fit(sharded, with_nan)
     morph = ShardedMeshMorph(mesh, mode="dense")
+    cases["pod_reducer_on_a_shard"] = lambda: PODReducer(num_modes=3).fit(sharded, train)
     cases["basis_dim"] = lambda: sharded_pod_basis(torch.ones(4, 3 - rank, 2 + other))
     cases["pod_mesh_points_moved"] = lambda: ShardedPOD(num_modes=3).fit(
         _moved_on_rank_one(morph, other), mesh_training(boundary)

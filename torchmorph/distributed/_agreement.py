@@ -267,10 +267,11 @@ class Agreement:
             if self.error is not None:
                 raise self.error
             name = self._names.get(int(codes[failed[0]]), "a check")
-            ranks = "rank " + ", ".join(map(str, failed)) if len(failed) < 4 else "ranks"
+            listed = ", ".join(map(str, failed[:4])) + (", ..." if len(failed) > 4 else "")
+            where = f"rank {listed} (that rank" if len(failed) == 1 else f"ranks {listed} (each"
             raise ValueError(
-                f"{name} failed its check on {ranks} (that rank raised the error that says "
-                f"why); every rank stops {self.context}"
+                f"{name} failed its check on {where} raised the error that says why); "
+                f"every rank stops {self.context}"
             )
 
         differences, shared, offset = [], {}, 0

@@ -218,8 +218,10 @@ class PODReducer(PODBase):
             For missing / conflicting training data, wrong shapes, NaN or inf in the
             training data, a morph output that is not (n_train, N_out, D), all-zero
             snapshots, ``num_modes`` larger than the number or rank of the
-            snapshots, or ``online="paper"`` with a morph without
-            ``weights_matrix()``.
+            snapshots, ``online="paper"`` with a morph without
+            ``weights_matrix()``, or a morph that returns one rank's rows of a
+            sharded map (its ``num_global_outputs`` exceeds its rows: its POD needs
+            every rank, :class:`~torchmorph.distributed.ShardedPOD`).
         """
         if not callable(morph):
             raise TypeError(f"morph must be a callable linear map, got {type(morph).__name__}")
@@ -233,6 +235,13 @@ class PODReducer(PODBase):
 
             # (b) snapshots: one batched application of the morph
             snapshots, rows, num_outputs = morph_snapshots(morph, inputs)
+            whole = getattr(morph, "num_global_outputs", num_outputs)
+            if whole != num_outputs:
+                raise ValueError(
+                    f"morph returns {num_outputs} of the {whole} rows of a sharded map: a "
+                    "POD of one rank's rows is not the map's; fit a "
+                    "torchmorph.distributed.ShardedPOD on every rank instead"
+                )
             after_snapshots = time.perf_counter()
 
             # (c)-(d) POD basis
