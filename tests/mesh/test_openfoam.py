@@ -316,6 +316,10 @@ def test_hand_written_formats_read_alike(tmp_path, options):
         options.get("scalar_bits", 64) // 8,
     )
     assert form.byte_order == options.get("byte_order", "<")
+    # the boundary stays ASCII; inGroups written `List<word> 1(group_patch)`
+    assert case.patch("xmin").in_groups == ("group_patch",)
+    assert case.patch("xmin").entries == {}
+    assert case.patches == reference.patches
 
 
 def test_ascii_syntax_variants_read_alike(tmp_path):

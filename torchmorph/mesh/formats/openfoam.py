@@ -16,13 +16,24 @@ of the faces after the internal ones. A face is oriented out of its owner.
 * :func:`pseudo_2d` sees a one-cell-thick case with ``empty`` patches front and back
   (a 2-D study) as a 2-D mesh, and lifts a 2-D displacement back to both layers.
 
+Examples
+--------
+Morph a 2-D airfoil study and hand it back to the solver::
+
+    case = read_foam_case("airfoil")
+    flat = pseudo_2d(case)                 # flat.mesh.points: (n, 2)
+    moved = ...                            # the morphed 2-D points, (n, 2) (an IDW morph)
+    displacement = flat.lift(moved - flat.mesh.points)
+    write_foam_points(case, case.points + displacement, out_case="airfoil-morphed")
+
 Notes
 -----
 Only the mesh in ``constant/polyMesh`` (or the polyMesh directory given) is read: zones
 (``cellZones`` ...), sets and fields are left alone, and copied unchanged. Decomposed
-cases (``processor*`` directories) are not read. A polyhedral mesh (snappyHexMesh's
-split hexahedra, polyDualMesh) is read by :func:`read_foam_case` and its points can be
-written back, but :meth:`FoamCase.to_mesh_data` refuses it.
+cases (``processor*`` directories) are neither read nor written: decompose the case
+again (``decomposePar -force``) after writing new points. A polyhedral mesh
+(snappyHexMesh's split hexahedra, polyDualMesh) is read by :func:`read_foam_case` and
+its points can be written back, but :meth:`FoamCase.to_mesh_data` refuses it.
 """
 
 from __future__ import annotations
@@ -59,7 +70,15 @@ from torchmorph.mesh.formats._foam_io import (
     read_points,
 )
 
-__all__ = ["FoamCase", "FoamPatch", "Pseudo2D", "pseudo_2d", "read_foam_case", "write_foam_points"]
+__all__ = [
+    "FoamCase",
+    "FoamFormat",
+    "FoamPatch",
+    "Pseudo2D",
+    "pseudo_2d",
+    "read_foam_case",
+    "write_foam_points",
+]
 
 #: The mesh files :func:`read_foam_case` reads (each may be gzipped).
 MESH_FILES = ("points", "faces", "owner", "neighbour", "boundary")
