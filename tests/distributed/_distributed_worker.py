@@ -321,6 +321,10 @@ def _planar(rank: int, results: dict) -> None:
     pod = ShardedPOD(num_modes=3).fit(PlanarRows(weights, rows), train)
     results["planar/pod_forward"] = pod(probe)
     results["planar/pod_gathered"] = pod.gather(pod(probe))
+    overlapping = PlanarRows(weights, PLANAR_SPLIT[0])  # rank 0's rows on both ranks
+    results["error/pod_output_rows"] = _message(
+        lambda: ShardedPOD(num_modes=3).fit(overlapping, train)
+    )
     local = targets[rank::2]
     try:
         sharded = ShardedIDW(controls, local, target_rows=torch.arange(rank, 24, 2))

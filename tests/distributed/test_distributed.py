@@ -279,6 +279,10 @@ DISAGREEMENTS = {
         "instead"
         for rows in (23, 8)
     ),
+    "pod_output_rows": (
+        "ValueError: morph.output_rows must partition the 26 output rows across the ranks: "
+        "13 are provided by no rank and 13 by several"
+    ),
     "basis_dim": (
         "ValueError: snapshots has shape (4, n, 2) on some ranks and (4, n, 3) on others; "
         "every rank stops computing a sharded POD basis"

@@ -12,7 +12,13 @@ import torch.distributed as dist
 from torch import Tensor
 
 from torchmorph._checks import check_finite, check_float_dtype
-from torchmorph.distributed._agreement import Agreement, _comm_device, _group_info
+from torchmorph.distributed._agreement import (
+    Agreement,
+    _comm_device,
+    _group_info,
+    agree_on_rows,
+    local_rows,
+)
 from torchmorph.distributed._common import gather_rows
 from torchmorph.pod._base import PODBase
 from torchmorph.pod._protocol import (
@@ -304,7 +310,8 @@ class ShardedPOD(PODBase):
         ValueError
             On every rank at once: training displacements, ``energy_tolerance``,
             ``num_modes`` or the morph (its fingerprint) that differ across ranks,
-            or a rank whose own data or morph fails (NaN snapshots on one rank, say:
+            output rows (``morph.output_rows``) that do not partition the
+            ``morph.num_global_outputs`` rows, or a rank whose own data or morph fails (NaN snapshots on one rank, say:
             that rank raises its own error, the others name it); all-zero
             snapshots, or ``num_modes`` above the snapshots' count or rank.
         """
@@ -331,8 +338,31 @@ class ShardedPOD(PODBase):
         fingerprint = getattr(morph, "add_fingerprint", None)
         if fingerprint is not None:
             fingerprint(agreement)
+        # the global ids of the ranks' rows (for gather) must partition the map's rows
+        total = getattr(morph, "num_global_outputs", None)
+        output_rows = None
+        if total is not None:
+            output_rows = agreement.attempt(
+                "morph.output_rows",
+                local_rows,
+                getattr(morph, "output_rows", None),
+                "morph.output_rows",
+                None if fitted is None else fitted[2],
+                total,
+            )
+        agreement.same_presence("morph.num_global_outputs", total is not None)
+        agreement.same("morph.num_global_outputs", total)
         agreement.per_rank("rows", 0 if fitted is None else fitted[0].shape[1])
         total_rows = int(sum(agreement.exchange()["rows"]))
+        if total is not None:
+            agree_on_rows(
+                output_rows,
+                total,
+                name="morph.output_rows",
+                what="output rows",
+                group=group,
+                context=context,
+            )
         snapshots, rows, num_outputs = fitted
         after_snapshots = time.perf_counter()
 
@@ -362,13 +392,10 @@ class ShardedPOD(PODBase):
             num_outputs=num_outputs,
             projection=projection,
         )
-        output_rows = getattr(morph, "output_rows", None)
-        self.output_rows_ = (
-            torch.as_tensor(output_rows).long().to(modes.device)
-            if output_rows is not None
-            else torch.empty(0, dtype=torch.int64, device=modes.device)
-        )
-        self.num_global_outputs_ = getattr(morph, "num_global_outputs", None)
+        if output_rows is None:
+            output_rows = torch.empty(0, dtype=torch.int64)
+        self.output_rows_ = output_rows.to(modes.device)
+        self.num_global_outputs_ = total
         self.rank_, self.world_size_ = _group_info(group)
         self.group = group
         self.offline_time_ = {
