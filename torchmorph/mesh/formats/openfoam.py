@@ -412,10 +412,13 @@ class Pseudo2D:
         Returns
         -------
         ndarray or Tensor, shape (..., N, 3)
-            Of the same kind, dtype and device: both layers move alike (a front point
-            and its twin), nothing moves along ``axis``. Differentiable for a tensor.
+            Of the same kind (a tensor of the same dtype and device; an array of a
+            floating dtype): both layers move alike (a front point and its twin),
+            nothing moves along ``axis``. Differentiable for a tensor.
         """
         n = self.front.size
+        if not isinstance(displacement, torch.Tensor):
+            displacement = np.asarray(displacement)
         if displacement.ndim < 2 or tuple(displacement.shape[-2:]) != (n, 2):
             raise ValueError(
                 f"displacement: expected shape (..., {n}, 2) for the front points, got "
@@ -427,7 +430,6 @@ class Pseudo2D:
             front = torch.as_tensor(self.front, device=displacement.device)
             back = torch.as_tensor(self.back, device=displacement.device)
         else:
-            displacement = np.asarray(displacement)
             lifted = np.zeros(shape, dtype=np.result_type(displacement.dtype, np.float32))
             front, back = self.front, self.back
         for column, axis in enumerate(self.in_plane):
