@@ -97,7 +97,7 @@ def inside(module: str, prefix: str) -> bool:
 def test_the_graph_is_read():
     # a sanity check of the reader itself: known arrows are found
     assert "torchmorph.idw.module" in imports_of("torchmorph.morph")
-    assert "torchmorph.mesh.tetmesh" in imports_of("torchmorph.mesh.quality")
+    assert "torchmorph.mesh.model" in imports_of("torchmorph.mesh.quality")
     assert "torchmorph.cli.info" in imports_of("torchmorph.cli.main")
 
 

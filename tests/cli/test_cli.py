@@ -94,10 +94,11 @@ def test_info_counts(cube_file, capsys):
     out = capsys.readouterr().out
     assert "125 (98 boundary, 27 interior)" in out
     lines = {line.split()[0]: line for line in out.splitlines() if line.strip()}
-    assert lines["tetrahedra"].split()[1] == "384"
+    assert lines["cells"].split()[1] == "384" and lines["tetra"].split()[1] == "384"
+    assert lines["dimension"].split()[1] == "3-D"
     for name in FACES:
-        assert f"{name}  25 nodes" in out
-    assert "0 boundary node(s) in no node set" in out
+        assert f"{name}  25 nodes (node set)" in out
+    assert "0 boundary node(s) in no marker" in out
     assert "[0, 0, 0] .. [1, 1, 1]" in out
     assert "max 1.732" in out  # Kuhn tets of a cube: edge ratio sqrt(3)
     assert "min volume      0.00260417" in out  # (1/4)^3 / 6
@@ -112,7 +113,7 @@ def test_morph_moving_rows_exact_and_interior_matches_meshmorph(tmp_path, cube_f
     assert code == EXIT_OK
     printed = capsys.readouterr().out
     assert "controls        98 of 98 boundary nodes" in printed
-    assert "inverted tets   0 of 384" in printed
+    assert "inverted cells  0 of 384" in printed
 
     mesh, point_data, cell_data = _result(out)
     displacement = point_data["displacement"]
@@ -313,15 +314,15 @@ def test_unreadable_mesh(tmp_path, capsys):
 def test_unknown_set_lists_known(tmp_path, cube_file, capsys):
     code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "wing")
     assert code == EXIT_ERROR
-    assert "unknown node set 'wing' in --moving; known: x0, x1, y0, y1, z0, z1" in _error(capsys)
+    assert "unknown marker 'wing' in --moving; known: x0, x1, y0, y1, z0, z1" in _error(capsys)
     code, _ = _morph(
         tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--select", "0.5", "--enrich", "edges"
     )
     assert code == EXIT_ERROR
-    assert "unknown node set 'edges' in --enrich" in _error(capsys)
+    assert "unknown marker 'edges' in --enrich" in _error(capsys)
     code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--region", "top=0.5")
     assert code == EXIT_ERROR
-    assert "unknown node set 'top' in --region" in _error(capsys)
+    assert "unknown marker 'top' in --region" in _error(capsys)
 
 
 def test_wrong_displacement_shape_lists_accepted(tmp_path, cube_file, capsys):

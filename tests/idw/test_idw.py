@@ -321,8 +321,11 @@ def test_cuda_matches_cpu(mode):
 # --------------------------------------------------------------------------- #
 def test_errors_name_the_argument():
     targets, controls, _ = cloud()
-    with pytest.raises(ValueError, match=r"controls must have shape \(N, 3\)"):
+    # points of any dimension D, the same for controls and targets
+    with pytest.raises(ValueError, match=r"targets must have shape \(N, 2\), got \(40, 3\)"):
         IDW(controls[:, :2], targets)
+    with pytest.raises(ValueError, match=r"controls must have shape \(N, 3\), got \(25,\)"):
+        IDW(controls[:, 0], targets)
     with pytest.raises(ValueError, match="controls is empty"):
         IDW(controls[:0], targets)
     with pytest.raises(ValueError, match="targets must have shape"):

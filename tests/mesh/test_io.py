@@ -100,7 +100,8 @@ def test_other_cell_blocks_are_ignored_and_physical_groups_become_node_sets(tmp_
     meshio.write(path, m, file_format="gmsh22", binary=True)
     mesh = read_mesh(path)
     assert mesh.num_tets == cube.num_tets
-    assert sorted(mesh.node_sets) == ["floor"]  # volume groups give no node set
+    # a physical surface is a face set (a marker); volume groups give no marker
+    assert sorted(mesh.markers) == ["floor"] and sorted(mesh.face_sets) == ["floor"]
     assert torch.equal(mesh.node_set("floor"), cube.node_set("bottom"))
 
 
@@ -127,7 +128,7 @@ def test_gmsh_generated_mesh_with_physical_groups(tmp_path):
     finally:
         gmsh.finalize()
     mesh = read_mesh(path)
-    assert sorted(mesh.node_sets) == ["inlet", "top"]
+    assert sorted(mesh.face_sets) == ["inlet", "top"] and sorted(mesh.markers) == ["inlet", "top"]
     inlet = mesh.points[mesh.node_set("inlet")]
     top = mesh.points[mesh.node_set("top")]
     assert float(inlet[:, 0].abs().max()) < 1e-12
@@ -153,12 +154,25 @@ def test_unknown_extension(tmp_path, cube, name):
         write_mesh(tmp_path / name, cube)
 
 
-def test_file_without_tetrahedra(tmp_path):
+def test_a_surface_in_3d_or_lines_alone_are_no_mesh(tmp_path):
     path = tmp_path / "surface.vtu"
-    points = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
-    meshio.write(path, meshio.Mesh(points, [("triangle", np.array([[0, 1, 2]]))]))
-    with pytest.raises(ValueError, match=r"no linear tetrahedra.*present: triangle"):
+    points = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    triangles = np.array([[0, 1, 2], [0, 1, 3]])
+    meshio.write(path, meshio.Mesh(points, [("triangle", triangles)]))
+    with pytest.raises(ValueError, match=r"surface.vtu.*a surface mesh in 3-D is not a volume"):
         read_mesh(path)
+    meshio.write(path, meshio.Mesh(points, [("line", np.array([[0, 1]]))]))
+    with pytest.raises(ValueError, match=r"no cells of dimension 2 or 3"):
+        read_mesh(path)
+
+
+def test_a_planar_triangle_mesh_is_read_in_2d(tmp_path):
+    path = tmp_path / "plane.vtu"
+    points = np.array([[0.0, 0, 5], [1, 0, 5], [0, 1, 5], [1, 1, 5]])
+    meshio.write(path, meshio.Mesh(points, [("triangle", np.array([[0, 1, 2], [1, 3, 2]]))]))
+    mesh = read_mesh(path)
+    assert mesh.dim == 2 and mesh.cell_counts == {"triangle": 2}
+    torch.testing.assert_close(mesh.points, torch.from_numpy(points[:, :2]))
 
 
 def test_unreadable_file(tmp_path):

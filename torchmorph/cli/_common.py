@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from torchmorph.mesh.tetmesh import TetMesh
+    from torchmorph.mesh.model import Mesh
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -110,14 +110,21 @@ def _seconds(value: float) -> str:
     return f"{value:.3g} s" if value >= 1e-3 else f"{value * 1e3:.3g} ms"
 
 
-def _read(path_text: str, what: str = "mesh") -> tuple[TetMesh, dict, dict]:
+def _read(path_text: str, what: str = "mesh") -> tuple[Mesh, dict, dict]:
+    """A mesh file, deck or OpenFOAM case directory with its point and cell data."""
     from torchmorph.mesh.io import read_mesh
 
     path = Path(path_text)
     if not path.exists():
         raise CommandError(f"{what} file {path_text!r} does not exist")
-    if not path.is_file():
-        raise CommandError(f"{what} file {path_text!r} is not a file")
+    if (
+        not path.is_file()
+        and not (path / "constant" / "polyMesh").is_dir()
+        and path.name != "polyMesh"
+    ):
+        raise CommandError(
+            f"{what} {path_text!r} is neither a file nor an OpenFOAM case (no constant/polyMesh)"
+        )
     try:
         return read_mesh(path, return_data=True)
     except ValueError as error:
@@ -127,12 +134,12 @@ def _read(path_text: str, what: str = "mesh") -> tuple[TetMesh, dict, dict]:
         raise CommandError(message) from error
 
 
-def _check_names(mesh: TetMesh, names: Sequence[str], option: str) -> None:
-    known = sorted(mesh.node_sets)
+def _check_names(mesh: Mesh, names: Sequence[str], option: str) -> None:
+    known = mesh.markers
     for name in names:
-        if name not in mesh.node_sets:
-            listing = ", ".join(known) if known else "none (the mesh has no node sets)"
-            raise CommandError(f"unknown node set {name!r} in {option}; known: {listing}")
+        if name not in known:
+            listing = ", ".join(known) if known else "none (the mesh has no markers)"
+            raise CommandError(f"unknown marker {name!r} in {option}; known: {listing}")
 
 
 def _load_displacement(path_text: str) -> np.ndarray:
@@ -188,8 +195,9 @@ def _boundary_rows(
     moving_nodes: np.ndarray | None,
     moving_label: str,
     batch_index: int | None,
+    dim: int = 3,
 ) -> tuple[np.ndarray, str, float]:
-    """The (N_b, 3) boundary displacement a file's array stands for.
+    """The (N_b, D) boundary displacement a file's array stands for (D = ``dim``).
 
     Returns the rows, a description of the layout used and the largest
     absolute value of the rows that were dropped because they belong to
@@ -199,13 +207,13 @@ def _boundary_rows(
     accepted = []
     if moving_nodes is not None:
         accepted.append(
-            f"({moving_nodes.size}, 3) for the {moving_nodes.size} moving nodes "
+            f"({moving_nodes.size}, {dim}) for the {moving_nodes.size} moving nodes "
             f"of {moving_label} in ascending node id"
         )
-    accepted.append(f"({num_boundary}, 3) for the boundary nodes in ascending node id")
-    accepted.append(f"({num_nodes}, 3) for every node")
+    accepted.append(f"({num_boundary}, {dim}) for the boundary nodes in ascending node id")
+    accepted.append(f"({num_nodes}, {dim}) for every node")
     if moving_nodes is not None:
-        accepted.append("(3,) for one translation of the moving nodes")
+        accepted.append(f"({dim},) for one translation of the moving nodes")
     accepted.append("any of these with a leading batch axis and --batch-index")
 
     def wrong_shape(extra: str = "") -> CommandError:
@@ -232,26 +240,31 @@ def _boundary_rows(
     elif batch_index is not None:
         raise CommandError(
             f"--batch-index was given but displacement file {source!r} holds one field, shape "
-            f"{tuple(array.shape)}, not a batch (B, ..., 3)"
+            f"{tuple(array.shape)}, not a batch (B, ..., {dim})"
         )
     else:
         field = array
 
-    if field.ndim == 1 and field.shape == (3,) and moving_nodes is not None:
-        rows = np.zeros((num_boundary, 3))
+    if field.ndim == 1 and field.shape == (dim,) and moving_nodes is not None:
+        rows = np.zeros((num_boundary, dim))
         rows[np.searchsorted(boundary_nodes, moving_nodes)] = field
         return rows, f"one translation {tuple(float(v) for v in field)}", 0.0
-    if field.ndim != 2 or field.shape[1] != 3:
-        raise wrong_shape()
+    if field.ndim != 2 or field.shape[1] != dim:
+        extra = (
+            f" (a {dim}-D mesh takes {dim}-D displacements)"
+            if field.ndim == 2 and field.shape[1] in (2, 3)
+            else ""
+        )
+        raise wrong_shape(extra)
     count = field.shape[0]
     if moving_nodes is not None and count == moving_nodes.size:
-        rows = np.zeros((num_boundary, 3))
+        rows = np.zeros((num_boundary, dim))
         rows[np.searchsorted(boundary_nodes, moving_nodes)] = field
-        return rows, f"moving-node rows ({count}, 3)", 0.0
+        return rows, f"moving-node rows ({count}, {dim})", 0.0
     if count == num_boundary:
-        rows, layout = field.copy(), f"boundary-node rows ({count}, 3)"
+        rows, layout = field.copy(), f"boundary-node rows ({count}, {dim})"
     elif count == num_nodes:
-        rows, layout = field[boundary_nodes], f"nodal field ({count}, 3), boundary rows used"
+        rows, layout = field[boundary_nodes], f"nodal field ({count}, {dim}), boundary rows used"
     else:
         raise wrong_shape(
             ""

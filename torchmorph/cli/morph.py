@@ -28,7 +28,7 @@ from torchmorph.cli._common import (
 )
 
 if TYPE_CHECKING:
-    from torchmorph.mesh.tetmesh import TetMesh
+    from torchmorph.mesh.model import Mesh
     from torchmorph.selection.plan import UncoveredNodesError
 
 __all__: list[str] = []
@@ -232,9 +232,8 @@ def _split_names(values: Sequence[str] | None) -> list[str] | None:
     return names
 
 
-def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMesh, str]:
+def _selection_plan(args: argparse.Namespace, mesh: Mesh) -> tuple[Any, Mesh, str]:
     """The SelectionPlan of the options (or None), the mesh to select on, and a description."""
-    from torchmorph.mesh.tetmesh import TetMesh
     from torchmorph.selection.plan import Region, SelectionPlan
 
     enrich = _split_names(args.enrich) or []
@@ -243,8 +242,7 @@ def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMe
     method = "ESIDW" if enrich else "SIDW"
     if args.select is not None:
         radius, a, b = args.select
-        sets = {**mesh.node_sets, _ALL_BOUNDARY: mesh.boundary_nodes}
-        selection_mesh = TetMesh(mesh.points, mesh.tets, sets, name=mesh.name)
+        selection_mesh = mesh.with_node_sets({_ALL_BOUNDARY: mesh.boundary_nodes})
         regions = [Region(_ALL_BOUNDARY, radius, a, b)]
         text = f"all boundary nodes R={radius:g}, a={a:g}, b={b:g}"
     else:
@@ -268,22 +266,22 @@ def _selection_plan(args: argparse.Namespace, mesh: TetMesh) -> tuple[Any, TetMe
     return plan, selection_mesh, f"{method} ({args.strategy}): {text}"
 
 
-def _uncovered_message(mesh: TetMesh, error: UncoveredNodesError) -> str:
+def _uncovered_message(mesh: Mesh, error: UncoveredNodesError) -> str:
     """The library's uncovered-nodes error in command-line terms, with where the nodes lie."""
     missing = np.asarray(error.nodes)
     is_missing = np.zeros(mesh.num_nodes, dtype=bool)
     is_missing[missing] = True
     where = []
     in_some_set = np.zeros(mesh.num_nodes, dtype=bool)
-    for name in sorted(mesh.node_sets):
-        nodes = mesh.node_sets[name].cpu().numpy()
+    for name in sorted(mesh.markers):
+        nodes = mesh.node_set(name).cpu().numpy()
         in_some_set[nodes] = True
         count = int(is_missing[nodes].sum())
         if count:
             where.append(f"{count} in {name}")
     outside = int((is_missing & ~in_some_set).sum())
     if outside:
-        where.append(f"{outside} in no node set")
+        where.append(f"{outside} in no marker")
     examples = ", ".join(str(int(node)) for node in missing[:5])
     return (
         f"{missing.size} of the {error.total} boundary nodes are in no --region and no "
@@ -298,17 +296,32 @@ def _uncovered_message(mesh: TetMesh, error: UncoveredNodesError) -> str:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from torchmorph.mesh.io import MESH_FORMATS, write_mesh
-    from torchmorph.mesh.quality import edge_ratio, quality_summary
+    from torchmorph.mesh.io import FORMATS, format_of, write_mesh, write_morphed
+    from torchmorph.mesh.quality import cell_edge_ratio, inverted, quality_summary
     from torchmorph.morph import MeshMorph
     from torchmorph.selection.plan import RegionOverlapError, UncoveredNodesError
 
     output = Path(args.output)
-    if output.suffix.lower() not in MESH_FORMATS:
+    source = Path(args.mesh)
+    source_format = format_of(source) if source.exists() else None
+    if source_format is FORMATS["openfoam"] and not output.suffix:
+        output_format = source_format  # a new case directory
+    else:
+        try:
+            output_format = format_of(output, "argument --output/-o")
+        except ValueError as error:
+            args.parser.error(str(error))
+    # a solver's deck, case or SU2 file comes back whole, moved; other formats get the
+    # reference (or deformed) mesh with the displacement and quality fields
+    solver_output = output_format is source_format and output_format.name in (
+        "openfoam",
+        "abaqus",
+        "su2",
+    )
+    if output_format.write is None and not solver_output:
         args.parser.error(
-            f"argument --output/-o: unsupported mesh file extension "
-            f"{output.suffix or '(none)'!r}; supported: "
-            f"{', '.join(sorted(MESH_FORMATS))}"
+            f"argument --output/-o: a {output_format.name} output needs a {output_format.name} "
+            "input (torchmorph writes those back moved, it does not write new ones)"
         )
     if args.enrich and args.select is None and not args.region:
         args.parser.error(
@@ -359,6 +372,7 @@ def run(args: argparse.Namespace) -> int:
             moving_nodes=moving_nodes,
             moving_label=moving_label,
             batch_index=args.batch_index,
+            dim=mesh.dim,
         )
         if dropped > 0:
             _warn(
@@ -399,36 +413,41 @@ def run(args: argparse.Namespace) -> int:
         with stages.step("mesh quality"):
             before = quality_summary(mesh)
             after = quality_summary(mesh, field)
-            deformed_points = mesh.points + field
-            quality_after = edge_ratio(deformed_points, mesh.tets)
-            quality_before = edge_ratio(mesh.points, mesh.tets)
-            inverted = (mesh.deformed(field).volumes <= 0).to(torch.uint8)
+            quality_after = cell_edge_ratio(mesh, field)
+            quality_before = cell_edge_ratio(mesh)
+            flipped = inverted(mesh, field).to(torch.uint8)
         with stages.step("writing output"):
-            control_flag = torch.zeros(mesh.num_nodes, dtype=torch.uint8)
-            control_flag[morph.control_nodes.cpu()] = 1
-            written = (
-                mesh_cpu.deformed(field.cpu().to(mesh_cpu.dtype))
-                if args.write_deformed
-                else mesh_cpu
-            )
-            output.parent.mkdir(parents=True, exist_ok=True)
-            write_mesh(
-                output,
-                written,
-                point_data={"displacement": field.cpu(), "control_point": control_flag},
-                cell_data={
-                    "quality": quality_after.cpu(),
-                    "quality_reference": quality_before.cpu(),
-                    "inverted": inverted.cpu(),
-                },
-            )
+            if output.parent != Path(""):
+                output.parent.mkdir(parents=True, exist_ok=True)
+            if solver_output:
+                moved = mesh_cpu.points + field.cpu().to(mesh_cpu.dtype)
+                write_morphed(source, moved, output)
+            else:
+                control_flag = torch.zeros(mesh.num_nodes, dtype=torch.uint8)
+                control_flag[morph.control_nodes.cpu()] = 1
+                written = (
+                    mesh_cpu.deformed(field.cpu().to(mesh_cpu.dtype))
+                    if args.write_deformed
+                    else mesh_cpu
+                )
+                write_mesh(
+                    output,
+                    written,
+                    point_data={"displacement": field.cpu(), "control_point": control_flag},
+                    cell_data={
+                        "quality": quality_after.cpu(),
+                        "quality_reference": quality_before.cpu(),
+                        "inverted": flipped.cpu(),
+                    },
+                )
     finally:
         stages.close()
 
     num_inverted = int(after["num_inverted"])
+    kinds = ", ".join(f"{count} {kind}" for kind, count in mesh.cell_counts.items())
     _line(
         "mesh",
-        f"{args.mesh}: {mesh.num_nodes} nodes, {mesh.num_tets} tets "
+        f"{args.mesh}: {mesh.dim}-D, {mesh.num_nodes} nodes, {kinds} "
         f"({morph.num_boundary} boundary, {morph.num_interior} interior nodes)",
     )
     if moving is not None:
@@ -465,17 +484,26 @@ def run(args: argparse.Namespace) -> int:
         f"mean {before['mean_edge_ratio']:.4g} -> {after['mean_edge_ratio']:.4g}",
     )
     _line("min vol. ratio", f"{after['min_volume_ratio']:.4g} (deformed / reference volume)")
-    _line("inverted tets", f"{num_inverted} of {mesh.num_tets}")
     _line(
-        "wrote",
-        f"{output} ({'deformed' if args.write_deformed else 'reference'} mesh; point "
-        "data displacement, control_point; cell data quality, quality_reference, "
-        "inverted)",
+        "min Jacobian",
+        f"{before['min_scaled_jacobian']:.4g} -> {after['min_scaled_jacobian']:.4g} (scaled)",
     )
+    _line("inverted cells", f"{num_inverted} of {mesh.num_cells}")
+    if solver_output:
+        _line(
+            "wrote", f"{output} (the morphed {output_format.name} input: coordinates changed only)"
+        )
+    else:
+        _line(
+            "wrote",
+            f"{output} ({'deformed' if args.write_deformed else 'reference'} mesh; point "
+            "data displacement, control_point; cell data quality, quality_reference, "
+            "inverted)",
+        )
     if num_inverted:
         _warn(
             "morph",
-            f"the morph inverts {num_inverted} of {mesh.num_tets} tetrahedra (cell "
+            f"the morph inverts {num_inverted} of {mesh.num_cells} cells (cell "
             "data 'inverted' marks them); try a smaller displacement, more control "
             "points (smaller R, --enrich) or a larger --power",
         )

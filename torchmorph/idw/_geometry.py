@@ -108,7 +108,7 @@ def points_arguments(function: str, positional: tuple, controls, targets, count:
 
 def prepare(targets, controls, power, coincidence_tolerance):
     """Validated, normalised points, the power and the squared coincidence radius."""
-    controls = as_points(controls, "controls", dim=_dim_of(controls), finite=False)
+    controls = as_points(controls, "controls", dim=dim_of(controls), finite=False)
     targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True, finite=False)
     check_same_device_dtype(controls, "controls", targets, "targets")
     power = check_power(power)
@@ -118,7 +118,7 @@ def prepare(targets, controls, power, coincidence_tolerance):
     return targets, controls, power, radius2
 
 
-def _dim_of(points) -> int:
+def dim_of(points) -> int:
     shape = getattr(points, "shape", None)
     if shape is not None and len(shape) == 2 and shape[1] >= 1:
         return int(shape[1])

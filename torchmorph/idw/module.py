@@ -23,6 +23,7 @@ from torchmorph.idw._dispatch import check_implementation as _check_implementati
 from torchmorph.idw._geometry import (
     check_power,
     check_tolerance,
+    dim_of,
     free_memory,
     prepare,
     warn_duplicate_controls,
@@ -124,8 +125,8 @@ class IDW(nn.Module):
         implementation: Implementation = "auto",
     ) -> None:
         super().__init__()
-        controls = as_points(controls, "controls")
-        targets = as_points(targets, "targets", allow_empty=True)
+        controls = as_points(controls, "controls", dim=dim_of(controls))
+        targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True)
         check_same_device_dtype(controls, "controls", targets, "targets")
         check_choice(mode, "mode", ("auto", "dense", "matrix_free"))
         self.power = check_power(power)
@@ -341,7 +342,7 @@ class IDW(nn.Module):
                 f"{name} must have shape {tuple(reference.shape)}, got {tuple(moved.shape)}"
             )
         check_same_device_dtype(reference, f"the module's {name}", moved, name)
-        return as_points(moved, name, allow_empty=True)
+        return as_points(moved, name, dim=reference.shape[1], allow_empty=True)
 
     def extra_repr(self) -> str:
         return (

@@ -56,6 +56,7 @@ __all__ = [
     "from_meshio",
     "inverted",
     "mass_matrix",
+    "quality_by_kind",
     "quality_report",
     "quality_summary",
     "read_mesh",

@@ -1,477 +1,479 @@
-"""Reading and writing tetrahedral meshes through meshio.
+"""Mesh files, solver decks and cases: :func:`read_mesh`, :func:`write_mesh`,
+:func:`write_morphed`, one table of formats (:data:`FORMATS`, :func:`register_format`).
 
-Formats, chosen by the file extension:
+==================================  ============================================================
+format (extensions)                 markers kept
+==================================  ============================================================
+VTU ``.vtu``, VTK ``.vtk``,         node sets (``set:<name>`` point data), face sets (facet
+XDMF ``.xdmf``/``.xmf`` (+ ``.h5``)  blocks flagged ``face_set:<name>``), meshio point sets
+Gmsh ``.msh`` (read 2.2/4.1,        physical groups (faces: face sets; points, curves: node
+written 4.1 binary)                 sets), node sets as ``set:`` node data
+SU2 ``.su2``                        markers (``MARKER_TAG``) as face sets, exactly
+medit ``.mesh``/``.meshb``          references of boundary facets (``ref<k>``; no names)
+CGNS, Exodus, Nastran, MED          what meshio reads of them (Exodus node sets)
+CalculiX/Abaqus ``.inp``            ``*NSET``s; written back whole, coordinates changed only
+OpenFOAM case (a directory)         patches (face sets) and ``inGroups`` (groups); points
+                                    written back, every other file byte-identical;
+                                    pseudo-2-D cases (one cell thick, ``empty`` patches)
+                                    read in their plane
+==================================  ============================================================
 
-==========  =====================================================================
-extension   notes
-==========  =====================================================================
-``.vtu``    VTK XML unstructured grid (ParaView).
-``.vtk``    legacy VTK.
-``.xdmf``   XDMF with its heavy data in an HDF5 file beside it (``.h5``); needs
-``.xmf``    the ``h5py`` package.
-``.msh``    Gmsh. Written as MSH 4.1 binary; MSH 2.2 and 4.1, ASCII or binary,
-            are read.
-==========  =====================================================================
-
-Node sets are stored as point-data flag arrays named ``set:<name>`` (1 for a
-member, 0 otherwise), so they survive a round trip in every format and show up
-in ParaView and Gmsh (as views). Characters that some format cannot hold in a
-name (``%``, ``"``, ``'``, ``<``, ``>``, ``&``, white space and control
-characters) are percent-encoded in the stored name (``"inlet wall"`` is stored
-as ``set:inlet%20wall``) and decoded on reading, so every node-set name round-trips
-in every format. Names of point and cell data fields are not renamed: a name the
-target format cannot hold is rejected before anything is written.
-
-Writes are atomic (:func:`torchmorph._atomic.atomic_output`): the file is written
-beside the target and renamed over it only when complete, so a failing overwrite
-leaves the previous file intact. XDMF writes its ``.h5`` file first, then the
-``.xdmf`` file that refers to it. Reading also turns Gmsh physical groups of
-points, curves and surfaces into node sets named after the group, and meshio
-``point_sets`` (Abaqus, MED, …) into node sets.
-
-Only linear tetrahedra (meshio's ``"tetra"`` cells) are read; other cell blocks
-(triangles, lines, …) are used for physical groups only, then ignored.
+:func:`read_mesh` returns a :class:`~torchmorph.mesh.TetMesh` for one block of linear
+tetrahedra and a :class:`~torchmorph.mesh.Mesh` otherwise: every cell block kept, in
+order (a kind torchmorph cannot handle is an error naming it, never a silent drop).
+:func:`write_mesh` writes a mesh with its markers and fields to the mesh formats;
+:func:`write_morphed` writes a file, deck or case again with new coordinates and
+everything else kept (what a solver needs back after a morph). Writes are atomic
+(:func:`torchmorph.mesh.atomic_output`): a failing write leaves the target as it was.
+Marker names that a format cannot hold in a field name (``%``, quotes, ``<``, ``>``,
+``&``, white space, control characters) are percent-encoded there and decoded on
+reading, so every name round-trips.
 """
 
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
-import urllib.parse
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, overload
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from torchmorph._atomic import atomic_output
-from torchmorph.mesh.model import TetMesh
+from torchmorph.mesh.formats._data import MeshData
+from torchmorph.mesh.formats.meshio_formats import (
+    FACE_SET_PREFIX,
+    MESHIO_FORMATS,
+    NODE_SET_PREFIX,
+    data_to_meshio,
+    decode_set_name,
+    encode_set_name,
+    meshio_to_data,
+    move_meshio,
+    read_meshio,
+    write_meshio,
+)
+from torchmorph.mesh.model import Mesh
+from torchmorph.mesh.tetmesh import TetMesh
 
 __all__ = [
+    "FORMATS",
     "MESH_FORMATS",
+    "MeshFormat",
     "decode_set_name",
     "encode_set_name",
+    "format_of",
     "from_meshio",
+    "mesh_data",
+    "mesh_from_data",
     "read_mesh",
+    "register_format",
     "to_meshio",
     "write_mesh",
+    "write_morphed",
 ]
-
-#: File extensions understood by :func:`read_mesh` and :func:`write_mesh`, and
-#: the meshio format used for each.
-MESH_FORMATS: dict[str, str] = {
-    ".vtu": "vtu",
-    ".vtk": "vtk",
-    ".xdmf": "xdmf",
-    ".xmf": "xdmf",
-    ".msh": "gmsh",
-}
-
-#: Prefix of the point-data arrays that carry node sets.
-NODE_SET_PREFIX = "set:"
-
-# Point and cell data that meshio adds for bookkeeping, not user fields.
-_BOOKKEEPING_PREFIXES = ("gmsh:",)
 
 PathLike = str | os.PathLike
 
 
-# --------------------------------------------------------------------------- meshio
+@dataclass(frozen=True)
+class MeshFormat:
+    """One format of the table: how to read it, write it, and write it moved.
 
-
-def to_meshio(
-    mesh: TetMesh,
-    *,
-    point_data: Mapping[str, Tensor | np.ndarray] | None = None,
-    cell_data: Mapping[str, Tensor | np.ndarray] | None = None,
-):
-    """Convert a mesh (and fields on it) to a :class:`meshio.Mesh`.
-
-    Parameters
-    ----------
-    mesh : TetMesh
-        The mesh. Its node sets become point data ``set:<name>`` (uint8 flags).
-    point_data : mapping of str to array, shape (N,) or (N, k), optional
-        Nodal fields, e.g. ``{"displacement": d}``.
-    cell_data : mapping of str to array, shape (M,) or (M, k), optional
-        Per-tetrahedron fields, e.g. ``{"quality": q}``.
-
-    Returns
-    -------
-    meshio.Mesh
-        One ``"tetra"`` cell block.
-
-    Raises
-    ------
-    ValueError
-        If a field does not have N (or M) rows, or a point-data name starts
-        with the reserved ``set:`` prefix.
+    ``read(path) -> MeshData``; ``write(path, data)`` or None where torchmorph writes no
+    new files of the format; ``move(source, points, output)`` writes ``source`` again
+    at ``output`` with new coordinates (``points`` in the rows of ``read``'s points) and
+    everything else kept. ``directory``: the format is a case directory.
     """
-    import meshio
 
-    if not isinstance(mesh, TetMesh):
-        raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
-    points = _to_numpy(mesh.points)
-    tets = _to_numpy(mesh.tets)
-    fields: dict[str, np.ndarray] = {}
-    for key, value in (point_data or {}).items():
-        if not isinstance(key, str) or not key:
-            raise ValueError(f"point_data: names must be non-empty strings, got {key!r}")
-        if key.startswith(NODE_SET_PREFIX):
-            raise ValueError(
-                f"point_data[{key!r}]: names starting with {NODE_SET_PREFIX!r} are reserved "
-                "for node sets; pass node sets through the mesh"
-            )
-        fields[key] = _field(value, f"point_data[{key!r}]", mesh.num_nodes, "nodes")
-    for name, nodes in mesh.node_sets.items():
-        flags = np.zeros(mesh.num_nodes, dtype=np.uint8)
-        flags[_to_numpy(nodes)] = 1
-        fields[NODE_SET_PREFIX + encode_set_name(name)] = flags
-    cells: dict[str, list[np.ndarray]] = {}
-    for key, value in (cell_data or {}).items():
-        if not isinstance(key, str) or not key:
-            raise ValueError(f"cell_data: names must be non-empty strings, got {key!r}")
-        cells[key] = [_field(value, f"cell_data[{key!r}]", mesh.num_tets, "tetrahedra")]
-    return meshio.Mesh(points, [("tetra", tets)], point_data=fields, cell_data=cells)
+    name: str
+    extensions: tuple[str, ...]
+    read: Callable[[Path], MeshData]
+    write: Callable[[Path, MeshData], None] | None
+    move: Callable[[Path, Any, Path], None]
+    directory: bool = False
 
 
-@overload
-def from_meshio(m, *, name: str | None = None, return_data: Literal[False] = False) -> TetMesh: ...
+#: Every format, by name (see the module table).
+FORMATS: dict[str, MeshFormat] = {}
 
 
-@overload
-def from_meshio(
-    m, *, name: str | None = None, return_data: Literal[True]
-) -> tuple[TetMesh, dict[str, Tensor], dict[str, Tensor]]: ...
+def register_format(mesh_format: MeshFormat) -> None:
+    """Add a format to :data:`FORMATS` (its extensions must be new)."""
+    taken = {ext for f in FORMATS.values() if f.name != mesh_format.name for ext in f.extensions}
+    clash = taken & set(mesh_format.extensions)
+    if clash:
+        raise ValueError(f"mesh_format: extension(s) {', '.join(sorted(clash))} are taken")
+    FORMATS[mesh_format.name] = mesh_format
 
 
-def from_meshio(m, *, name: str | None = None, return_data: bool = False):
-    """Build a :class:`TetMesh` from a :class:`meshio.Mesh`.
+def _meshio(name: str, extensions: tuple[str, ...]) -> MeshFormat:
+    def read(path: Path) -> MeshData:
+        if name == "xdmf" or name in ("cgns", "med"):
+            _require_h5py(path)
+        return read_meshio(path, name)
 
-    Parameters
-    ----------
-    m : meshio.Mesh
-        Must hold at least one ``"tetra"`` cell block; all such blocks are
-        concatenated in order. Points must be 3-D.
-    name : str, optional, keyword-only
-        The mesh's name.
-    return_data : bool, keyword-only
-        Also return the point and cell data.
+    def write(path: Path, data: MeshData) -> None:
+        if name == "xdmf":
+            _require_h5py(path)
+        write_meshio(path, data, name)
 
-    Returns
-    -------
-    TetMesh
-        With node sets from ``set:<name>`` point data, ``m.point_sets`` and
-        Gmsh physical groups of dimension 0 to 2 (in that order of precedence
-        when names clash).
-    point_data : dict of str to Tensor, shape (N, ...)
-        Only with ``return_data``: the point data, less node-set flags and
-        ``gmsh:`` bookkeeping arrays.
-    cell_data : dict of str to Tensor, shape (M, ...)
-        Only with ``return_data``: data of the tetra blocks, concatenated,
-        aligned with the tetrahedra, less ``gmsh:`` bookkeeping arrays.
-
-    Raises
-    ------
-    ValueError
-        If there are no tetrahedra, the points are not 3-D, or the mesh is
-        invalid for :class:`TetMesh`.
-    """
-    points = np.asarray(m.points)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"mesh points must be 3-D, shape (N, 3), got {points.shape}")
-    blocks = [i for i, block in enumerate(m.cells) if block.type == "tetra"]
-    if not blocks:
-        present = ", ".join(sorted({block.type for block in m.cells})) or "none"
-        raise ValueError(
-            f"the mesh holds no linear tetrahedra ('tetra' cells); cell types present: {present}"
-        )
-    tets = np.concatenate([np.asarray(m.cells[i].data, dtype=np.int64) for i in blocks])
-    num_nodes = points.shape[0]
-
-    node_sets: dict[str, np.ndarray] = {}
-    point_data: dict[str, Tensor] = {}
-    for key, value in m.point_data.items():
-        value = np.asarray(value)
-        if key.startswith(NODE_SET_PREFIX):
-            node_sets[decode_set_name(key[len(NODE_SET_PREFIX) :])] = np.flatnonzero(
-                value.reshape(num_nodes, -1)[:, 0]
-            )
-        elif not key.startswith(_BOOKKEEPING_PREFIXES):
-            point_data[key] = _to_tensor(value)
-    for key, value in getattr(m, "point_sets", {}).items():
-        node_sets.setdefault(key, np.asarray(value, dtype=np.int64))
-    for key, value in _physical_group_nodes(m).items():
-        node_sets.setdefault(key, value)
-
-    mesh = TetMesh(points, tets, node_sets, name=name)
-    if not return_data:
-        return mesh
-    cell_data: dict[str, Tensor] = {}
-    for key, per_block in m.cell_data.items():
-        if key.startswith(_BOOKKEEPING_PREFIXES):
-            continue
-        parts = [np.asarray(per_block[i]) for i in blocks]
-        cell_data[key] = _to_tensor(np.concatenate(parts))
-    return mesh, point_data, cell_data
+    return MeshFormat(name, extensions, read, write, move_meshio)
 
 
-def _physical_group_nodes(m) -> dict[str, np.ndarray]:
-    """Nodes of the Gmsh physical groups of dimension 0, 1 and 2, by group name."""
-    names: dict[tuple[int, int], str] = {}
-    for name, value in (m.field_data or {}).items():
-        value = np.asarray(value).ravel()
-        if value.size == 2:
-            names[(int(value[1]), int(value[0]))] = name  # field_data: [tag, dim]
-    group_names = set(names.values())
-    collected: dict[str, list[np.ndarray]] = {}
-    # MSH 4.1 (meshio >= 5): cell_sets name -> one index array per cell block.
-    for name, per_block in (m.cell_sets or {}).items():
-        if name not in group_names:
-            continue
-        for block, indices in zip(m.cells, per_block, strict=False):
-            if indices is None or len(indices) == 0 or block.dim >= 3:
-                continue
-            collected.setdefault(name, []).append(np.asarray(block.data)[indices].ravel())
-    # MSH 2.2: a physical tag per cell in cell_data["gmsh:physical"].
-    if not collected and "gmsh:physical" in m.cell_data:
-        for block, tags in zip(m.cells, m.cell_data["gmsh:physical"], strict=True):
-            if block.dim >= 3:
-                continue
-            tags = np.asarray(tags)
-            for tag in np.unique(tags):
-                if tag <= 0:
-                    continue
-                name = names.get((block.dim, int(tag)), f"physical_{int(tag)}")
-                cells = np.asarray(block.data)[tags == tag]
-                collected.setdefault(name, []).append(cells.ravel())
-    return {name: np.unique(np.concatenate(parts)) for name, parts in collected.items()}
+for _name in dict.fromkeys(MESHIO_FORMATS.values()):
+    register_format(_meshio(_name, tuple(ext for ext, n in MESHIO_FORMATS.items() if n == _name)))
 
 
-# --------------------------------------------------------------------------- files
+def _su2() -> MeshFormat:
+    def read(path: Path) -> MeshData:
+        from torchmorph.mesh.formats.su2 import read_su2
+
+        return read_su2(path)
+
+    def write(path: Path, data: MeshData) -> None:
+        from torchmorph.mesh.formats.su2 import write_su2
+
+        write_su2(path, data)
+
+    def move(source: Path, points: Any, output: Path) -> None:
+        data = read(source)
+        data.points = _checked_points(points, data.points.shape, "points")
+        write(output, data)
+
+    return MeshFormat("su2", (".su2",), read, write, move)
 
 
-def _format_of(path: Path, argument: str) -> str:
+def _abaqus() -> MeshFormat:
+    def read(path: Path) -> MeshData:
+        from torchmorph.mesh.formats.abaqus import read_deck
+
+        return read_deck(path).to_mesh_data()
+
+    def write(path: Path, data: MeshData) -> None:
+        write_meshio(path, data, "abaqus")
+
+    def move(source: Path, points: Any, output: Path) -> None:
+        from torchmorph.mesh.formats.abaqus import read_deck, write_deck
+
+        deck = read_deck(source)
+        write_deck(deck, points, output)
+
+    return MeshFormat("abaqus", (".inp",), read, write, move)
+
+
+def _openfoam() -> MeshFormat:
+    def read(path: Path, *, planar: bool = True) -> MeshData:
+        from torchmorph.mesh.formats.openfoam import pseudo_2d, read_foam_case
+
+        case = read_foam_case(path)
+        flat = pseudo_2d(case) if planar else None
+        return case.to_mesh_data() if flat is None else flat.mesh
+
+    def move(source: Path, points: Any, output: Path) -> None:
+        from torchmorph.mesh.formats.openfoam import pseudo_2d, read_foam_case, write_foam_points
+
+        case = read_foam_case(source)
+        points = np.asarray(points.detach().cpu() if isinstance(points, Tensor) else points)
+        if points.ndim == 2 and points.shape[1] == 2:  # in-plane points of a pseudo-2-D case
+            flat = pseudo_2d(case)
+            if flat is None:
+                raise ValueError(
+                    f"points: 2-D points for {str(source)!r}, which is no pseudo-2-D case"
+                )
+            reference = flat.mesh.points
+            points = _checked_points(points, reference.shape, "points")
+            points = case.points + flat.lift(points - reference)
+        write_foam_points(case, _checked_points(points, case.points.shape, "points"), output)
+
+    return MeshFormat("openfoam", (), read, None, move, directory=True)
+
+
+for _factory in (_su2, _abaqus, _openfoam):
+    register_format(_factory())
+
+#: File extensions :func:`read_mesh` understands, and their format (an OpenFOAM case is a
+#: directory).
+MESH_FORMATS: dict[str, str] = {ext: f.name for f in FORMATS.values() for ext in f.extensions}
+
+
+def format_of(path: PathLike, argument: str = "path") -> MeshFormat:
+    """The format of ``path``: an OpenFOAM case for a directory (holding
+    ``constant/polyMesh``, or the polyMesh directory itself), else by extension."""
+    path = Path(path)
+    if path.is_dir():
+        return FORMATS["openfoam"]
     extension = path.suffix.lower()
-    if extension not in MESH_FORMATS:
-        known = ", ".join(sorted(MESH_FORMATS))
-        raise ValueError(
-            f"{argument}: unsupported mesh file extension {extension or '(none)'!r} "
-            f"in {str(path)!r}; supported: {known}"
-        )
-    return MESH_FORMATS[extension]
+    if extension == ".gz" and Path(path.stem).suffix.lower() == ".inp":
+        extension = ".inp"
+    for mesh_format in FORMATS.values():
+        if extension in mesh_format.extensions:
+            return mesh_format
+    known = ", ".join(sorted(MESH_FORMATS))
+    raise ValueError(
+        f"{argument}: unsupported mesh file extension {extension or '(none)'!r} in "
+        f"{str(path)!r}; supported: {known}, or an OpenFOAM case directory"
+    )
 
 
 def _require_h5py(path: Path) -> None:
     try:
         import h5py  # noqa: F401
     except ImportError:
-        raise ValueError(
-            f"path: XDMF files ({str(path)!r}) need the h5py package: pip install h5py"
-        ) from None
+        raise ValueError(f"path: {str(path)!r} needs the h5py package: pip install h5py") from None
 
 
-@overload
-def read_mesh(path: PathLike, *, return_data: Literal[False] = False) -> TetMesh: ...
+def _checked_points(points: Any, shape: tuple[int, ...], argument: str) -> np.ndarray:
+    array = np.asarray(points.detach().cpu() if isinstance(points, Tensor) else points)
+    array = array.astype(np.float64)
+    if array.shape != tuple(shape):
+        raise ValueError(f"{argument} must have shape {tuple(shape)}, got {array.shape}")
+    if not np.isfinite(array).all():
+        raise ValueError(f"{argument} holds NaN or infinite values")
+    return array
 
 
-@overload
-def read_mesh(
-    path: PathLike, *, return_data: Literal[True]
-) -> tuple[TetMesh, dict[str, Tensor], dict[str, Tensor]]: ...
+# --------------------------------------------------------------------------- conversion
 
 
-def read_mesh(path: PathLike, *, return_data: bool = False):
-    """Read a tetrahedral mesh, with its node sets, from a file.
+def mesh_from_data(data: MeshData, *, name: str | None = None) -> Mesh:
+    """The :class:`Mesh` of ``data`` (a :class:`TetMesh` for one block of linear
+    tetrahedra). A node set named like a face set (a reader's nodes of its face markers)
+    is the face set's: the face set carries the marker."""
+    node_sets = {k: v for k, v in data.node_sets.items() if k not in data.face_sets}
+    if len(data.cells) == 1 and data.cells[0][0] == "tetra" and data.points.shape[1] == 3:
+        return TetMesh(
+            data.points,
+            data.cells[0][1],
+            node_sets,
+            face_sets=data.face_sets,
+            groups=data.groups,
+            name=name,
+        )
+    return Mesh(data.points, data.cells, node_sets, data.face_sets, groups=data.groups, name=name)
+
+
+def mesh_data(
+    mesh: Mesh,
+    *,
+    point_data: Mapping[str, Tensor | np.ndarray] | None = None,
+    cell_data: Mapping[str, Tensor | np.ndarray] | None = None,
+) -> MeshData:
+    """:class:`MeshData` of a mesh and fields on it (point data (N, ...), cell data
+    (M, ...) over the cells numbered across blocks, split per block here)."""
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh must be a torchmorph Mesh, got {type(mesh).__name__}")
+    fields: dict[str, np.ndarray] = {}
+    for key, value in (point_data or {}).items():
+        _check_key(key, "point_data")
+        if key.startswith(NODE_SET_PREFIX):
+            raise ValueError(
+                f"point_data[{key!r}]: names starting with {NODE_SET_PREFIX!r} are reserved "
+                "for node sets; pass node sets through the mesh"
+            )
+        fields[key] = _field(value, f"point_data[{key!r}]", mesh.num_nodes, "nodes")
+    counts = [int(block.nodes.shape[0]) for block in mesh.cells]
+    per_block: dict[str, list[np.ndarray]] = {}
+    for key, value in (cell_data or {}).items():
+        _check_key(key, "cell_data")
+        if key.startswith(FACE_SET_PREFIX):
+            raise ValueError(
+                f"cell_data[{key!r}]: names starting with {FACE_SET_PREFIX!r} are reserved"
+            )
+        array = _field(value, f"cell_data[{key!r}]", mesh.num_cells, "cells")
+        per_block[key] = np.split(array, np.cumsum(counts)[:-1])
+    return MeshData(
+        points=_to_numpy(mesh.points),
+        cells=[(b.kind, _to_numpy(b.nodes)) for b in mesh.cells],
+        node_sets={k: _to_numpy(v) for k, v in mesh.node_sets.items()},
+        face_sets={
+            k: [(b.kind, _to_numpy(b.nodes)) for b in blocks]
+            for k, blocks in mesh.face_sets.items()
+        },
+        groups={k: list(v) for k, v in mesh.groups.items()},
+        point_data=fields,
+        cell_data=per_block,
+    )
+
+
+def to_meshio(
+    mesh: Mesh,
+    *,
+    point_data: Mapping[str, Tensor | np.ndarray] | None = None,
+    cell_data: Mapping[str, Tensor | np.ndarray] | None = None,
+):
+    """A :class:`meshio.Mesh` of a mesh and fields on it: every cell block, node sets as
+    point data ``set:<name>``, face sets as facet blocks flagged ``face_set:<name>``."""
+    return data_to_meshio(mesh_data(mesh, point_data=point_data, cell_data=cell_data), "vtu")
+
+
+def from_meshio(m, *, name: str | None = None, return_data: bool = False):
+    """The :class:`Mesh` of a :class:`meshio.Mesh` (markers as :func:`read_mesh` reads
+    them); with ``return_data`` also its point data and cell data (over the domain's
+    cells, blocks concatenated) as tensors."""
+    data = meshio_to_data(m)
+    mesh = mesh_from_data(data, name=name)
+    return (mesh, *_data_tensors(data)) if return_data else mesh
+
+
+def _data_tensors(data: MeshData) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+    point_data = {k: _to_tensor(v) for k, v in data.point_data.items()}
+    cell_data = {k: _to_tensor(np.concatenate(v)) for k, v in data.cell_data.items() if v}
+    return point_data, cell_data
+
+
+# --------------------------------------------------------------------------- files
+
+
+def read_mesh(path: PathLike, *, return_data: bool = False, planar: bool = True):
+    """Read a mesh, deck or case with its markers.
 
     Parameters
     ----------
     path : str or path-like
-        A ``.vtu``, ``.vtk``, ``.xdmf``/``.xmf`` or ``.msh`` file.
+        A mesh file of the module's table, or an OpenFOAM case directory.
     return_data : bool, keyword-only
-        Also return the point data and the cell data of the tetrahedra, as
-        tensors (``point_data["displacement"]`` of shape (N, 3), …).
+        Also return the point data and the cell data (over the cells, blocks
+        concatenated), as tensors.
+    planar : bool, keyword-only
+        An OpenFOAM pseudo-2-D case (one cell thick, ``empty`` patches front and back)
+        is read as the 2-D mesh of its front plane (default), or with ``False`` as the
+        3-D slab.
 
     Returns
     -------
-    TetMesh or (TetMesh, dict, dict)
-        The mesh, named after the file's stem; see :func:`from_meshio` for the
-        node sets and data.
+    Mesh or (Mesh, dict, dict)
+        A :class:`TetMesh` for one block of linear tetrahedra, a :class:`Mesh` otherwise;
+        named after the file's stem.
 
     Raises
     ------
     FileNotFoundError
         If ``path`` does not exist.
     ValueError
-        For an unsupported extension, a file meshio cannot parse, a file
-        without tetrahedra, or an invalid mesh.
+        For an unsupported extension, a file that cannot be parsed, cells of a kind that
+        cannot be handled (named), an invalid mesh; the message names the file.
     """
-    import meshio
-
     path = Path(path)
-    file_format = _format_of(path, "path")
-    if not path.is_file():
+    mesh_format = format_of(path)
+    if not path.exists():
         raise FileNotFoundError(f"path: mesh file {str(path)!r} does not exist")
-    if file_format == "xdmf":
-        _require_h5py(path)
-    # The format's own reader: meshio.read ends the process (sys.exit) on a parse error.
-    reader = getattr(meshio, file_format).read
+    if mesh_format.directory:
+        data = mesh_format.read(path, planar=planar)  # type: ignore[call-arg]
+    else:
+        data = mesh_format.read(path)
+    name = (
+        path.name if path.is_dir() else Path(path.stem).stem if path.suffix == ".gz" else path.stem
+    )
     try:
-        m = reader(str(path))
-    except Exception as error:  # parsers raise many kinds; report them uniformly
-        raise ValueError(
-            f"path: could not read {str(path)!r} as {file_format}: {type(error).__name__}: {error}"
-        ) from error
-    try:
-        return from_meshio(m, name=path.stem, return_data=return_data)
+        mesh = mesh_from_data(data, name=name)
     except ValueError as error:
         raise ValueError(f"path: {str(path)!r}: {error}") from error
+    return (mesh, *_data_tensors(data)) if return_data else mesh
 
 
 def write_mesh(
     path: PathLike,
-    mesh: TetMesh,
+    mesh: Mesh,
     *,
     point_data: Mapping[str, Tensor | np.ndarray] | None = None,
     cell_data: Mapping[str, Tensor | np.ndarray] | None = None,
 ) -> None:
-    """Write a mesh, its node sets and optional fields to a file.
+    """Write a mesh, its markers and optional fields to a mesh file.
 
     Parameters
     ----------
     path : str or path-like
-        Target file; the extension picks the format (``.vtu``, ``.vtk``,
-        ``.xdmf``/``.xmf``, ``.msh``). ``.msh`` is written as Gmsh MSH 4.1
-        binary; ``.xdmf`` writes an ``.h5`` file beside it.
-    mesh : TetMesh
-        The mesh; node sets are written as point data ``set:<name>``.
+        Target file; the extension picks the format (the module's table; OpenFOAM cases
+        and decks that must keep their other content are written by
+        :func:`write_morphed`).
+    mesh : Mesh
     point_data : mapping of str to array, shape (N,) or (N, k), optional
-        Nodal fields, e.g. ``{"displacement": d}`` (shown as vectors in
-        ParaView).
+        Nodal fields, e.g. ``{"displacement": d}``.
     cell_data : mapping of str to array, shape (M,) or (M, k), optional
-        Per-tetrahedron fields, e.g. ``{"quality": edge_ratio(...)}``.
+        Per-cell fields over the cells numbered across blocks.
 
     Raises
     ------
     ValueError
-        For an unsupported extension, fields of the wrong length, reserved
-        names, a field name the format cannot hold (control characters anywhere;
-        ``" ' < > &`` in ``.vtu``; white space in ``.vtk``; ``"`` in ``.msh``),
-        or a missing h5py for XDMF. Nothing is written then.
+        For an unsupported extension, a format torchmorph does not write, fields of the
+        wrong length, reserved names, or a field name the format cannot hold; nothing is
+        written then.
     FileNotFoundError
         If the target's directory does not exist.
-
-    Notes
-    -----
-    The write is atomic: an existing file is replaced only once the new one is
-    complete; if writing fails, the old file is left as it was. Node-set names
-    are percent-encoded where needed (see the module's notes) and come back
-    unchanged from :func:`read_mesh`.
-
-    Gmsh stores node data as float64: integer fields come back as floats from
-    ``.msh`` files. Gmsh node data must have 1, 3 or 9 components to be shown
-    as scalars, vectors or tensors in Gmsh itself.
     """
-    import meshio
-
     path = Path(path)
-    file_format = _format_of(path, "path")
-    if file_format == "xdmf":
-        _require_h5py(path)
-    converted = to_meshio(mesh, point_data=point_data, cell_data=cell_data)
-    for kind, names in (("point_data", converted.point_data), ("cell_data", converted.cell_data)):
+    mesh_format = format_of(path)
+    if mesh_format.write is None:
+        raise ValueError(
+            f"path: torchmorph writes no new {mesh_format.name} files; write a morphed one "
+            "with write_morphed(source, points, output)"
+        )
+    data = mesh_data(mesh, point_data=point_data, cell_data=cell_data)
+    for kind, names in (("point_data", data.point_data), ("cell_data", data.cell_data)):
         for key in names:
-            if not key.startswith(NODE_SET_PREFIX):
-                _check_field_name(key, file_format, f"{kind}[{key!r}]")
-    options = {"binary": True} if file_format == "gmsh" else {}
-    if file_format == "xdmf":
-        _write_xdmf(path, converted)
-        return
-    with atomic_output(path) as temporary:
-        meshio.write(temporary, converted, file_format=file_format, **options)
-
-
-def _write_xdmf(path: Path, converted) -> None:
-    """XDMF and its ``.h5`` file, each atomically, the ``.h5`` first.
-
-    meshio names the heavy-data file after the ``.xdmf`` file and refers to it by
-    name, so both are written under their final names in a temporary directory
-    beside the target, then moved into place.
-    """
-    import meshio
-
+            _check_field_name(key, mesh_format.name, f"{kind}[{key!r}]")
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise FileNotFoundError(f"path: directory {str(directory)!r} does not exist")
-    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=directory))
-    try:
-        staged = staging / path.name
-        meshio.write(staged, converted, file_format="xdmf")
-        heavy = staged.with_suffix(".h5")
-        with atomic_output(path.with_suffix(".h5")) as temporary:
-            os.replace(heavy, temporary)
-        with atomic_output(path) as temporary:
-            os.replace(staged, temporary)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    mesh_format.write(path, data)
+
+
+def write_morphed(source: PathLike, points: Tensor | np.ndarray, output: PathLike) -> Path:
+    """Write ``source`` (a mesh file, a CalculiX/Abaqus deck or an OpenFOAM case) again at
+    ``output`` with new coordinates, everything else as it was: a deck's materials,
+    steps and loads, a case's faces, owner, neighbour and boundary (byte-identical), a
+    file's blocks, markers and fields.
+
+    Parameters
+    ----------
+    source : str or path-like
+    points : Tensor or array, shape (N, D)
+        The new coordinates of :func:`read_mesh`'s points (for a pseudo-2-D OpenFOAM
+        case read in its plane, the in-plane points: both layers move alike).
+    output : str or path-like
+        A file of the same format, or the new case directory (it must not exist or be
+        empty; ``source`` itself rewrites it in place).
+
+    Returns
+    -------
+    Path
+        ``output``.
+    """
+    source, output = Path(source), Path(output)
+    mesh_format = format_of(source, "source")
+    if not source.exists():
+        raise FileNotFoundError(f"source: {str(source)!r} does not exist")
+    if not mesh_format.directory and format_of(output, "output") is not mesh_format:
+        raise ValueError(
+            f"output: {str(output)!r} is not a {mesh_format.name} file like the source; "
+            "convert formats with write_mesh"
+        )
+    if isinstance(points, Tensor):
+        points = points.detach().cpu().numpy()
+    mesh_format.move(source, np.asarray(points, dtype=np.float64), output)
+    return output
 
 
 # --------------------------------------------------------------------------- names
 
-# Characters percent-encoded in stored node-set names: the escape character itself,
-# what XML attributes (VTU, XDMF) and Gmsh's quoted strings cannot hold, and white
-# space (legacy VTK splits names on it).
-_ENCODED_CHARACTERS = frozenset("%\"'<>&")
-
-# Characters each format cannot hold in a field name (beyond control characters,
-# which no format holds).
-_FORBIDDEN_IN_FIELD_NAMES: dict[str, str] = {
-    "vtu": "\"'<>&",
-    "vtk": "",  # and white space
-    "xdmf": "",
-    "gmsh": '"',
-}
-
-
-def _needs_encoding(character: str) -> bool:
-    return character in _ENCODED_CHARACTERS or character.isspace() or not character.isprintable()
-
-
-def encode_set_name(name: str) -> str:
-    """The stored form of a node-set name: unsafe characters percent-encoded.
-
-    ``%``, ``"``, ``'``, ``<``, ``>``, ``&``, white space and non-printable
-    characters become ``%XX`` (their UTF-8 bytes); everything else is kept, so
-    ordinary names (``"wing"``, ``"z1"``, ``"ε-wall"``) are stored unchanged.
-    :func:`decode_set_name` inverts it.
-    """
-    return "".join(
-        urllib.parse.quote(character, safe="") if _needs_encoding(character) else character
-        for character in name
-    )
-
-
-def decode_set_name(stored: str) -> str:
-    """Inverse of :func:`encode_set_name` (``%XX`` sequences decoded as UTF-8)."""
-    return urllib.parse.unquote(stored, errors="strict") if "%" in stored else stored
+# Characters each format cannot hold in a field name (beyond control characters, which
+# no format holds).
+_FORBIDDEN_IN_FIELD_NAMES: dict[str, str] = {"vtu": "\"'<>&", "vtk": "", "gmsh": '"'}
 
 
 def _check_field_name(name: str, file_format: str, argument: str) -> None:
-    """Raise ``ValueError`` if a point/cell data name cannot be stored in ``file_format``.
-
-    Control characters are refused everywhere; VTU refuses ``" ' < > &``
-    (XML attributes), legacy VTK refuses white space, Gmsh refuses ``"``.
-    """
+    """Raise ``ValueError`` if a point/cell data name cannot be stored in ``file_format``:
+    control characters everywhere; ``" ' < > &`` in VTU (XML attributes), white space
+    in legacy VTK, ``"`` in Gmsh."""
+    forbidden = _FORBIDDEN_IN_FIELD_NAMES.get(file_format, "")
     bad = sorted(
         {
             c
             for c in name
-            if not c.isprintable()
-            or c in _FORBIDDEN_IN_FIELD_NAMES[file_format]
-            or (file_format == "vtk" and c.isspace())
+            if not c.isprintable() or c in forbidden or (file_format == "vtk" and c.isspace())
         }
     )
     if bad:
@@ -483,6 +485,11 @@ def _check_field_name(name: str, file_format: str, argument: str) -> None:
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def _check_key(key: Any, argument: str) -> None:
+    if not isinstance(key, str) or not key:
+        raise ValueError(f"{argument}: names must be non-empty strings, got {key!r}")
 
 
 def _to_numpy(value: Tensor | np.ndarray) -> np.ndarray:

@@ -397,6 +397,16 @@ class Mesh:
         check_finite(displacement, "displacement")
         return type(self)._from_parts(self, self._points + displacement)
 
+    def with_node_sets(self, node_sets: Mapping[str, Any]) -> Mesh:
+        """A copy with more named node sets (names not yet markers), topology shared."""
+        added = _as_node_sets(node_sets, self.num_nodes, self.device)
+        clash = set(added) & set(self.markers)
+        if clash:
+            raise ValueError(f"node_sets: {', '.join(sorted(clash))} name markers already")
+        mesh = type(self)._from_parts(self, self._points, _node_sets={**self._node_sets, **added})
+        mesh._geometry = self._geometry
+        return mesh
+
     def to(
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
     ) -> Mesh:
