@@ -26,6 +26,11 @@ position-dependent weights, modulo 2**48): the same on every device and thread c
 Replicated tensors must therefore be equal bit for bit (-0.0 and 0.0 count as equal).
 The checksums are not cryptographic: they catch any realistic difference (values
 moved, reordered, missing or computed otherwise), not a deliberately crafted one.
+
+What is not detected: the exchanged vector's length depends on the calls made, not on
+the data, so ranks that run different code (a ShardedIDW on one rank and a
+ShardedMeshMorph on another, in one ``ShardedPOD.fit``) send vectors of different
+lengths, which gloo answers by aborting the processes.
 """
 
 from __future__ import annotations

@@ -178,12 +178,10 @@ def _tsqr_basis(
 # --------------------------------------------------------------------------- #
 # sharded POD reducer
 # --------------------------------------------------------------------------- #
-def _sum_over_ranks(
-    value: Tensor | None, failure: Exception | None, group: Any, context: str
-) -> Tensor:
+def _sum_over_ranks(value: Tensor, failure: Exception | None, group: Any, context: str) -> Tensor:
     """``value`` summed over ranks (collective: one all-reduce, with one more entry that
-    counts the ranks whose ``value`` failed; then every rank raises)."""
-    flat = torch.zeros(1, dtype=torch.float64) if value is None else value.reshape(-1)
+    counts the ranks where computing ``value`` failed; then every rank raises)."""
+    flat = value.reshape(-1)
     flag = flat.new_tensor([0.0 if failure is None else 1.0])
     summed = torch.cat([flat, flag]).to(_comm_device(group, flat))
     dist.all_reduce(summed, group=group)
@@ -239,11 +237,15 @@ class ShardedPOD(PODBase):
     The morph protocol of :class:`~torchmorph.pod.PODReducer`, per rank: ``morph(d)``
     returns the rank's rows; ``copied_rows()``, ``weights``/``weight_columns`` and
     ``adjoint`` describe them, and the sum of the ranks' ``adjoint`` is the
-    transpose (no communication inside them: the sum is the one all-reduce of
-    ``fit``). :class:`~torchmorph.distributed.ShardedIDW` and
+    transpose (no communication inside them: ``fit`` sums them in one all-reduce). :class:`~torchmorph.distributed.ShardedIDW` and
     :class:`~torchmorph.distributed.ShardedMeshMorph` follow it; their
     ``add_fingerprint`` lets ``fit`` check that the ranks hold the same morph, and
     their ``group`` is the group ``fit`` works in.
+
+    Communication in ``fit``: the agreement of the ranks (a fingerprint of the
+    training displacements, the hyper-parameters and the morph, then the partition
+    of the output rows), an all-gather of one n × n triangle per rank (TSQR) and an
+    all-reduce of P.
 
     The paper's own online variant (eq. 16) needs the pseudo-inverse of the whole W
     and is not offered here. The reduced output equals what
@@ -309,11 +311,12 @@ class ShardedPOD(PODBase):
         ------
         ValueError
             On every rank at once: training displacements, ``energy_tolerance``,
-            ``num_modes`` or the morph (its fingerprint) that differ across ranks,
+            ``num_modes`` or the morph (its fingerprint) that differ across ranks;
             output rows (``morph.output_rows``) that do not partition the
-            ``morph.num_global_outputs`` rows, or a rank whose own data or morph fails (NaN snapshots on one rank, say:
-            that rank raises its own error, the others name it); all-zero
-            snapshots, or ``num_modes`` above the snapshots' count or rank.
+            ``morph.num_global_outputs`` rows; a rank whose own data or morph fails
+            (NaN snapshots on one rank, say: that rank raises its own error, the
+            others name it); all-zero snapshots, or ``num_modes`` above the
+            snapshots' count or rank.
         """
         group = getattr(morph, "group", None)
         context = "fitting a ShardedPOD"

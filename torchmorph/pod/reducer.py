@@ -124,7 +124,10 @@ class PODReducer(PODBase):
       (default: every input row), for ``online="paper"``. :class:`~torchmorph.idw.IDW`
       and :class:`~torchmorph.morph.MeshMorph` follow it; the map's dtype and device
       are those of its first floating buffer or parameter, D that of the training
-      inputs (the morph's output must have it too).
+      inputs (the morph's output must have it too). A map whose attribute
+      ``num_global_outputs`` exceeds its rows is one rank's share of a sharded map
+      (:mod:`torchmorph.distributed`): it is refused, its POD is
+      :class:`~torchmorph.distributed.ShardedPOD`'s.
     * State is in buffers: ``state_dict()`` saves a fitted reducer (the morph and
       ``W`` are not part of it) and ``load_state_dict`` into any ``PODReducer``
       restores it, hyper-parameters, shapes and floating dtype included; a state
