@@ -259,6 +259,7 @@ def _mismatches(rank: int, outdir: str, results: dict) -> None:
             controls, mine, target_rows=torch.arange(23, 31) if other else None
         ),
         "nan_target": lambda: ShardedIDW(controls, nan_targets),
+        "mode": lambda: ShardedIDW(controls, mine, mode="bogus" if other else "dense"),
         "not_a_tensor": lambda: ShardedIDW(controls, mine.tolist() if other else mine),
     }
 

@@ -246,6 +246,13 @@ DISAGREEMENTS = {
         REFERRED.format("targets", 1) + STOP_IDW,
         "ValueError: targets holds 1 NaN or infinite value(s)",
     ),
+    "mode": (
+        (
+            "ValueError: IDW(controls, targets) failed on rank 1 (that rank raised the error "
+            f"that says why){STOP_IDW}"
+        ),
+        "ValueError: mode must be one of 'auto', 'dense', 'matrix_free'; got 'bogus'",
+    ),
     "not_a_tensor": (
         REFERRED.format("targets", 1) + STOP_IDW,
         "TypeError: targets must be a torch.Tensor, got list",

@@ -318,7 +318,7 @@ def save_partitioned(
         with atomic_output(path) as temporary:
             torch.save(part, temporary)
     except Exception as error:  # noqa: BLE001  every rank hears of it (this replaces a barrier)
-        failure = ("writing a part", error)
+        failure = ("directory (writing the part)", error)
     agree_on_rows(None, 0, name="", what="", group=group, context=context, failure=failure)
     return path
 

@@ -196,7 +196,7 @@ class ShardedIDW(nn.Module):
                     implementation=implementation,
                 )
             except Exception as error:  # noqa: BLE001  raised below, on every rank
-                failure = ("building this rank's IDW", error)
+                failure = ("IDW(controls, targets)", error)
         checked = target_rows is not None  # the default rows partition by construction
         agree_on_rows(
             rows if checked else None,
@@ -206,7 +206,7 @@ class ShardedIDW(nn.Module):
             group=group,
             context=context,
             failure=failure,
-            steps=("building this rank's IDW",),
+            steps=("IDW(controls, targets)",),
         )
         self.register_buffer("target_rows", rows.to(controls.device))
 

@@ -189,8 +189,8 @@ def _sum_over_ranks(value: Tensor, failure: Exception | None, group: Any, contex
         if failure is not None:
             raise failure
         raise ValueError(
-            f"the morph's adjoint failed on another rank (it raised the error that says "
-            f"why); every rank stops {context}"
+            f"morph.adjoint failed on another rank (it raised the error that says why); "
+            f"every rank stops {context}"
         )
     return summed[:-1].to(value.device).reshape(value.shape)
 
