@@ -236,3 +236,17 @@ def test_a_2d_displacement_for_a_3d_mesh_is_refused():
         morph(torch.zeros(8, 2, dtype=F64))
     with pytest.raises(ValueError, match=r"points must have shape \(N, 2\) for cells of dimension 2"):
         Mesh(np.zeros((4, 3)) + np.eye(4, 3), [("quad", [[0, 1, 2, 3]])])
+
+
+def test_a_cell_pushed_through_its_neighbour_is_refused_whatever_its_kind():
+    # two cubes side by side; the second's far corners pulled back through the shared face:
+    # it is then a valid-looking mirrored cell on the first one's side
+    points, cells = columns(1)
+    hexes = cells[0][1]
+    assert Mesh(points, cells).num_cells == 3
+    squeezed = points.copy()
+    far = np.isclose(points[:, 0], 2.0)
+    squeezed[far, 0] = 0.5  # x = 2 -> x = 0.5: the wedges fold back over the hexahedron
+    with pytest.raises(ValueError, match="both of their cells on the same side"):
+        Mesh(squeezed, cells)
+    assert hexes.shape == (1, 8)

@@ -12,7 +12,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchmorph.mesh._kernels import corner_determinants, edge_lengths_squared
 from torchmorph.mesh.cells import FACET_KINDS, CellKind, cell_kind
 
 __all__ = ["CellBlock", "Facets", "as_cell_blocks", "cell_orientations", "match_facets"]
@@ -36,16 +35,17 @@ class Facets(NamedTuple):
     """The facets of a mesh, matched.
 
     ``boundary``: the facets used once, by facet kind, outward, sorted by their corners;
-    ``first``/``second``: for every interior facet, the global cells on its two sides
-    (``first`` owns the copy whose outward normal is ``normal_nodes``'s);
-    ``normal_nodes``: the corners of those copies, one (F_c, c) tensor per corner count,
-    in the order of ``first``.
+    ``first``/``second``: for every interior facet, the global cells on its two sides;
+    ``first_corners``/``second_corners``: the corners of each side's outward copy of the
+    facet (in the cell's order, flipped for a mirrored cell), one (F_c, c) tensor per
+    corner count, in the order of ``first``.
     """
 
     boundary: tuple[CellBlock, ...]
     first: Tensor
     second: Tensor
-    normal_nodes: tuple[Tensor, ...]
+    first_corners: tuple[Tensor, ...]
+    second_corners: tuple[Tensor, ...]
 
 
 def _shown(indices: Tensor) -> str:
@@ -129,9 +129,19 @@ def cell_orientations(
             if block.nodes.shape[0] == 0:
                 result.append(torch.ones(0, dtype=torch.int8, device=block.nodes.device))
                 continue
-            determinants = corner_determinants(exact, block.nodes, kind)
-            longest = edge_lengths_squared(exact, block.nodes, kind).amax(-1).sqrt()
-            bound = FLAT_CELL_TOLERANCE * longest**kind.dim
+            # the corners once per cell (D columns of (M, c)), then frame by frame from them
+            # (no (M, frames, D, D) temporaries); a simplex's frames all give its volume
+            corners = exact[block.nodes[:, : kind.corners]].permute(2, 1, 0).contiguous()
+            frames = kind.corner_frames[:1] if kind.is_simplex else kind.corner_frames
+            columns, longest = [], None
+            for frame in frames:
+                vectors = [corners[:, k] - corners[:, frame[0]] for k in frame[1:]]
+                columns.append(_determinant(vectors))
+                for vector in vectors:  # the frames' edges hold the longest edge (or, for a
+                    squared = vector.square().sum(0)  # simplex, one at least half as long)
+                    longest = squared if longest is None else torch.maximum(longest, squared)
+            determinants = torch.stack(columns, -1)
+            bound = FLAT_CELL_TOLERANCE * longest ** (kind.dim / 2)
             total = determinants.sum(-1)
             flat = torch.nonzero(total.abs() <= bound * determinants.shape[-1]).flatten()
             where = f"{argument}[{position}] ({block.kind})"
@@ -151,6 +161,15 @@ def cell_orientations(
                 )
             result.append(sign.to(torch.int8))
     return tuple(result)
+
+
+def _determinant(vectors: list[Tensor]) -> Tensor:
+    """det of D vectors, each (D, M) (one row per coordinate), for D = 2 or 3."""
+    if len(vectors) == 2:
+        (a0, a1), (b0, b1) = vectors
+        return a0 * b1 - a1 * b0
+    (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = vectors
+    return a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
 
 
 def _facet_copies(blocks, orientations):
@@ -174,16 +193,38 @@ def _facet_copies(blocks, orientations):
     }
 
 
+#: Compare-exchange networks that sort 2, 3 or 4 columns.
+_NETWORKS = {2: ((0, 1),), 3: ((0, 1), (1, 2), (0, 1)), 4: ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2))}
+
+
+def _sorted_columns(rows: Tensor) -> Tensor:
+    """Every row's entries in ascending order (a sorting network: a few elementwise
+    minima and maxima, several times faster than ``torch.sort`` along a short row)."""
+    columns = list(rows.unbind(1))
+    for a, b in _NETWORKS[len(columns)]:
+        columns[a], columns[b] = (
+            torch.minimum(columns[a], columns[b]),
+            torch.maximum(columns[a], columns[b]),
+        )
+    return torch.stack(columns, 1)
+
+
 def _sort_rows(rows: Tensor, num_nodes: int) -> tuple[Tensor, Tensor]:
-    """Order of the rows (lexicographic) and, in that order, whether each row equals the
-    next one."""
+    """Order of the sorted-corner rows (by their first three corners, the smallest ones,
+    which fix a facet of a valid mesh) and, in that order, whether each row equals the
+    next one (all corners compared)."""
     width = rows.shape[1]
-    if float(num_nodes) ** width < 2.0**62:
+    keyed = min(width, 3)
+    if float(num_nodes) ** keyed < 2.0**62:
         keys = rows[:, 0].clone()
-        for column in range(1, width):
+        for column in range(1, keyed):
             keys = keys * num_nodes + rows[:, column]
         keys, order = torch.sort(keys)
-        return order, keys[1:] == keys[:-1]
+        same = keys[1:] == keys[:-1]
+        if width > keyed:
+            last = rows[order, keyed:]
+            same &= (last[1:] == last[:-1]).all(1)
+        return order, same
     order = torch.arange(rows.shape[0], device=rows.device)
     for column in reversed(range(width)):
         order = order[torch.sort(rows[order, column], stable=True).indices]
@@ -209,7 +250,7 @@ def match_facets(
     for facet_kind, (nodes, owners) in copies.items():
         by_corners.setdefault(FACET_KINDS[facet_kind][0], []).append((facet_kind, nodes, owners))
     boundary: dict[str, list[Tensor]] = {}
-    firsts, seconds, normals = [], [], []
+    firsts, seconds, first_corners, second_corners = [], [], [], []
     for corners, groups in sorted(by_corners.items()):
         kinds = [k for k, _, _ in groups]
         corner_rows = torch.cat([n[:, :corners] for _, n, _ in groups])
@@ -218,7 +259,7 @@ def match_facets(
             [torch.full((n.shape[0],), i, device=device) for i, (_, n, _) in enumerate(groups)]
         )
         starts = np.cumsum([0] + [n.shape[0] for _, n, _ in groups])
-        order, same = _sort_rows(torch.sort(corner_rows, dim=1).values, num_nodes)
+        order, same = _sort_rows(_sorted_columns(corner_rows), num_nodes)
         if bool((same[1:] & same[:-1]).any()):
             count = int((same[1:] & same[:-1]).sum())
             raise ValueError(
@@ -232,41 +273,40 @@ def match_facets(
             boundary.setdefault(facet_kind, []).append(groups[index][1][rows])
         firsts.append(owners[order[:-1][same]])
         seconds.append(owners[order[1:][same]])
-        normals.append(corner_rows[order[:-1][same]])
+        first_corners.append(corner_rows[order[:-1][same]])
+        second_corners.append(corner_rows[order[1:][same]])
     return Facets(
         boundary=tuple(CellBlock(k, torch.cat(v)) for k, v in boundary.items()),
         first=torch.cat(firsts) if firsts else torch.empty(0, dtype=torch.long, device=device),
         second=torch.cat(seconds) if seconds else torch.empty(0, dtype=torch.long, device=device),
-        normal_nodes=tuple(normals),
+        first_corners=tuple(first_corners),
+        second_corners=tuple(second_corners),
     )
 
 
-def check_folds(
-    points: Tensor, blocks: Sequence[CellBlock], facets: Facets, *, argument: str = "cells"
-) -> None:
+def check_folds(facets: Facets, *, argument: str = "cells") -> None:
     """Raise ``ValueError`` if the two cells of an interior facet lie on the same side of it
-    (a cell folded over its neighbour: an inverted reference cell that orientation alone
-    cannot reveal)."""
-    if facets.first.numel() == 0:
-        return
-    with torch.no_grad():
-        exact = points.detach().to(torch.float64)
-        centroids = torch.cat(
-            [exact[b.nodes[:, : cell_kind(b.kind).corners]].mean(1) for b in blocks]
-        )
-        sides = []
-        for corners in facets.normal_nodes:
-            polygon = exact[corners]  # (F, c, D)
-            if polygon.shape[-1] == 2:  # an edge (a, b) with the cell on its left
-                edge = polygon[:, 1] - polygon[:, 0]
-                normal = torch.stack([edge[:, 1], -edge[:, 0]], 1)
-            else:  # Newell's normal of the polygon
-                normal = torch.linalg.cross(polygon, polygon.roll(-1, 1), dim=-1).sum(1)
-            sides.append((normal, polygon.mean(1)))
-        normal = torch.cat([n for n, _ in sides])
-        centre = torch.cat([c for _, c in sides])
-        beyond = ((centroids[facets.second] - centre) * normal).sum(-1)
-        folded = torch.nonzero(beyond <= 0).flatten()
+    (a cell folded over its neighbour, or an inverted reference cell that reads as a
+    mirrored one: orientation alone cannot reveal either).
+
+    Each side's copy of the facet is outward for its cell (mirrored cells' copies are
+    flipped), so two cells on opposite sides list the facet's corners in opposite cyclic
+    orders; the same order puts both cells on one side. A combinatorial test: no
+    coordinates are read.
+    """
+    parts = []
+    for first, second in zip(facets.first_corners, facets.second_corners, strict=True):
+        if first.shape[1] == 2:  # an edge: opposite sides read it (a, b) and (b, a)
+            parts.append((first[:, 0] != second[:, 1]) | (first[:, 1] != second[:, 0]))
+            continue
+        width = first.shape[1]
+        rows = torch.arange(first.shape[0], device=first.device)
+        lowest_first = first.argmin(1)
+        lowest_second = second.argmin(1)
+        after = first[rows, (lowest_first + 1) % width]  # the corner after the smallest
+        before = second[rows, (lowest_second - 1) % width]  # the corner before it
+        parts.append(after != before)
+    folded = torch.nonzero(torch.cat(parts)).flatten() if parts else torch.empty(0)
     if folded.numel():
         pairs = ", ".join(
             f"({int(facets.first[k])}, {int(facets.second[k])})"

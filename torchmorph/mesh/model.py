@@ -103,7 +103,7 @@ class Mesh:
             )
         orientation = cell_orientations(points, blocks)
         facets = match_facets(blocks, orientation, points.shape[0])
-        check_folds(points, blocks, facets)
+        check_folds(facets)
         self._setup(points, blocks, orientation, node_sets, face_sets, groups, name)
         self._topology["facets"] = facets
 
