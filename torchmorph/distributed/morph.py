@@ -36,7 +36,7 @@ from torchmorph.distributed._common import (
 )
 from torchmorph.distributed.idw import ShardedIDW, _check_tolerance, _local_transpose
 from torchmorph.idw.module import DEFAULT_COINCIDENCE_TOLERANCE, Implementation, Mode
-from torchmorph.mesh.tetmesh import TetMesh
+from torchmorph.mesh.model import Mesh
 
 if TYPE_CHECKING:
     from torchmorph.selection.plan import SelectionPlan
@@ -78,8 +78,8 @@ def _broadcast_selection(select: Callable[[], Tensor], group: Any, context: str)
 
 
 def _check_mesh(mesh: Any) -> None:
-    if not isinstance(mesh, TetMesh):
-        raise TypeError(f"mesh must be a TetMesh, got {type(mesh).__name__}")
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh must be a torchmorph Mesh (or TetMesh), got {type(mesh).__name__}")
 
 
 class ShardedMeshMorph(nn.Module):
@@ -93,8 +93,8 @@ class ShardedMeshMorph(nn.Module):
 
     Parameters
     ----------
-    mesh : TetMesh
-        The reference mesh, the same on every rank: its points (bit for bit), its
+    mesh : Mesh
+        The reference mesh (any element kinds, 2-D or 3-D), the same on every rank: its points (bit for bit), its
         boundary nodes and its cells' kinds and counts are compared by checksums.
     plan : SelectionPlan, optional
         Control-point selection (SIDW/ESIDW); None: every boundary node. Rank 0's
@@ -136,7 +136,7 @@ class ShardedMeshMorph(nn.Module):
 
     def __init__(
         self,
-        mesh: TetMesh,
+        mesh: Mesh,
         plan: SelectionPlan | None = None,
         *,
         owned_nodes: Tensor | Sequence[int] | None = None,
@@ -241,7 +241,7 @@ class ShardedMeshMorph(nn.Module):
             torch.searchsorted(boundary, local_boundary).to(target_device),
             persistent=False,
         )
-        self.node_sets = {name: nodes.clone() for name, nodes in mesh.node_sets.items()}
+        self.node_sets = {name: mesh.node_set(name).clone() for name in mesh.markers}
         self.num_interior = int(interior.numel())
         self.sharded = ShardedIDW(
             points[self.control_nodes],
