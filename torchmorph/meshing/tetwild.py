@@ -47,7 +47,25 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from torchmorph.mesh.quality import quality_report
-from torchmorph.meshing.cad import is_cad_input, mesh_cad
+from torchmorph.meshing import snapping
+from torchmorph.meshing.cad import ALGORITHM_3D, _mesh_cad, is_cad_input
+from torchmorph.meshing.checks import (
+    TOUCH_TOLERANCE,
+    Progress,
+    check_body_contacts,
+    check_max_elements,
+    check_size,
+    check_threads,
+    far_offset,
+)
+from torchmorph.meshing.estimate import (
+    _INVERSE_REGULAR,
+    MAX_ELEMENTS,
+    TETS_PER_REGULAR,
+    TetEstimate,
+    check_budget,
+    estimate_tets,
+)
 from torchmorph.meshing.surfaces import (
     _EXTRA,
     Surface,
@@ -60,24 +78,11 @@ from torchmorph.meshing.surfaces import (
 )
 
 if TYPE_CHECKING:
-    from torchmorph.mesh.tetmesh import TetMesh
+    from torchmorph.mesh import TetMesh
 
 __all__ = ["mesh_surfaces", "tetrahedralize"]
 
 # --------------------------------------------------------------------------- fTetWild
-
-
-def _orient(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Tets with the last two vertices swapped where the signed volume is negative."""
-    tets = np.array(tets, dtype=np.int64, copy=True)
-    flip = _signed_volumes(points, tets) < 0
-    tets[flip, 2], tets[flip, 3] = tets[flip, 3].copy(), tets[flip, 2].copy()
-    return tets
-
-
-def _signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    a, b, c, d = (points[tets[:, k]] for k in range(4))
-    return np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a)) / 6.0
 
 
 @contextlib.contextmanager
@@ -101,7 +106,8 @@ def tetrahedralize(
     stop_energy: float = 10.0,
     iterations: int = 80,
     sizing: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-    threads: int = 1,
+    threads: int | None = None,
+    max_elements: int | None = MAX_ELEMENTS,
     progress: bool = False,
     verbose: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -114,7 +120,9 @@ def tetrahedralize(
         The domain's boundary: fTetWild keeps the tetrahedra of winding number
         1, so an outer wall has outward normals and a body inside it inward ones.
     edge_length : float
-        Target edge length (absolute); ``sizing`` overrides it where smaller.
+        Target edge length (absolute), at most the surface's largest extent
+        (fTetWild cannot honour more and then runs for minutes); ``sizing``
+        overrides it where smaller.
     epsilon : float, default 1e-3
         Envelope: the mesh's surface lies within ``epsilon`` times the
         bounding-box diagonal of the input. Smaller follows the input more
@@ -127,8 +135,12 @@ def tetrahedralize(
         At most this many optimisation passes.
     sizing : (points (P, 3), tets (T, 4), values (P,)), optional
         Background mesh with the target edge length at its nodes.
-    threads : int, default 1
-        fTetWild's threads (0: all cores; its output then varies run to run).
+    threads : int, optional
+        fTetWild's threads, >= 1 (default 1; with more its output varies run to run).
+    max_elements : int or None, default :data:`MAX_ELEMENTS`
+        Refuse when the estimated number of tetrahedra is larger (the volume over
+        a regular tetrahedron's of ``edge_length``; with ``sizing``, integrated
+        over the background mesh); None: no limit.
     progress : bool, default False
         Print a line on stderr before and after (with the elapsed time):
         fTetWild holds the interpreter while it runs, so no bar can move.
@@ -139,6 +151,16 @@ def tetrahedralize(
     -------
     points : array, shape (N, 3)
     tets : int array, shape (M, 4), positively oriented
+
+    Raises
+    ------
+    ValueError
+        For a bad argument (named in the message) or an estimate above ``max_elements``.
+
+    Notes
+    -----
+    A surface far from the origin (farther than its bounding box's diagonal; fTetWild
+    stalls on a body at 1e7) is meshed about its centre and moved back.
     """
     try:
         import pytetwild  # imports pyvista
@@ -146,15 +168,17 @@ def tetrahedralize(
         raise ImportError(
             f"tetrahedralising needs pytetwild (which imports pyvista): {_EXTRA}"
         ) from error
-    for label, value in (
-        ("edge_length", edge_length),
-        ("epsilon", epsilon),
-        ("stop_energy", stop_energy),
-    ):
-        if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
+    vertices = np.asarray(vertices, dtype=np.float64)
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    edge_length = check_size("edge_length", edge_length, extent=float((high - low).max()))
+    epsilon, stop_energy = check_size("epsilon", epsilon), check_size("stop_energy", stop_energy)
     if not (isinstance(iterations, (int, np.integer)) and iterations >= 0):
         raise ValueError(f"iterations must be an integer >= 0, got {iterations!r}")
+    threads, max_elements = check_threads(threads), check_max_elements(max_elements)
+    estimate = _estimate(vertices, faces, edge_length, sizing)
+    check_budget(estimate, max_elements)
+    offset = far_offset(low, high)
+    vertices = vertices - offset
     options = {
         "edge_length_abs": float(edge_length),
         "epsilon": float(epsilon),
@@ -165,7 +189,7 @@ def tetrahedralize(
     }
     if sizing is not None:
         options.update(
-            bg_vertices=np.ascontiguousarray(sizing[0], dtype=np.float64),
+            bg_vertices=np.ascontiguousarray(np.asarray(sizing[0]) - offset, dtype=np.float64),
             bg_tets=np.ascontiguousarray(sizing[1], dtype=np.int32),
             bg_values=np.ascontiguousarray(sizing[2], dtype=np.float64),
         )
@@ -173,7 +197,8 @@ def tetrahedralize(
         print(
             f"fTetWild: meshing {len(faces)} surface triangles (edge length {edge_length:.3g}"
             f"{', graded' if sizing is not None else ''}, epsilon {epsilon:g}, stop energy "
-            f"{stop_energy:g}); this can take a minute ...",
+            f"{stop_energy:g}; about {estimate.total:,.0f} tetrahedra estimated); this can "
+            "take a minute ...",
             file=sys.stderr,
             flush=True,
         )
@@ -184,7 +209,7 @@ def tetrahedralize(
             np.ascontiguousarray(faces, dtype=np.int32),
             **options,
         )
-    points = np.asarray(points, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64) + offset
     tets = np.asarray(tets, dtype=np.int64)
     if progress:
         print(
@@ -197,7 +222,36 @@ def tetrahedralize(
         raise RuntimeError(
             "fTetWild returned an empty mesh (is the surface closed and does it enclose a volume?)"
         )
-    return points, _orient(points, tets)
+    return points, snapping.orient(points, tets)
+
+
+def _estimate(vertices, faces, edge_length, sizing) -> TetEstimate:
+    """The tetrahedra :func:`tetrahedralize` would make: the enclosed volume at
+    ``edge_length``, or with ``sizing`` the integral over its background mesh."""
+    a, b, c = (vertices[np.asarray(faces)[:, k]] for k in range(3))
+    volume = abs(float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0))
+    uniform = TETS_PER_REGULAR["ftetwild"] * _INVERSE_REGULAR * volume / edge_length**3
+    if sizing is None:
+        return TetEstimate(uniform, uniform, volume, {"edge_length": edge_length})
+    points, tets, values = (np.asarray(item, dtype=np.float64) for item in sizing)
+    tets = tets.astype(np.int64)
+    h = np.minimum(values, edge_length)
+    corners = points[tets]
+    volumes = (
+        np.abs(
+            np.einsum(
+                "ij,ij->i",
+                corners[:, 1] - corners[:, 0],
+                np.cross(corners[:, 2] - corners[:, 0], corners[:, 3] - corners[:, 0]),
+            )
+        )
+        / 6.0
+    )
+    density = (_INVERSE_REGULAR / h[tets] ** 3).mean(axis=1)
+    total = TETS_PER_REGULAR["ftetwild"] * float(
+        volumes @ density
+    )  # holes included: an upper bound
+    return TetEstimate(total, total, volume, {"sizing": float(h.min())})
 
 
 def _sizing_field(
@@ -224,7 +278,7 @@ def _sizing_field(
     vertices, faces = _merge([(body, False) for body in bodies])
     distance = closest_points(grid, vertices, faces)[2]
     values = np.minimum(far, near + (far - near) * distance / grading)
-    return grid, _orient(grid, tets).astype(np.int32), values
+    return grid, snapping.orient(grid, tets).astype(np.int32), values
 
 
 def _merge(surfaces: Sequence[tuple[Surface, bool]]) -> tuple[np.ndarray, np.ndarray]:
@@ -272,54 +326,6 @@ def _contains(outer: Surface, inner: Surface) -> bool:
     )
 
 
-def _snap(points, tets, nodes, targets, *, sweeps: int = 30):
-    """Move ``nodes`` to ``targets``, backing moves off where a tetrahedron would invert.
-
-    Returns the moved points and the number of nodes not moved all the way.
-    """
-    original = points[nodes].copy()
-    fraction = np.ones(len(nodes))
-    position = np.full(len(points), -1)
-    position[nodes] = np.arange(len(nodes))
-    longest = np.sqrt(
-        np.max(
-            [
-                np.sum((points[tets[:, i]] - points[tets[:, j]]) ** 2, axis=1)
-                for i in range(4)
-                for j in range(i + 1, 4)
-            ],
-            axis=0,
-        )
-    )
-    minimum = 1e-8 * longest**3
-    for _ in range(sweeps):
-        points[nodes] = original + fraction[:, None] * (targets - original)
-        bad = _signed_volumes(points, tets) <= minimum
-        if not bad.any():
-            break
-        culprits = np.unique(position[tets[bad]])
-        culprits = culprits[culprits >= 0]
-        if culprits.size == 0:
-            break
-        fraction[culprits] = np.where(fraction[culprits] > 1e-3, fraction[culprits] / 2, 0.0)
-    return points, int((fraction < 1).sum())
-
-
-def _edge_lengths_at_nodes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    pairs = tets[:, [0, 1, 0, 2, 0, 3, 1, 2, 1, 3, 2, 3]].reshape(-1, 2)
-    lengths = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
-    shortest = np.full(len(points), np.inf)
-    np.minimum.at(shortest, pairs[:, 0], lengths)
-    np.minimum.at(shortest, pairs[:, 1], lengths)
-    return shortest
-
-
-def _boundary_nodes(tets: np.ndarray) -> np.ndarray:
-    faces = np.sort(tets[:, [1, 2, 3, 0, 3, 2, 0, 1, 3, 0, 2, 1]].reshape(-1, 3), axis=1)
-    unique, counts = np.unique(faces, axis=0, return_counts=True)
-    return np.unique(unique[counts == 1])
-
-
 def mesh_surfaces(
     surfaces: Any,
     *,
@@ -334,7 +340,8 @@ def mesh_surfaces(
     feature_angle: float | None = None,
     snap: bool = True,
     repair: bool = False,
-    threads: int = 1,
+    threads: int | None = None,
+    max_elements: int | None = MAX_ELEMENTS,
     progress: bool = False,
     name: str | None = None,
 ) -> TetMesh:
@@ -347,7 +354,8 @@ def mesh_surfaces(
         one whose bounding box contains all the others is the outer wall and
         the others are holes in it (bodies in a tunnel), otherwise each is
         meshed as a solid. With ``box``/``bounds`` every surface is a body
-        in the box. CAD files (:data:`CAD_FORMATS`: STEP, IGES, BREP) go to
+        in the box. Bodies must not overlap or touch, and a body may lie inside
+        another only as a hole in the outer wall above. CAD files (:data:`CAD_FORMATS`: STEP, IGES, BREP) go to
         :func:`mesh_cad` (gmsh on the exact CAD geometry; ``edge_length``,
         ``body_edge_length`` and ``grading`` are its sizes, the fTetWild and
         snapping options do not apply); CAD and triangle files cannot be mixed.
@@ -358,14 +366,21 @@ def mesh_surfaces(
     bounds : array, shape (2, 3), optional
         The box's corners instead of ``box``.
     edge_length : float, optional
-        Target edge length (default: the domain's bounding-box diagonal / 20).
+        Target edge length (default: the domain's bounding-box diagonal / 20);
+        at most the domain's largest extent.
     body_edge_length, grading : float, optional
-        Edge length on the bodies, growing linearly with the distance from
-        them to ``edge_length`` over ``grading`` (default: the bodies' largest
-        extent); needs a box (a background sizing field).
+        Edge length on the bodies (at most their largest extent), growing
+        linearly with the distance from them to ``edge_length`` over
+        ``grading`` (default: the bodies' largest extent); needs a box (a
+        background sizing field).
     epsilon, stop_energy, iterations, threads
-        fTetWild's envelope, optimisation target and passes, threads
-        (:func:`tetrahedralize`).
+        fTetWild's envelope, optimisation target and passes, threads (an
+        int >= 1, default 1; :func:`tetrahedralize`). For CAD files
+        ``threads`` are gmsh's.
+    max_elements : int or None, default :data:`MAX_ELEMENTS`
+        Refuse, before meshing, when the estimated number of tetrahedra
+        (:func:`~torchmorph.meshing.estimate.estimate_tets`) is larger; the
+        message names the size to raise. None: no limit.
     feature_angle : float, optional
         Degrees: add the sets ``<surface>_edges`` (boundary nodes placed on
         the sharp edges of the surface, dihedral angle above this) and
@@ -378,7 +393,8 @@ def mesh_surfaces(
     repair : bool, default False
         Passed to :func:`load_surface` for files.
     progress : bool, default False
-        Print the meshing steps with elapsed times and the quality on stderr.
+        Print the estimate, the meshing steps with elapsed times and the
+        quality on stderr.
     name : str, optional
         The mesh's name (default: the first surface's).
 
@@ -395,12 +411,20 @@ def mesh_surfaces(
     Raises
     ------
     ValueError
-        For a bad surface or argument (named in the message); when the mesh
-        has inverted tetrahedra after snapping (not expected).
+        For a bad surface or argument (named in the message); bodies that
+        overlap, touch or nest (see above); an estimate above ``max_elements``;
+        when the mesh has inverted tetrahedra after snapping (not expected).
     ImportError
         Without the ``tetwild`` extra.
+
+    Notes
+    -----
+    Surfaces far from the origin (farther than their bounding box's diagonal)
+    are meshed about their centre and moved back: fTetWild stalls on a body at
+    1e7. Touching is found where a vertex of one body lies on the other; bodies
+    touching only along edges are not detected.
     """
-    from torchmorph.mesh.tetmesh import TetMesh
+    from torchmorph.mesh import TetMesh
 
     if is_cad_input(surfaces):
         if feature_angle is not None or repair:
@@ -408,27 +432,42 @@ def mesh_surfaces(
                 "feature_angle and repair are for triangle surfaces: a CAD file's faces and "
                 "curves are node sets already"
             )
-        return mesh_cad(
+        return _mesh_cad(
             surfaces,
             box=box,
             bounds=bounds,
-            mesh_size=edge_length,
-            body_mesh_size=body_edge_length,
-            grading=grading,
+            sizes=(edge_length, body_edge_length, grading),
+            labels=("edge_length", "body_edge_length", "grading"),
+            algorithm=ALGORITHM_3D,
+            optimize="",
+            seed=0,
+            threads=threads,
+            max_elements=max_elements,
             progress=progress,
             name=name,
         )
-    start = time.perf_counter()
+    report = Progress(progress)
+    sizes = ("edge_length", "body_edge_length", "grading")
+    for label, value in zip(sizes, (edge_length, body_edge_length, grading), strict=True):
+        check_size(label, value)
+    threads, max_elements = check_threads(threads), check_max_elements(max_elements)
     bodies = _as_surfaces(surfaces, repair)
     if box is not None and bounds is not None:
         raise ValueError("box and bounds: give one of them, not both")
     if (body_edge_length is not None or grading is not None) and box is None and bounds is None:
         raise ValueError("body_edge_length and grading need a far field: give box or bounds")
+    low = np.min([b.bounds[0] for b in bodies], axis=0)
+    high = np.max([b.bounds[1] for b in bodies], axis=0)
+    offset = far_offset(low, high)
+    if offset.any():  # mesh about the origin, move back at the end
+        bodies = [Surface(b.vertices - offset, b.faces, b.name, b.groups) for b in bodies]
+        low, high = low - offset, high - offset
+        report(f"surfaces: meshed about their centre {offset.tolist()} and moved back")
     walls = None
     if box is not None:
         walls = box_surface(box_bounds(bodies, box))
     elif bounds is not None:
-        walls = box_surface(bounds)
+        walls = box_surface(np.asarray(bounds, dtype=np.float64) - offset)
     if walls is not None:
         if any(body.name == walls.name for body in bodies):
             raise ValueError(
@@ -441,29 +480,48 @@ def mesh_surfaces(
                     f"surface {body.name!r} (bounds {body.bounds.tolist()})"
                 )
         boundary = [(walls, False)] + [(body, True) for body in bodies]
+        container = None
     else:
         outer = [s for s in bodies if all(_contains(s, o) for o in bodies if o is not s)]
-        if len(bodies) > 1 and outer:
-            boundary = [(s, s is not outer[0]) for s in bodies]
-        else:
-            boundary = [(s, False) for s in bodies]
-    all_surfaces = [surface for surface, _ in boundary]
-    vertices, faces = _merge(boundary)
-    diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0)))
-    if edge_length is None:
-        edge_length = diagonal / 20.0
-    sizing = None
-    if body_edge_length is not None:
-        for label, value in (("body_edge_length", body_edge_length), ("grading", grading)):
-            if value is not None and not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
-        body_bounds = np.stack(
-            [np.min([b.bounds[0] for b in bodies], 0), np.max([b.bounds[1] for b in bodies], 0)]
-        )
-        grading = grading if grading is not None else float(np.ptp(body_bounds, axis=0).max())
-        sizing = _sizing_field(walls.bounds, bodies, edge_length, body_edge_length, grading)
+        container = outer[0] if len(bodies) > 1 and outer else None
+        boundary = [(s, container is not None and s is not container) for s in bodies]
     if feature_angle is not None and not 0 < feature_angle < 180:
         raise ValueError(f"feature_angle must be in (0, 180) degrees, got {feature_angle!r}")
+    if len(bodies) > 1:
+        report("surfaces: checking that the bodies do not overlap or touch")
+        check_body_contacts(bodies, container, TOUCH_TOLERANCE * np.linalg.norm(high - low))
+    all_surfaces = [surface for surface, _ in boundary]
+    vertices, faces = _merge(boundary)
+    extent = np.ptp(vertices, axis=0)
+    diagonal = float(np.linalg.norm(extent))
+    edge_length = check_size("edge_length", edge_length, extent=float(extent.max()))
+    edge_length = edge_length or diagonal / 20.0
+    body_extent = float((high - low).max())
+    check_size("body_edge_length", body_edge_length, extent=body_extent, what="the bodies'")
+    volume = Surface(vertices, faces).volume
+    sizing = None
+    if body_edge_length is not None:
+        grading = grading if grading is not None else body_extent
+        body_vertices, body_faces = _merge([(body, False) for body in bodies])
+        a, b, c = (body_vertices[body_faces[:, k]] for k in range(3))
+        estimate = estimate_tets(
+            volume=volume,
+            size=edge_length,
+            body_size=body_edge_length,
+            grading=grading,
+            bounds=walls.bounds,
+            body_vertices=body_vertices,
+            body_faces=body_faces,
+            body_area=0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum()),
+            mesher="ftetwild",
+        )
+    else:
+        estimate = estimate_tets(volume=volume, size=edge_length, mesher="ftetwild")
+    limit = "no limit" if max_elements is None else f"max_elements {max_elements:,}"
+    report(f"estimate: about {estimate.total:,.0f} tetrahedra ({limit})")
+    check_budget(estimate, max_elements)
+    if body_edge_length is not None:
+        sizing = _sizing_field(walls.bounds, bodies, edge_length, body_edge_length, grading)
 
     points, tets = tetrahedralize(
         vertices,
@@ -474,9 +532,10 @@ def mesh_surfaces(
         iterations=iterations,
         sizing=sizing,
         threads=threads,
+        max_elements=None,  # estimated above
         progress=progress,
     )
-    boundary_nodes = _boundary_nodes(tets)
+    boundary_nodes = snapping.boundary_nodes(tets)
     tolerance = 1e-9 * diagonal
     unsnapped = 0
     features = {}
@@ -484,7 +543,7 @@ def mesh_surfaces(
         for surface in bodies:
             features[surface.name] = feature_edges(surface, feature_angle)
     if snap:
-        shortest = _edge_lengths_at_nodes(points, tets)
+        shortest = snapping.edge_lengths_at_nodes(points, tets)
         target = closest_points(points[boundary_nodes], vertices, faces)[0]
         for surface in bodies:
             edges = features.get(surface.name, (np.zeros((0, 2), np.int64), []))[0]
@@ -499,7 +558,7 @@ def mesh_surfaces(
                 reach = np.minimum(0.5 * shortest[boundary_nodes], 3.0 * epsilon * diagonal)
                 near = distance < reach
                 target[near] = on_edge[near]
-        points, unsnapped = _snap(points, tets, boundary_nodes, target)
+        points, unsnapped = snapping.snap(points, tets, boundary_nodes, target)
 
     node_sets: dict[str, np.ndarray] = {}
     query = points[boundary_nodes]
@@ -530,24 +589,19 @@ def mesh_surfaces(
             node_sets[f"{surface_name}_patch{k}"] = on(surface.vertices, surface.faces[patch])
     node_sets = {key: ids for key, ids in node_sets.items() if ids.size}
 
-    inverted = int((_signed_volumes(points, tets) <= 0).sum())
+    inverted = int((snapping.signed_volumes(points, tets) <= 0).sum())
     if inverted:
         raise ValueError(
             f"the mesh has {inverted} inverted tetrahedra after snapping; try "
             "snap=False or a smaller epsilon"
         )
-    mesh = TetMesh(points, tets, node_sets, name=name or bodies[0].name)
+    mesh = TetMesh(points + offset, tets, node_sets, name=name or bodies[0].name)
     if progress:
-        report = quality_report(mesh)
+        quality = quality_report(mesh)
         snapped = (
             f"; {unsnapped} boundary node(s) kept off the surface to keep tetrahedra valid"
             if unsnapped
             else ""
         )
-        print(
-            f"mesh: {mesh.num_nodes} nodes, {mesh.num_tets} tetrahedra, {report}{snapped} "
-            f"({time.perf_counter() - start:.1f} s in all)",
-            file=sys.stderr,
-            flush=True,
-        )
+        report(f"mesh: {mesh.num_nodes} nodes, {mesh.num_tets} tetrahedra, {quality}{snapped}")
     return mesh
