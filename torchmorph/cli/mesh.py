@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import sys
+import re
 import time
 from pathlib import Path
 
@@ -18,6 +18,7 @@ from torchmorph.cli._common import (
     _progress_option,
     _seconds,
 )
+from torchmorph.meshing.estimate import MAX_ELEMENTS
 
 
 def add_parser(commands, common: argparse.ArgumentParser) -> None:
@@ -38,8 +39,12 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         "and --grading are its sizes, the fTetWild options do not apply), with one node\n"
         "set per CAD face (<surface>_face<k>) and the nodes on the curves between faces\n"
         "(<surface>_edges). CAD and triangle files cannot be mixed in one call.\n"
-        "Prints the mesh's quality. Needs: pip install 'torchmorph[tetwild]' (triangle\n"
-        "surfaces) or 'torchmorph[mesh]' (CAD files).",
+        "Before meshing, the number of tetrahedra is estimated from the sizes and the\n"
+        "geometry, and a mesh larger than --max-elements is refused with the size to\n"
+        "raise; bodies that overlap or touch are refused. Prints the estimate, the steps\n"
+        "and the elapsed time on stderr (--no-progress: silent) and the mesh's quality.\n"
+        "Needs: pip install 'torchmorph[tetwild]' (triangle surfaces) or\n"
+        "'torchmorph[mesh]' (CAD files).",
         epilog=_MESH_EPILOG,
     )
     mesh.add_argument(
@@ -118,9 +123,17 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
     )
     sizing.add_argument(
         "--threads",
-        type=int,
+        type=_threads,
         default=1,
-        help="fTetWild threads (default 1: reproducible; 0: all cores)",
+        help="fTetWild's threads, gmsh's for CAD files (default 1: reproducible)",
+    )
+    sizing.add_argument(
+        "--max-elements",
+        type=_max_elements,
+        default=MAX_ELEMENTS,
+        metavar="N",
+        help="refuse to mesh when the estimated number of tetrahedra is above N "
+        f"(default {MAX_ELEMENTS:,}; 'none': no limit)",
     )
     sets = mesh.add_argument_group("node sets")
     sets.add_argument(
@@ -156,6 +169,46 @@ the first result by a displacement of the body, see 'torchmorph morph --help')
 """
 
 
+def _threads(text: str) -> int:
+    try:
+        number = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if number < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return number
+
+
+def _max_elements(text: str) -> int | None:
+    if text.strip().lower() == "none":
+        return None
+    try:
+        number = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or 'none', got {text!r}") from None
+    if not (number >= 1 and number == int(number)):
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1 or 'none', got {text!r}")
+    return int(number)
+
+
+#: The library's argument names in messages, as this command's options.
+_OPTIONS = {
+    "body_edge_length": "--body-edge-length",
+    "edge_length": "--edge-length",
+    "grading": "--grading",
+    "max_elements": "--max-elements",
+    "threads": "--threads",
+    "bounds": "--bounds",
+}
+
+
+def _message(error: Exception) -> str:
+    """A library error in the command's terms: options for argument names, no prefix."""
+    text = str(error).removeprefix("files: ").removeprefix("surfaces: ")
+    text = re.sub(r"\b(" + "|".join(_OPTIONS) + r")\b", lambda m: _OPTIONS[m.group(1)], text)
+    return text.replace("(None: no limit)", "('none': no limit)")
+
+
 def _surface_argument(text: str) -> tuple[str | None, str]:
     """``NAME=FILE`` or ``FILE``."""
     name, equals, path = text.partition("=")
@@ -181,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if (args.body_edge_length or args.grading) and args.box is None and args.bounds is None:
         args.parser.error("argument --body-edge-length/--grading: needs --box or --bounds")
-    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    progress = True if args.progress is None else args.progress  # plain lines, not bars
     try:  # CAD files and triangle surfaces cannot be mixed
         meshing.is_cad_input([_surface_argument(text)[1] for text in args.surfaces])
     except ValueError as error:
@@ -228,10 +281,11 @@ def run(args: argparse.Namespace) -> int:
             snap=args.snap,
             repair=args.repair,
             threads=args.threads,
+            max_elements=args.max_elements,
             progress=progress,
         )
     except (ValueError, FileNotFoundError) as error:
-        raise CommandError(str(error).removeprefix("files: ")) from error
+        raise CommandError(_message(error)) from error
     _report(mesh, output, time.perf_counter() - start)
     return EXIT_OK
 
