@@ -8,6 +8,7 @@ traceback knows which input was wrong and how.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 
 import numpy as np
@@ -134,8 +135,9 @@ def is_traced(value: Tensor | None = None) -> bool:
     return functorch is not None and functorch.is_functorch_wrapped_tensor(value)
 
 
-def check_finite(value: Tensor, name: str) -> None:
-    """Raise ``ValueError`` if ``value`` holds NaN or infinite entries.
+def check_finite(value: Tensor, name: str) -> float:
+    """Raise ``ValueError`` if ``value`` holds NaN or infinite entries; else return its
+    largest magnitude (0.0 for an empty tensor or where the check is skipped).
 
     Inside ``torch.func`` transforms the check runs on the underlying plain tensor
     (for ``vmap`` the whole batch), so NaN inputs are still reported. Under
@@ -143,14 +145,17 @@ def check_finite(value: Tensor, name: str) -> None:
     in Python and break the graph; NaN inputs then give NaN outputs.
     """
     if torch.compiler.is_compiling():
-        return
+        return 0.0
     if value.is_floating_point() and value.numel() > 0:
         plain = plain_tensor(value)[0].detach()
         # one reduction and one read on the hot path: the largest magnitude is finite
         # exactly when every entry is (NaN propagates through the maximum)
-        if not math.isfinite(float(torch.linalg.vector_norm(plain, float("inf")))):
+        largest = float(torch.linalg.vector_norm(plain, float("inf")))
+        if not math.isfinite(largest):
             bad = int((~torch.isfinite(plain)).sum())
             raise ValueError(f"{name} holds {bad} NaN or infinite value(s)")
+        return largest
+    return 0.0
 
 
 HALF_DTYPES = (torch.float16, torch.bfloat16)
@@ -184,7 +189,11 @@ def check_choice(value: object, name: str, choices: Sequence[str]) -> str:
 
 
 def check_positive(value: float, name: str) -> float:
-    """Return ``value`` as float if it is finite and > 0, else raise ``ValueError``."""
+    """Return ``value`` as float if it is a real number, finite and > 0, else raise
+    ``ValueError`` (a string such as ``"4"`` or a bool is refused, not converted)."""
+    is_scalar = isinstance(value, Tensor) and value.numel() == 1 and not value.is_complex()
+    if isinstance(value, (bool, np.bool_)) or not (isinstance(value, numbers.Real) or is_scalar):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
     number = float(value)
     if not math.isfinite(number) or number <= 0.0:
         raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
@@ -205,11 +214,14 @@ def check_same_device_dtype(
         )
 
 
-def check_vectors(value: Tensor, name: str, count: int, *, dim: int = 3, what: str) -> bool:
+def check_vectors(
+    value: Tensor, name: str, count: int, *, dim: int = 3, what: str, finite: bool = True
+) -> bool:
     """Check a field of ``dim``-vectors, shape (count, dim) or (B, count, dim).
 
     Returns True when the input is batched. ``what`` names the points the rows
-    belong to, for the message (e.g. "control points").
+    belong to, for the message (e.g. "control points"). ``finite=False`` leaves the
+    NaN/inf check to the caller (one that wants :func:`check_finite`'s magnitude).
     """
     if not isinstance(value, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
@@ -219,5 +231,6 @@ def check_vectors(value: Tensor, name: str, count: int, *, dim: int = 3, what: s
             f"{what}, got {tuple(value.shape)}"
         )
     check_float_dtype(value, name)
-    check_finite(value, name)
+    if finite:
+        check_finite(value, name)
     return value.ndim == 3

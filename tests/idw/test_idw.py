@@ -516,3 +516,52 @@ def test_no_targets_with_gradients_gives_an_empty_result():
         assert moved.shape == (0, 3)
         moved.sum().backward()
     assert torch.equal(displacements.grad, torch.zeros_like(displacements))
+
+
+# --------------------------------------------------------------------------- #
+# numeric guards: extreme inputs give the right answer or a clear error
+# --------------------------------------------------------------------------- #
+@pytest.mark.parametrize("power", ["4", True, None, 1 + 2j])
+def test_power_must_be_a_real_number(power):
+    targets, controls, _ = cloud()
+    with pytest.raises(ValueError, match="power must be a finite number > 0, got"):
+        IDW(controls, targets, power=power)
+    with pytest.raises(ValueError, match="power must be a finite number > 0, got"):
+        idw_weights(controls=controls, targets=targets, power=power)
+
+
+@pytest.mark.parametrize("mode", ["dense", "matrix_free"])
+@pytest.mark.parametrize("implementation", ["torch", "fused"])
+@pytest.mark.parametrize(("dtype", "largest"), [(F64, 1.7e308), (torch.float32, 3.3e38)])
+def test_displacements_near_the_largest_number_stay_finite(mode, implementation, dtype, largest):
+    targets, controls, generator = cloud()
+    targets, controls = targets.to(dtype), controls.to(dtype)
+    unit = torch.rand(25, 3, generator=generator, dtype=F64).to(dtype)
+    idw = IDW(controls, targets, mode=mode, implementation=implementation)
+    huge = idw(unit * largest)
+    assert bool(torch.isfinite(huge).all())
+    # the morph is linear: the same field scaled (exact, as the weights are in [0, 1])
+    expected = idw(unit.double().to(dtype)).double() * largest
+    rtol = 1e-14 if dtype == F64 else 2e-6
+    torch.testing.assert_close(huge.double(), expected, rtol=rtol, atol=0)
+
+
+def test_float32_clouds_too_far_apart_to_resolve_are_refused():
+    targets, controls, generator = cloud()
+    displacements = torch.rand(25, 3, generator=generator, dtype=F64)
+    far = controls.float().clone()
+    far[0] = 1e25  # one control far away: the others' squared distances underflow
+    with pytest.raises(
+        ValueError, match=r"targets span .* torch.float32 cannot resolve .* use float64"
+    ):
+        IDW(far, targets.float(), coincidence_tolerance=0)
+    # float64 resolves them: the far control has (almost) no weight
+    far = controls.clone()
+    far[0] = 1e25
+    near = IDW(controls[1:], targets)(displacements[1:])
+    torch.testing.assert_close(
+        IDW(far, targets, coincidence_tolerance=0)(displacements),
+        near,
+        rtol=1e-12,
+        atol=1e-14,
+    )

@@ -11,6 +11,7 @@ devices without one, gradients to positions it does not fuse).
 from __future__ import annotations
 
 import importlib
+import math
 
 import torch
 from torch import Tensor
@@ -152,10 +153,26 @@ def apply_with(
     power: float,
     radius2: float,
     nearest2: Tensor | None = None,
+    magnitude: float = 0.0,
 ) -> Tensor:
     """``W @ values`` (N_t, K) by ``backend``, differentiable: directly for the torch
     backend, through :class:`FusedApply` for the fused ones (normalised points in the
-    backend's layout; ``nearest2`` when the caller keeps it)."""
+    backend's layout; ``nearest2`` when the caller keeps it).
+
+    ``magnitude`` is the largest |value|: the kernels sum up to N_c unnormalised terms of
+    the values before dividing by the weights' sum, so values within a factor N_c of the
+    dtype's largest number are scaled down by a power of two (exact) and back up after.
+    """
+    finfo = torch.finfo(values.dtype)
+    if magnitude * max(1, values.shape[0]) > finfo.max / 4:
+        exponent = math.frexp(magnitude)[1]  # the values scaled into [-1, 1], exactly
+        down = math.ldexp(1.0, -exponent)
+        scaled = _apply(backend, targets, controls, values * down, power, radius2, nearest2)
+        return scaled * math.ldexp(1.0, exponent - 1) * 2.0  # 2**exponent may overflow
+    return _apply(backend, targets, controls, values, power, radius2, nearest2)
+
+
+def _apply(backend, targets, controls, values, power, radius2, nearest2) -> Tensor:
     if backend.differentiable:
         return backend.apply(targets, controls, values, power, radius2, nearest2)[0]
     needs_graph = torch.is_grad_enabled() and any(

@@ -82,8 +82,30 @@ def normalise(
     _, exponent = math.frexp(max(map(abs, low + high)))
     scale = math.ldexp(1.0, -exponent)
     diagonal = math.hypot(*(b * scale - a * scale for a, b in zip(low, high, strict=True)))
+    _check_resolution(bounds, scale, controls.dtype, (controls.shape[0], targets.shape[0]))
     radius2 = max((tolerance * diagonal) ** 2, tiny)
     return targets * scale, controls * scale, radius2
+
+
+def _check_resolution(bounds, scale: float, dtype: torch.dtype, counts) -> None:
+    """Raise ``ValueError`` if a cloud spans so little of the coordinates' range that the
+    squared distances between its points underflow in ``dtype`` (a float32 cloud of unit
+    size beside a point at 1e25): its weights would come out of rounding alone."""
+    finfo = torch.finfo(dtype)
+    smallest = math.sqrt(finfo.tiny / finfo.eps)  # squared, resolved to eps at least
+    for name, rows, count in (
+        ("controls", bounds[0:2], counts[0]),
+        ("targets", bounds[2:4], counts[1]),
+    ):
+        if count < 2 or not rows:
+            continue
+        extent = max(b - a for a, b in zip(rows[0], rows[1], strict=True)) * scale
+        if 0 < extent < smallest:
+            raise ValueError(
+                f"{name} span {extent / scale:.3g} beside coordinates as large as "
+                f"{1 / scale:.3g}: {dtype} cannot resolve the squared distances at that "
+                "ratio; use float64 (or move the far points closer)"
+            )
 
 
 def points_arguments(function: str, positional: tuple, controls, targets, count: int = 2):

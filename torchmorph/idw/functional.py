@@ -40,7 +40,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from torchmorph._checks import check_same_device_dtype, check_vectors, is_traced
+from torchmorph._checks import check_finite, check_same_device_dtype, check_vectors, is_traced
 from torchmorph.idw._dispatch import apply_with, assemble_weights, backend_for
 from torchmorph.idw._geometry import points_arguments, prepare
 
@@ -179,8 +179,14 @@ def idw_apply(
     targets, controls, power, radius2 = prepare(targets, controls, power, coincidence_tolerance)
     dim = controls.shape[1]
     batched = check_vectors(
-        displacements, "displacements", controls.shape[0], dim=dim, what="control points"
+        displacements,
+        "displacements",
+        controls.shape[0],
+        dim=dim,
+        what="control points",
+        finite=False,
     )
+    magnitude = check_finite(displacements, "displacements")
     check_same_device_dtype(controls, "controls", displacements, "displacements")
     batch = displacements.shape[0] if batched else 1
     values = (displacements.permute(1, 0, 2) if batched else displacements).reshape(
@@ -197,6 +203,8 @@ def idw_apply(
         block_bytes=block_bytes,
     )
     layout = backend.layout
-    result = apply_with(backend, layout(targets), layout(controls), values, power, radius2)
+    result = apply_with(
+        backend, layout(targets), layout(controls), values, power, radius2, magnitude=magnitude
+    )
     result = result.reshape(targets.shape[0], batch, dim)
     return result.permute(1, 0, 2) if batched else result[:, 0]

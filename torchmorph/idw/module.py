@@ -13,6 +13,7 @@ from torch import Tensor, nn
 from torchmorph._checks import (
     as_points,
     check_choice,
+    check_finite,
     check_positive,
     check_same_device_dtype,
     check_vectors,
@@ -291,8 +292,14 @@ class IDW(nn.Module):
         """
         dim = self.controls.shape[1]
         check_vectors(
-            displacements, "displacements", self.num_controls, dim=dim, what="control points"
+            displacements,
+            "displacements",
+            self.num_controls,
+            dim=dim,
+            what="control points",
+            finite=False,
         )
+        magnitude = check_finite(displacements, "displacements")
         check_same_device_dtype(
             self.controls, "the module's controls", displacements, "displacements"
         )
@@ -314,7 +321,7 @@ class IDW(nn.Module):
             if not rebuild:
                 backend = backend_for(self.implementation, self.controls, displacements)
                 if not backend.differentiable and self.num_targets:
-                    return self._fused_matrix_free(backend, displacements)
+                    return self._fused_matrix_free(backend, displacements, magnitude)
             return idw_apply(
                 controls=controls, targets=targets, displacements=displacements, **options
             )
@@ -322,14 +329,16 @@ class IDW(nn.Module):
             return idw_weights(controls=controls, targets=targets, **options) @ displacements
         return dense_apply(self.weights, displacements, self.implementation)
 
-    def _fused_matrix_free(self, backend, displacements: Tensor) -> Tensor:
+    def _fused_matrix_free(self, backend, displacements: Tensor, magnitude: float) -> Tensor:
         targets, controls, radius2, nearest2 = self._fused_geometry(backend)
         batched, dim = displacements.ndim == 3, displacements.shape[-1]
         batch = displacements.shape[0] if batched else 1
         values = (displacements.permute(1, 0, 2) if batched else displacements).reshape(
             self.num_controls, dim * batch
         )
-        result = apply_with(backend, targets, controls, values, self.power, radius2, nearest2)
+        result = apply_with(
+            backend, targets, controls, values, self.power, radius2, nearest2, magnitude
+        )
         result = result.reshape(self.num_targets, batch, dim)
         return result.permute(1, 0, 2) if batched else result[:, 0]
 
