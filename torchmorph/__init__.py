@@ -1,4 +1,4 @@
-"""torchmorph: fast, differentiable, parametrized shape morphing of tetrahedral meshes.
+"""torchmorph: fast, differentiable, parametrized shape morphing of meshes.
 
 Inverse Distance Weighting (IDW), Selective IDW control-point selection and the
 POD-reduced offline/online morph of Ballarin, D'Amario, Perotto and Rozza (2017),
@@ -50,4 +50,4 @@ __all__ = [
     "write_mesh",
 ]
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
