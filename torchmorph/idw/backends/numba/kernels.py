@@ -235,7 +235,7 @@ def nearest_squared(targets: Tensor, controls: Tensor) -> Tensor:
     A brute-force pass, O(N_t N_c), for any D. With many controls scipy's KD-tree is
     faster (up to 2.4× at 10^4 controls); with few controls and targets far from them
     (a boundary's controls, a volume's targets) this pass is: the IDW backend picks by
-    the controls' size (``KD_TREE_BYTES`` in :mod:`torchmorph.idw._dispatch`).
+    the controls' size (``KD_TREE_BYTES`` in :mod:`torchmorph.idw.backends.numba`).
     """
     target_array, control_array = _points(targets, controls)
     out = torch.empty(target_array.shape[0], dtype=targets.dtype)

@@ -232,7 +232,7 @@ def _split_tf32(x):
 @triton.jit
 def _dot_accumulate(weight, v_hi, v_lo, cols, col_ok, acc, KP: tl.constexpr, SPLIT: tl.constexpr):
     """``acc + weight @ v`` on the matrix units, for the rows ``cols`` of a host-padded
-    (N, KP) operand ``v`` (see ``_dot_operands`` of :mod:`._triton_kernels`).
+    (N, KP) operand ``v`` (see ``_dot_operands`` of :mod:`.kernels`).
 
     SPLIT (float32): ``v = v_hi + v_lo`` split on the host and ``weight`` split here, the
     three products ``w_lo v_hi + w_hi v_lo + w_hi v_hi`` in tf32 (float32 accuracy) summed

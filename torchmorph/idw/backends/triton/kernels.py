@@ -129,7 +129,7 @@ def _dot_operands(values: Tensor, ones_column: bool) -> tuple[Tensor, Tensor, in
     two >= 16, with room for a column of ones after the K columns when ``ones_column``:
     the row sums), contiguous, for a ``tl.dot`` kernel. float32 comes split as
     ``hi + lo`` with ``hi`` truncated to tf32, so that three tf32 products give float32
-    accuracy on the matrix units (``_dot_accumulate`` of :mod:`._triton_jit`); any other
+    accuracy on the matrix units (``_dot_accumulate`` of :mod:`._jit`); any other
     dtype as is (``lo`` is ``hi``)."""
     rows, columns = values.shape
     padded = max(16, triton.next_power_of_2(columns + int(ones_column)))
