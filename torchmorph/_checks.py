@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Sequence
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -27,6 +28,9 @@ __all__ = [
     "is_traced",
     "plain_tensor",
 ]
+
+Choice = TypeVar("Choice", bound=str)
+"""A choice of :func:`check_choice`: a string, or one of a ``Literal`` of strings."""
 
 
 def as_points(
@@ -179,13 +183,16 @@ def check_float_dtype(value: Tensor, name: str) -> None:
         )
 
 
-def check_choice(value: object, name: str, choices: Sequence[str]) -> str:
-    """Return ``value`` if it is one of ``choices``, else raise ``ValueError`` in the one
-    format of every enumerated option: ``name must be one of 'a', 'b'; got 'c'``."""
-    if not isinstance(value, str) or value not in choices:
-        listed = ", ".join(repr(choice) for choice in choices)
-        raise ValueError(f"{name} must be one of {listed}; got {value!r}")
-    return value
+def check_choice(value: object, name: str, choices: Sequence[Choice]) -> Choice:
+    """Return ``value`` if it is one of ``choices`` (as that entry of ``choices``, so typed
+    as precisely as they are), else raise ``ValueError`` in the one format of every
+    enumerated option: ``name must be one of 'a', 'b'; got 'c'``."""
+    if isinstance(value, str):
+        for choice in choices:
+            if value == choice:
+                return choice
+    listed = ", ".join(repr(choice) for choice in choices)
+    raise ValueError(f"{name} must be one of {listed}; got {value!r}")
 
 
 def check_positive(value: float, name: str) -> float:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -20,9 +21,12 @@ from torchmorph._checks import check_choice, is_traced, plain_tensor
 from torchmorph.idw.backends import Backend
 from torchmorph.idw.backends.torch import TorchBackend
 
+if TYPE_CHECKING:
+    from torchmorph.idw.functional import Implementation
+
 __all__ = ["FUSED_BACKENDS", "IMPLEMENTATIONS", "backend_for", "fused_available"]
 
-IMPLEMENTATIONS = ("auto", "fused", "torch")
+IMPLEMENTATIONS: tuple[Implementation, ...] = ("auto", "fused", "torch")
 
 #: The fused backend of each device type: (module, class), loaded on first use. Devices
 #: of other types, and calls a fused backend cannot serve, take the torch backend.
@@ -54,7 +58,7 @@ def fused_available(device: torch.device | str = "cpu") -> bool:
     return _fused_backend(torch.device(device)) is not None
 
 
-def check_implementation(implementation: str) -> str:
+def check_implementation(implementation: str) -> Implementation:
     return check_choice(implementation, "implementation", IMPLEMENTATIONS)
 
 

@@ -58,18 +58,7 @@ def normalise(
     with torch.no_grad():
         t, c = targets.detach(), controls.detach()
         if is_traced(t) or is_traced(c):
-            check_finite(controls, "controls")
-            check_finite(targets, "targets")
-            low, high, largest = c.amin(0), c.amax(0), c.abs().amax()
-            if t.shape[0]:
-                low = torch.minimum(low, t.amin(0))
-                high = torch.maximum(high, t.amax(0))
-                largest = torch.maximum(largest, t.abs().amax())
-            _, exponent = torch.frexp(largest)
-            scale = torch.ldexp(torch.ones_like(largest), -exponent)
-            diagonal = torch.linalg.vector_norm(high * scale - low * scale)
-            radius2 = (tolerance * diagonal).square().clamp_min(tiny)
-            return targets * scale, controls * scale, radius2
+            return _normalise_traced(targets, controls, tolerance)
         extremes = [*torch.aminmax(c, dim=0)]
         if t.shape[0]:
             extremes += torch.aminmax(t, dim=0)
@@ -84,6 +73,27 @@ def normalise(
     diagonal = math.hypot(*(b * scale - a * scale for a, b in zip(low, high, strict=True)))
     _check_resolution(bounds, scale, controls.dtype, (controls.shape[0], targets.shape[0]))
     radius2 = max((tolerance * diagonal) ** 2, tiny)
+    return targets * scale, controls * scale, radius2
+
+
+def _normalise_traced(
+    targets: Tensor, controls: Tensor, tolerance: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`normalise` in tensor operations only (no value read in Python), for traced
+    calls; called under ``torch.no_grad()``."""
+    tiny = torch.finfo(controls.dtype).tiny
+    t, c = targets.detach(), controls.detach()
+    check_finite(controls, "controls")
+    check_finite(targets, "targets")
+    low, high, largest = c.amin(0), c.amax(0), c.abs().amax()
+    if t.shape[0]:
+        low = torch.minimum(low, t.amin(0))
+        high = torch.maximum(high, t.amax(0))
+        largest = torch.maximum(largest, t.abs().amax())
+    _, exponent = torch.frexp(largest)
+    scale = torch.ldexp(torch.ones_like(largest), -exponent)
+    diagonal = torch.linalg.vector_norm(high * scale - low * scale)
+    radius2 = (tolerance * diagonal).square().clamp_min(tiny)
     return targets * scale, controls * scale, radius2
 
 

@@ -113,6 +113,10 @@ class IDW(nn.Module):
     does not (its KD-tree search runs in NumPy), nor does it ``vmap`` over positions.
     """
 
+    controls: Tensor
+    targets: Tensor
+    weights: Tensor | None
+
     def __init__(
         self,
         controls: Tensor,
@@ -311,22 +315,31 @@ class IDW(nn.Module):
         controls = self.controls if controls is None else controls
         targets = self.targets if targets is None else targets
         rebuild = new_geometry or (torch.is_grad_enabled() and self._geometry_requires_grad())
-        options = {
-            "power": self.power,
-            "coincidence_tolerance": self.coincidence_tolerance,
-            "block_bytes": self.block_bytes,
-            "implementation": self.implementation,
-        }
         if self.mode == "matrix_free":
             if not rebuild:
                 backend = backend_for(self.implementation, self.controls, displacements)
                 if not backend.differentiable and self.num_targets:
                     return self._fused_matrix_free(backend, displacements, magnitude)
             return idw_apply(
-                controls=controls, targets=targets, displacements=displacements, **options
+                controls=controls,
+                targets=targets,
+                displacements=displacements,
+                power=self.power,
+                coincidence_tolerance=self.coincidence_tolerance,
+                block_bytes=self.block_bytes,
+                implementation=self.implementation,
             )
         if rebuild:
-            return idw_weights(controls=controls, targets=targets, **options) @ displacements
+            weights = idw_weights(
+                controls=controls,
+                targets=targets,
+                power=self.power,
+                coincidence_tolerance=self.coincidence_tolerance,
+                block_bytes=self.block_bytes,
+                implementation=self.implementation,
+            )
+            return weights @ displacements
+        assert self.weights is not None  # dense mode keeps W
         return dense_apply(self.weights, displacements, self.implementation)
 
     def _fused_matrix_free(self, backend, displacements: Tensor, magnitude: float) -> Tensor:

@@ -139,11 +139,11 @@ def _weights_block(
     nearest2 = dist2.amin(1, keepdim=True)
     coincident = (nearest2 <= radius2).flatten()
     rows = torch.nonzero(coincident).flatten() if bool(coincident.any()) else None
-    exact = _coincident_weights(dist2[rows], radius2) if rows is not None else None
+    exact_rows = _coincident_weights(dist2[rows], radius2) if rows is not None else None
     weights = _ratio_powers(nearest2, dist2, power)
     weights.div_(weights.sum(1, keepdim=True))
-    if rows is not None:
-        weights[rows] = exact
+    if rows is not None and exact_rows is not None:
+        weights[rows] = exact_rows
     return weights
 
 

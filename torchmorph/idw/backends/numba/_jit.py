@@ -4,6 +4,8 @@ and thread handling are in :mod:`torchmorph.idw.backends.numba.kernels`."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Literal, TypedDict
+
 import numpy as np
 
 ROWS = 16
@@ -15,15 +17,19 @@ CHUNK = 256
 in the L1 cache, and its partial sums go into float64 accumulators."""
 
 
-try:  # numba is optional: without it torchmorph falls back to its torch path
+if TYPE_CHECKING:  # type-checked against numba's own annotations
     import numba
     from numba import njit, prange
-except ImportError:  # pragma: no cover - exercised where numba is absent
-    numba = None
-    prange = range
+else:
+    try:  # numba is optional: without it torchmorph falls back to its torch path
+        import numba
+        from numba import njit, prange
+    except ImportError:  # pragma: no cover - exercised where numba is absent
+        numba = None
+        prange = range
 
-    def njit(*args, **kwargs):  # the kernels stay plain (never called) Python functions
-        return lambda function: function
+        def njit(*args, **kwargs):  # the kernels stay plain (never called) Python functions
+            return lambda function: function
 
 
 # --------------------------------------------------------------------------- #
@@ -34,8 +40,20 @@ WEIGHT_ROWS = 4
 place, then scaled) stay in the L2 cache at the paper's sizes."""
 
 
+class _JitOptions(TypedDict):
+    cache: bool
+    nogil: bool
+    fastmath: set[str]
+    error_model: Literal["python", "numpy"]
+
+
 _FASTMATH = {"nsz", "reassoc", "contract"}  # vectorised sums and mins; no unsafe maths
-_OPTIONS = {"cache": True, "nogil": True, "fastmath": _FASTMATH, "error_model": "numpy"}
+_OPTIONS: _JitOptions = {
+    "cache": True,
+    "nogil": True,
+    "fastmath": _FASTMATH,
+    "error_model": "numpy",
+}
 
 
 @njit(**_OPTIONS)

@@ -117,7 +117,8 @@ def available() -> bool:
     Cheap (nothing is compiled): each kernel compiles on its first call for a dtype, or
     loads from numba's on-disk cache.
     """
-    return numba is not None and not numba.config.DISABLE_JIT
+    # DISABLE_JIT is set from the environment when numba imports: numba's annotations lack it
+    return numba is not None and not numba.config.DISABLE_JIT  # type: ignore[attr-defined]
 
 
 def _require_numba() -> None:
