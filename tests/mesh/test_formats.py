@@ -114,6 +114,13 @@ def test_formats_refuse_what_they_cannot_hold(tmp_path, extension, message):
     assert not list(tmp_path.iterdir())  # nothing written
 
 
+def test_msh_files_of_several_blocks_refuse_cell_data_meshio_cannot_read_back(tmp_path):
+    mesh = Mesh(*columns(1))
+    with pytest.raises(ValueError, match="meshio reads no MSH file back whose cell data spans"):
+        write_mesh(tmp_path / "m.msh", mesh, cell_data={"q": torch.ones(mesh.num_cells)})
+    write_mesh(tmp_path / "m.vtu", mesh, cell_data={"q": torch.ones(mesh.num_cells)})
+
+
 def test_unsupported_cells_are_named_never_dropped(tmp_path):
     import meshio
 

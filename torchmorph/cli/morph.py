@@ -430,15 +430,19 @@ def run(args: argparse.Namespace) -> int:
                     if args.write_deformed
                     else mesh_cpu
                 )
+                cell_data = {
+                    "quality": quality_after.cpu(),
+                    "quality_reference": quality_before.cpu(),
+                    "inverted": flipped.cpu(),
+                }
+                blocks = len(mesh.cells) + sum(len(b) for b in mesh.face_sets.values())
+                if output_format.name == "gmsh" and blocks > 1:
+                    cell_data = {}  # meshio reads no such MSH file back (see write_mesh)
                 write_mesh(
                     output,
                     written,
                     point_data={"displacement": field.cpu(), "control_point": control_flag},
-                    cell_data={
-                        "quality": quality_after.cpu(),
-                        "quality_reference": quality_before.cpu(),
-                        "inverted": flipped.cpu(),
-                    },
+                    cell_data=cell_data,
                 )
     finally:
         stages.close()
@@ -494,11 +498,15 @@ def run(args: argparse.Namespace) -> int:
             "wrote", f"{output} (the morphed {output_format.name} input: coordinates changed only)"
         )
     else:
+        cells_written = (
+            "cell data quality, quality_reference, inverted"
+            if cell_data
+            else "no cell data: an MSH file of several cell blocks cannot hold it, write .vtu"
+        )
         _line(
             "wrote",
             f"{output} ({'deformed' if args.write_deformed else 'reference'} mesh; point "
-            "data displacement, control_point; cell data quality, quality_reference, "
-            "inverted)",
+            f"data displacement, control_point; {cells_written})",
         )
     if num_inverted:
         _warn(

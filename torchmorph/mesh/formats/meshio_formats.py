@@ -87,6 +87,24 @@ _WRITABLE = {
 _LINEAR = {"line", "triangle", "quad", "tetra", "wedge", "pyramid", "hexahedron"}
 
 
+def _writable(file_format: str, kinds: set[str]) -> set[str]:
+    """The kinds of ``kinds`` that meshio's writer of ``file_format`` holds."""
+    if file_format in _WRITABLE:
+        return _WRITABLE[file_format]
+    try:
+        if file_format in ("vtu", "vtk"):
+            from meshio._vtk_common import meshio_to_vtk_type as table
+        elif file_format == "xdmf":
+            from meshio.xdmf.common import meshio_to_xdmf_type as table
+        elif file_format == "gmsh":
+            from meshio.gmsh.common import _meshio_to_gmsh_type as table
+        else:
+            return kinds
+    except ImportError:  # another meshio: let its writer decide
+        return kinds
+    return set(table)
+
+
 def _complete_meshio_kinds() -> None:
     """meshio 5.3's table of topological dimensions lacks two kinds its own readers
     produce (its MSH 4.1 reader fails on them with ``KeyError``): add them."""
@@ -357,7 +375,7 @@ def write_meshio(path: str | os.PathLike, data: MeshData, file_format: str | Non
     kinds = {kind for kind, _ in data.cells} | {
         kind for blocks in data.face_sets.values() for kind, _ in blocks
     }
-    unwritable = sorted(kinds - _WRITABLE.get(file_format, kinds))
+    unwritable = sorted(kinds - _writable(file_format, kinds))
     if unwritable:
         raise ValueError(
             f"path: a {file_format} file cannot hold cells of kind {', '.join(unwritable)}; "
@@ -367,6 +385,12 @@ def write_meshio(path: str | os.PathLike, data: MeshData, file_format: str | Non
         raise ValueError(
             "path: meshio reads no XDMF file back whose topology mixes kinds with quadratic "
             f"ones ({', '.join(sorted(kinds))}); write .vtu or .msh"
+        )
+    blocks = len(data.cells) + sum(len(b) for b in data.face_sets.values())
+    if file_format == "gmsh" and data.cell_data and blocks > 1:
+        raise ValueError(
+            "path: meshio reads no MSH file back whose cell data spans several cell blocks "
+            f"({', '.join(sorted(kinds))}); write .vtu, or leave out cell_data"
         )
     converted = data_to_meshio(data, file_format)
     if file_format == "xdmf":
