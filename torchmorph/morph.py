@@ -96,6 +96,17 @@ class MeshMorph(nn.Module):
     ``torch.compile(fullgraph=True)``; see :class:`~torchmorph.idw.IDW`.
     """
 
+    # buffers, registered in __init__
+    points: Tensor
+    cell_nodes: Tensor
+    cell_orientation: Tensor
+    boundary_nodes: Tensor
+    interior_nodes: Tensor
+    selected: Tensor
+    control_nodes: Tensor
+    node_set_members: Tensor
+    node_set_offsets: Tensor
+
     def __init__(
         self,
         mesh: Mesh,
@@ -117,20 +128,9 @@ class MeshMorph(nn.Module):
         boundary = mesh.boundary_nodes
         interior = mesh.interior_nodes
         start = time.perf_counter()
-        if plan is None:
-            control_nodes = boundary
-        else:
-            control_nodes = torch.as_tensor(
-                plan.select(mesh, generator=generator), dtype=torch.long
-            ).unique()
+        control_nodes = select_controls(mesh, plan, generator)
         self.selection_time = time.perf_counter() - start
-        selected = torch.searchsorted(boundary, control_nodes)
-        if control_nodes.numel() == 0:
-            raise ValueError("plan selected no control points")
-        if (selected >= boundary.numel()).any() or not torch.equal(
-            boundary[selected.clamp_max(boundary.numel() - 1)], control_nodes
-        ):
-            raise ValueError("plan selected nodes that are not boundary nodes")
+        selected = boundary_rows(boundary, control_nodes)
         points = mesh.points
         self.register_buffer("points", points.detach().clone())
         self.register_buffer("cell_nodes", torch.cat([b.nodes.reshape(-1) for b in mesh.cells]))
@@ -429,6 +429,30 @@ class MeshMorph(nn.Module):
             f"num_interior={self.num_interior}, num_controls={self.num_controls}, "
             f"mode={self.idw.mode!r}"
         )
+
+
+def select_controls(
+    mesh: Mesh, plan: SelectionPlan | None, generator: torch.Generator | None
+) -> Tensor:
+    """The control points of Algorithm 2's selection phase: every boundary node without a
+    plan, else the plan's selection (SIDW/ESIDW); sorted unique global node ids."""
+    if plan is None:
+        return mesh.boundary_nodes
+    return torch.as_tensor(plan.select(mesh, generator=generator), dtype=torch.long).unique()
+
+
+def boundary_rows(boundary: Tensor, control_nodes: Tensor) -> Tensor:
+    """The rows of ``boundary`` (sorted node ids) that hold ``control_nodes``; ``ValueError``
+    if there are none or some are no boundary nodes."""
+    if control_nodes.numel() == 0:
+        raise ValueError("plan selected no control points")
+    control_nodes = control_nodes.to(boundary.device)
+    rows = torch.searchsorted(boundary, control_nodes)
+    if (rows >= boundary.numel()).any() or not torch.equal(
+        boundary[rows.clamp_max(boundary.numel() - 1)], control_nodes
+    ):
+        raise ValueError("plan selected nodes that are not boundary nodes")
+    return rows
 
 
 def _upgraded_state(state_dict, prefix: str):

@@ -37,6 +37,7 @@ from torchmorph.distributed._common import (
 from torchmorph.distributed.idw import ShardedIDW, _check_tolerance, _local_transpose
 from torchmorph.idw.module import DEFAULT_COINCIDENCE_TOLERANCE, Implementation, Mode
 from torchmorph.mesh.model import Mesh
+from torchmorph.morph import boundary_rows, select_controls
 
 if TYPE_CHECKING:
     from torchmorph.selection.plan import SelectionPlan
@@ -53,14 +54,15 @@ def _broadcast_selection(select: Callable[[], Tensor], group: Any, context: str)
     rank, _ = _group_info(group)
     source = dist.get_global_rank(group, 0) if group is not None else 0
     device = _comm_device(group, torch.empty(0))
-    ids, error = None, None
+    ids: Tensor | None = None
+    error: Exception | None = None
     if rank == 0:
         try:
             ids = select()
         except Exception as failure:  # noqa: BLE001  raised below, on every rank
             error = failure
-    count = -1 if error is not None else (0 if ids is None else ids.numel())
-    count = torch.tensor([count], dtype=torch.int64, device=device)
+    number = -1 if error is not None else (0 if ids is None else ids.numel())
+    count = torch.tensor([number], dtype=torch.int64, device=device)
     dist.broadcast(count, src=source, group=group)
     if int(count) < 0:
         if error is not None:
@@ -70,6 +72,7 @@ def _broadcast_selection(select: Callable[[], Tensor], group: Any, context: str)
             f"why); every rank stops {context}"
         )
     if rank == 0:
+        assert ids is not None  # select() returned (it raised otherwise, handled above)
         buffer = ids.to(device)
     else:
         buffer = torch.empty(int(count), dtype=torch.int64, device=device)
@@ -134,6 +137,17 @@ class ShardedMeshMorph(nn.Module):
         fails on rank 0.
     """
 
+    # buffers, registered in __init__
+    points: Tensor
+    owned_nodes: Tensor
+    boundary_nodes: Tensor
+    control_nodes: Tensor
+    selected: Tensor
+    local_interior: Tensor
+    _boundary_slots: Tensor
+    _interior_slots: Tensor
+    _boundary_rows: Tensor
+
     def __init__(
         self,
         mesh: Mesh,
@@ -161,7 +175,7 @@ class ShardedMeshMorph(nn.Module):
         boundary = None if points is None else mesh.boundary_nodes.cpu()
         cells = () if points is None else [f"{b.kind}:{b.nodes.shape[0]}" for b in mesh.cells]
         num_nodes = 0 if points is None else points.shape[0]
-        power = agreement.attempt("power", check_positive, power, "power")
+        checked_power = agreement.attempt("power", check_positive, power, "power")
         tolerance = agreement.attempt(
             "coincidence_tolerance", _check_tolerance, coincidence_tolerance
         )
@@ -173,27 +187,21 @@ class ShardedMeshMorph(nn.Module):
         agreement.same_tensor("mesh.points", points)
         agreement.same_tensor("mesh.boundary_nodes", boundary)
         agreement.same_digest("mesh.cells", *cells)
-        agreement.same("power", power)
+        agreement.same("power", checked_power)
         agreement.same("coincidence_tolerance", tolerance)
         agreement.same_presence("owned_nodes", owned_nodes is not None)
         agreement.exchange()
+        # exchange() raised on every rank if a check above failed on one
+        assert points is not None and boundary is not None
+        assert checked_power is not None and tolerance is not None
 
         interior = mesh.interior_nodes.cpu()
 
-        def select() -> Tensor:
-            if plan is None:
-                return boundary
-            chosen = plan.select(mesh, generator=generator)
-            return torch.as_tensor(chosen, dtype=torch.long).cpu().unique()
+        def select() -> Tensor:  # the single-process morph's selection, on rank 0
+            return select_controls(mesh, plan, generator).cpu()
 
         control_nodes = _broadcast_selection(select, group, context)
-        if control_nodes.numel() == 0:
-            raise ValueError("plan selected no control points")
-        selected = torch.searchsorted(boundary, control_nodes)
-        if (selected >= boundary.numel()).any() or not torch.equal(
-            boundary[selected.clamp_max(boundary.numel() - 1)], control_nodes
-        ):
-            raise ValueError("plan selected nodes that are not boundary nodes")
+        selected = boundary_rows(boundary, control_nodes)
 
         if owned is None:  # an even share of the interior (the work) and of the boundary
             mine = [
@@ -247,7 +255,7 @@ class ShardedMeshMorph(nn.Module):
             points[self.control_nodes],
             points[self.local_interior],
             target_rows=torch.searchsorted(interior, local_interior),
-            power=power,
+            power=checked_power,
             mode=mode,
             block_bytes=block_bytes,
             dense_bytes=dense_bytes,
