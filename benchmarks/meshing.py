@@ -95,9 +95,8 @@ def main() -> None:
         f"Wing in a box (--box 1), gmsh Algorithm3D {args.algorithm}, one thread; "
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs\n"
     )
-    print(
-        "| body edge length | edge length | estimated tets | tetrahedra | nodes | seconds | peak memory |"
-    )
+    columns = ("body edge length", "edge length", "estimated tets", "tetrahedra", "nodes")
+    print("| " + " | ".join((*columns, "seconds", "peak memory")) + " |")
     print("|---|---|---|---|---|---|---|")
     for row in rows:
         print(

@@ -286,6 +286,23 @@ def test_overlapping_touching_or_nested_surfaces_are_refused(no_meshing):
         mesh_surfaces([outer, inner])
 
 
+def test_a_body_touching_the_box_wall_is_refused(no_meshing, cube_step):
+    """A box padded by 0 below: the body's face is on the wall (a half model on a symmetry
+    plane is not supported: the wall and the body would share faces)."""
+    with pytest.raises(
+        ValueError,
+        match=r"^bounds: the box .* does not contain surface 'ball' .*; bodies must lie strictly "
+        r"inside the box, not touching its walls",
+    ):
+        mesh_surfaces(ball(centre=(1e7, 0, 0)), box=(0, 1, 1, 1, 1, 1))
+    with pytest.raises(
+        ValueError,
+        match=r"^bounds: the box \[\[0.0, -1.0, -1.0\], \[2.0, 2.0, 2.0\]\] does not contain body "
+        r"'cube' .*not touching its walls",
+    ):
+        mesh_cad(cube_step, bounds=[[0, -1, -1], [2, 2, 2]])
+
+
 # --------------------------------------------------------------------------- units, progress
 
 

@@ -3,10 +3,17 @@
 The CAD counterpart of :func:`torchmorph.meshing.mesh_surfaces` (which
 dispatches CAD files here; see there). The solids of each file are imported
 with ``gmsh.model.occ.importShapes``, optionally cut out of a far-field box,
-and meshed with gmsh's 3-D mesher (one thread, a fixed ``Mesh.RandomSeed``:
-the same input gives the same mesh). gmsh places boundary nodes on the CAD
-geometry itself, so no snapping is needed. Needs gmsh:
-``pip install 'torchmorph[mesh]'``.
+and meshed with gmsh's 3-D mesher (HXT by default; one thread and a fixed
+``Mesh.RandomSeed``: the same input gives the same mesh). gmsh places boundary
+nodes on the CAD geometry itself, so no snapping is needed.
+
+Before meshing, solids that overlap, touch or nest are refused (OpenCASCADE's
+distance between solids and their intersection; a body inside another only as
+a hole in the outer file, without a box), and the number of tetrahedra is
+estimated (:mod:`torchmorph.meshing.estimate`) and refused above
+``max_elements``. Coordinates are those of the file's length unit
+(:mod:`torchmorph.meshing.cad_units`). Needs gmsh: ``pip install
+'torchmorph[mesh]'``.
 """
 
 from __future__ import annotations
@@ -139,11 +146,12 @@ def _import_bodies(gmsh, files, progress):
         else:
             said = f"lengths converted from {UNIT_NAMES[unit]} to {UNIT_NAMES[first]}"
         progress(f"CAD: {name}: {len(volumes)} solid(s) ({said})")
+    scale = MILLIMETRES[units[0] or "MM"]
     boxes = np.array([occ.getBoundingBox(3, v) for vs in bodies.values() for v in vs])
     offset = far_offset(boxes[:, :3].min(axis=0), boxes[:, 3:].max(axis=0))
     if offset.any():
         occ.translate([(3, v) for vs in bodies.values() for v in vs], *(-offset))
-        progress(f"CAD: meshed about the bodies' centre {offset.tolist()} and moved back")
+        progress(f"CAD: meshed about the bodies' centre {(offset / scale).tolist()}, moved back")
     occ.synchronize()
     result = {}
     for name, volumes in bodies.items():
@@ -154,7 +162,7 @@ def _import_bodies(gmsh, files, progress):
         boxes = np.array([gmsh.model.getBoundingBox(3, v) for v in volumes])
         bounds = np.stack([boxes[:, :3].min(axis=0), boxes[:, 3:].max(axis=0)])
         result[name] = (volumes, faces, bounds)
-    return result, offset, MILLIMETRES[units[0] or "MM"]
+    return result, offset, scale
 
 
 def _solid(bodies, name: str, index: int) -> str:
@@ -190,7 +198,8 @@ def _check_contacts(gmsh, bodies, container: str | None, tolerance: float, scale
             volume_a, volume_b = occ.getMass(3, a), occ.getMass(3, b)
             if common <= 1e-9 * min(volume_a, volume_b):
                 raise ValueError(
-                    f"files: bodies {first} and {second} touch (closer than {tolerance / scale:.2g}): "
+                    f"files: bodies {first} and {second} touch (closer than "
+                    f"{tolerance / scale:.2g}): "
                     "bodies must be apart, a gap of zero thickness cannot be meshed; fuse "
                     "them into one solid in the CAD tool, or move them apart"
                 )
@@ -202,7 +211,8 @@ def _check_contacts(gmsh, bodies, container: str | None, tolerance: float, scale
                 hole_body, outer_body = name_a, name_b
             else:
                 raise ValueError(
-                    f"files: bodies {first} and {second} overlap (common volume {common / scale**3:.4g}): "
+                    f"files: bodies {first} and {second} overlap (common volume "
+                    f"{common / scale**3:.4g}): "
                     "bodies must be disjoint; fuse them into one solid in the CAD tool, or "
                     "move them apart"
                 )
@@ -375,9 +385,9 @@ def mesh_cad(
     )
 
 
-def _domain_walls(bodies, box, bounds, scale: float):
-    """The far-field box (or None) and the bodies' bounds (2, 3); lengths in messages
-    divided by ``scale``."""
+def _domain_walls(bodies, box, bounds, offset: np.ndarray, scale: float):
+    """The far-field box (or None) and the bodies' bounds (2, 3); coordinates in messages
+    moved back by ``offset`` and divided by ``scale``."""
     from torchmorph.meshing.surfaces import box_bounds
 
     low = np.min([b[2][0] for b in bodies.values()], axis=0)
@@ -395,9 +405,9 @@ def _domain_walls(bodies, box, bounds, scale: float):
         for body, (_, _, body_bounds) in bodies.items():
             if not ((walls[0] < body_bounds[0]).all() and (body_bounds[1] < walls[1]).all()):
                 raise ValueError(
-                    f"bounds: the box {(walls / scale).tolist()} does not contain body "
-                    f"{body!r} (bounds {(body_bounds / scale).tolist()}); bodies must lie "
-                    "strictly inside the box, not touching its walls"
+                    f"bounds: the box {((walls + offset) / scale).tolist()} does not contain "
+                    f"body {body!r} (bounds {((body_bounds + offset) / scale).tolist()}); "
+                    "bodies must lie strictly inside the box, not touching its walls"
                 )
     return walls, np.stack([low, high])
 
@@ -444,7 +454,7 @@ def _mesh_cad(
         occ = gmsh.model.occ
         bodies, offset, scale = _import_bodies(gmsh, files, report)
         walls, (low, high) = _domain_walls(
-            bodies, box, None if bounds is None else bounds * scale - offset, scale
+            bodies, box, None if bounds is None else bounds * scale - offset, offset, scale
         )
         outer = [
             b
@@ -508,9 +518,8 @@ def _mesh_cad(
             )
             field.setAsBackgroundMesh(threshold)
             graded_options(gmsh)
-        report(
-            f"gmsh: meshing (size {size:.3g}{'' if body_mesh_size is None else f', {body_mesh_size:.3g} on the bodies'}) ..."
-        )
+        on_bodies = "" if body_mesh_size is None else f", {body_mesh_size:.3g} on the bodies"
+        report(f"gmsh: meshing (size {size:.3g}{on_bodies}) ...")
         points, tets, node_sets = collect_tets(
             gmsh,
             names,

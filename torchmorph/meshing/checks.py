@@ -126,6 +126,26 @@ def _edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
 
 
+def _pairs_cross(starts, ends, corners, margin: float) -> bool:
+    """Whether segment k crosses triangle ``corners[k]`` for some k (see :func:`_segments_cross`)."""
+    direction = ends - starts
+    a, e1, e2 = corners[:, 0], corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    h = np.cross(direction, e2)
+    det = np.einsum("ij,ij->i", e1, h)
+    scale = (
+        np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1) * np.linalg.norm(direction, axis=1)
+    )
+    proper = np.abs(det) > 1e-12 * scale  # not parallel
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = starts - a
+        u = np.einsum("ij,ij->i", s, h) / det
+        q = np.cross(s, e1)
+        v = np.einsum("ij,ij->i", direction, q) / det
+        t = np.einsum("ij,ij->i", e2, q) / det
+        inside = (u > margin) & (v > margin) & (u + v < 1 - margin)
+        return bool((proper & inside & (t > 1e-9) & (t < 1 - 1e-9)).any())
+
+
 def _segments_cross(starts, ends, vertices, faces, *, edges_too: bool) -> bool:
     """Whether a segment passes through a triangle (Möller–Trumbore): through its inside,
     or with ``edges_too`` through its edges as well.
@@ -133,46 +153,36 @@ def _segments_cross(starts, ends, vertices, faces, *, edges_too: bool) -> bool:
     A segment that ends on a triangle, or lies in its plane, does not cross it: that is
     a touch (see :func:`surface_contacts`).
     """
-    margin = -1e-9 if edges_too else 1e-9
     from scipy.spatial import cKDTree
 
+    margin = -1e-9 if edges_too else 1e-9
     corners = vertices[faces]
+    # only segments and triangles where the two bounding boxes overlap can meet
+    low, high = np.minimum(starts, ends), np.maximum(starts, ends)
+    near = ((low <= corners.max(axis=(0, 1))) & (high >= corners.min(axis=(0, 1)))).all(axis=1)
+    starts, ends, low, high = starts[near], ends[near], low[near], high[near]
+    if not len(starts):
+        return False
+    reach = (corners.max(axis=1) >= low.min(axis=0)) & (corners.min(axis=1) <= high.max(axis=0))
+    corners = corners[reach.all(axis=1)]
+    if not len(corners):
+        return False
     centroids = corners.mean(axis=1)
     radius = float(np.linalg.norm(corners - centroids[:, None], axis=2).max())
     middle, half = 0.5 * (starts + ends), 0.5 * np.linalg.norm(ends - starts, axis=1)
     tree = cKDTree(centroids)
-    for begin in range(0, len(starts), 20_000):
-        chunk = slice(begin, begin + 20_000)
+    for begin in range(0, len(starts), 5_000):
+        chunk = slice(begin, begin + 5_000)
         lists = tree.query_ball_point(middle[chunk], half[chunk] + radius * (1 + 1e-9))
         counts = np.fromiter((len(item) for item in lists), dtype=np.int64, count=len(lists))
-        if not counts.sum():
-            continue
-        segment = begin + np.repeat(np.arange(len(lists)), counts)
-        face = np.fromiter((f for item in lists for f in item), dtype=np.int64, count=counts.sum())
-        p, direction = starts[segment], ends[segment] - starts[segment]
-        a, e1, e2 = (
-            corners[face, 0],
-            corners[face, 1] - corners[face, 0],
-            corners[face, 2] - corners[face, 0],
+        segments = begin + np.repeat(np.arange(len(lists)), counts)
+        faces_hit = np.fromiter(
+            (f for item in lists for f in item), dtype=np.int64, count=counts.sum()
         )
-        h = np.cross(direction, e2)
-        det = np.einsum("ij,ij->i", e1, h)
-        scale = (
-            np.linalg.norm(e1, axis=1)
-            * np.linalg.norm(e2, axis=1)
-            * np.linalg.norm(direction, axis=1)
-        )
-        proper = np.abs(det) > 1e-12 * scale  # not parallel
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = p - a
-            u = np.einsum("ij,ij->i", s, h) / det
-            q = np.cross(s, e1)
-            v = np.einsum("ij,ij->i", direction, q) / det
-            t = np.einsum("ij,ij->i", e2, q) / det
-            inside = (u > margin) & (v > margin) & (u + v < 1 - margin)
-            crossing = proper & inside & (t > 1e-9) & (t < 1 - 1e-9)
-        if crossing.any():
-            return True
+        for first in range(0, len(segments), 500_000):  # pairs in bounded memory
+            segment, face = segments[first : first + 500_000], faces_hit[first : first + 500_000]
+            if _pairs_cross(starts[segment], ends[segment], corners[face], margin):
+                return True
     return False
 
 
@@ -201,6 +211,23 @@ def inside_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) 
     return result
 
 
+def _touches(points: np.ndarray, surface, tolerance: float) -> bool:
+    """Whether a point lies within ``tolerance`` of the surface; the exact distance only for
+    points within reach of a triangle's centroid (far points cost nothing)."""
+    from scipy.spatial import cKDTree
+
+    from torchmorph.meshing.surfaces import closest_points
+
+    corners = surface.vertices[surface.faces]
+    centroids = corners.mean(axis=1)
+    radius = float(np.linalg.norm(corners - centroids[:, None], axis=2).max())
+    reach = cKDTree(centroids).query(points, distance_upper_bound=radius + tolerance)[0]
+    near = points[np.isfinite(reach)]
+    if not len(near):
+        return False
+    return bool(closest_points(near, surface.vertices, surface.faces)[2].min() <= tolerance)
+
+
 def surface_contacts(first, second, tolerance: float) -> str | None:
     """How two closed triangle surfaces (:class:`~torchmorph.meshing.Surface`) meet.
 
@@ -211,8 +238,6 @@ def surface_contacts(first, second, tolerance: float) -> str | None:
     through triangle edges (two mirror-image spheres cross only there). A touch along
     edges only, with no vertex on the other surface, is taken for a crossing.
     """
-    from torchmorph.meshing.surfaces import closest_points
-
     (low_a, high_a), (low_b, high_b) = first.bounds, second.bounds
     if (low_a > high_b + tolerance).any() or (low_b > high_a + tolerance).any():
         return None
@@ -228,8 +253,7 @@ def surface_contacts(first, second, tolerance: float) -> str | None:
     if cross(edges_too=False):
         return "cross"
     for one, other in ((first, second), (second, first)):
-        used = one.vertices[np.unique(one.faces)]
-        if closest_points(used, other.vertices, other.faces)[2].min() <= tolerance:
+        if _touches(one.vertices[np.unique(one.faces)], other, tolerance):
             return "touch"
     if cross(edges_too=True):
         return "cross"

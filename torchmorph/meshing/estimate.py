@@ -77,7 +77,7 @@ def size_at(
 
 
 def _layer_integral(depth: float, size: float, body_size: float, grading: float) -> float:
-    """``∫_0^depth 6√2 / h(d)³ dd`` for the linear grading of :func:`size_at`, in closed form."""
+    """``∫_0^depth 6√2 / h(d)³ dd`` for the grading of :func:`size_at`, in closed form."""
     if body_size >= size:
         return _INVERSE_REGULAR * depth / size**3
     slope = (size - body_size) / grading

@@ -1,7 +1,8 @@
 """A deterministic gmsh session and the steps every gmsh mesher here shares: a box, a
 size field graded by distance from surfaces, a coarse triangulation of surfaces (for
-estimates), and the 3-D mesh collected as arrays with named node sets. Used by :mod:`torchmorph.meshing.cad` and by the paper's mesh builders
-(``data_gen``). Needs gmsh: ``pip install 'torchmorph[mesh]'``."""
+estimates), and the 3-D mesh collected as arrays with named node sets. Used by
+:mod:`torchmorph.meshing.cad` and by the paper's mesh builders (``data_gen``). Needs
+gmsh: ``pip install 'torchmorph[mesh]'``."""
 
 from __future__ import annotations
 

@@ -19,6 +19,9 @@ The path from a surface file to a :class:`~torchmorph.mesh.TetMesh` that
    sharp edges (``<surface>_edges``) and the smooth patches between them
    (``<surface>_patch<k>``): the kind of sets the paper's ESIDW enriches
    (Ballarin et al. 2017, Algorithm 2 step (ii); the hull's edge in Section 2.3.3).
+   Before fTetWild runs, the bodies are checked not to overlap, touch or nest
+   (:mod:`torchmorph.meshing.checks`) and the number of tetrahedra is estimated
+   and refused above ``max_elements`` (:mod:`torchmorph.meshing.estimate`).
 
 This module is not part of the morphing core (which never imports it). It needs
 the ``tetwild`` extra: ``pip install 'torchmorph[tetwild]'`` (pytetwild, which
@@ -354,8 +357,10 @@ def mesh_surfaces(
         one whose bounding box contains all the others is the outer wall and
         the others are holes in it (bodies in a tunnel), otherwise each is
         meshed as a solid. With ``box``/``bounds`` every surface is a body
-        in the box. Bodies must not overlap or touch, and a body may lie inside
-        another only as a hole in the outer wall above. CAD files (:data:`CAD_FORMATS`: STEP, IGES, BREP) go to
+        in the box, strictly inside it (a body touching a wall, e.g. a half
+        model on a symmetry plane, is refused). Bodies must not overlap or
+        touch, and a body may lie inside another only as a hole in the outer
+        wall above. CAD files (:data:`CAD_FORMATS`: STEP, IGES, BREP) go to
         :func:`mesh_cad` (gmsh on the exact CAD geometry; ``edge_length``,
         ``body_edge_length`` and ``grading`` are its sizes, the fTetWild and
         snapping options do not apply); CAD and triangle files cannot be mixed.
@@ -476,8 +481,9 @@ def mesh_surfaces(
         for body in bodies:
             if not _contains(walls, body):
                 raise ValueError(
-                    f"bounds: the box {walls.bounds.tolist()} does not contain "
-                    f"surface {body.name!r} (bounds {body.bounds.tolist()})"
+                    f"bounds: the box {(walls.bounds + offset).tolist()} does not contain "
+                    f"surface {body.name!r} (bounds {(body.bounds + offset).tolist()}); "
+                    "bodies must lie strictly inside the box, not touching its walls"
                 )
         boundary = [(walls, False)] + [(body, True) for body in bodies]
         container = None
