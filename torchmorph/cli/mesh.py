@@ -15,7 +15,6 @@ from torchmorph.cli._common import (
     _float_list,
     _line,
     _positive_float,
-    _progress_option,
     _seconds,
 )
 from torchmorph.meshing.estimate import MAX_ELEMENTS
@@ -149,7 +148,12 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         action="store_false",
         help="leave the boundary nodes where fTetWild put them (within epsilon of the surface)",
     )
-    _progress_option(mesh)
+    mesh.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="print the estimate, the steps and the elapsed time on stderr (default: on)",
+    )
     mesh.set_defaults(run=run, parser=mesh)
 
 
@@ -234,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if (args.body_edge_length or args.grading) and args.box is None and args.bounds is None:
         args.parser.error("argument --body-edge-length/--grading: needs --box or --bounds")
-    progress = True if args.progress is None else args.progress  # plain lines, not bars
+    progress = args.progress  # plain lines, not bars: on in logs too
     try:  # CAD files and triangle surfaces cannot be mixed
         meshing.is_cad_input([_surface_argument(text)[1] for text in args.surfaces])
     except ValueError as error:
