@@ -135,7 +135,7 @@ def digest(*tensors: Tensor | str) -> tuple[int, int]:
     folded = [len(tensors), len(tensors)]
     for item in tensors:
         if isinstance(item, str):
-            parts = (zlib.crc32(item.encode()),) * 2
+            parts: tuple[int, ...] = (zlib.crc32(item.encode()),) * 2
         else:
             shape = zlib.crc32(repr((tuple(item.shape), str(item.dtype))).encode())
             parts = tuple((value + shape) % _MODULUS for value in tensor_checksums(item))

@@ -9,7 +9,7 @@ import os
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 import torch
 import torch.distributed as dist
@@ -76,7 +76,13 @@ class _Replicate(torch.autograd.Function):
         return (None, *reduced)
 
 
-def replicate(*tensors: Tensor | None, group=None) -> tuple[Tensor | None, ...]:
+@overload
+def replicate(
+    first: Tensor, second: Tensor | None, /, *, group: Any = None
+) -> tuple[Tensor, Tensor | None]: ...
+@overload
+def replicate(*tensors: Tensor | None, group: Any = None) -> tuple[Tensor | None, ...]: ...
+def replicate(*tensors: Tensor | None, group: Any = None) -> tuple[Tensor | None, ...]:
     """Mark tensors as replicated on every rank: identity forward, summed gradients.
 
     After ``backward``, the gradient of a replicated leaf is the sum over ranks of
@@ -110,8 +116,10 @@ def _attach(output: Tensor, *inputs: Tensor | None) -> Tensor:
     linked = [t for t in inputs if t is not None and t.requires_grad]
     if not linked:
         return output
-    zero = sum(t.sum() for t in linked) * 0
-    return output + zero.to(output.dtype)
+    total = linked[0].sum()
+    for t in linked[1:]:
+        total = total + t.sum()
+    return output + (total * 0).to(output.dtype)
 
 
 def _global_tolerance(controls: Tensor, targets: Tensor, tolerance: float, group: Any) -> float:
@@ -227,32 +235,33 @@ def gather_rows(
     rank, world = _group_info(group)
     context = "gathering rows"
     agreement = Agreement(group, context)
-    local, rows = _distributed_field(agreement, local, rows, num_rows)
+    field, row_ids = _distributed_field(agreement, local, rows, num_rows)
     agreement.attempt("dst", _check_destination, dst, world)
     agreement.same("dst", dst)
     sizes = [int(size) for size in agreement.exchange()["rows"]]
-    agree_on_rows(rows, num_rows, name="rows", what="rows", group=group, context=context)
-    device = _comm_device(group, local)
+    # exchange() raised on every rank if this rank's field failed its checks
+    assert field is not None and row_ids is not None
+    agree_on_rows(row_ids, num_rows, name="rows", what="rows", group=group, context=context)
+    device = _comm_device(group, field)
     with torch.no_grad():
-        moved = local.detach().movedim(-2, 0)  # (n_local, [B,] K)
+        moved = field.detach().movedim(-2, 0)  # (n_local, [B,] K)
         longest = max(sizes)
         padded = moved.new_zeros(longest, *moved.shape[1:]).to(device)
         padded[: moved.shape[0]] = moved.to(device)
         padded_rows = torch.zeros(longest, dtype=torch.int64, device=device)
-        padded_rows[: rows.shape[0]] = rows.to(device)
+        padded_rows[: row_ids.shape[0]] = row_ids.to(device)
+        if dst is not None and rank != dst:  # a sender only
+            dist.gather(padded, None, dst=dst, group=group)
+            dist.gather(padded_rows, None, dst=dst, group=group)
+            return None
+        values = [torch.empty_like(padded) for _ in range(world)]
+        ids = [torch.empty_like(padded_rows) for _ in range(world)]
         if dst is None:
-            values = [torch.empty_like(padded) for _ in range(world)]
-            ids = [torch.empty_like(padded_rows) for _ in range(world)]
             dist.all_gather(values, padded, group=group)
             dist.all_gather(ids, padded_rows, group=group)
         else:
-            receiving = rank == dst
-            values = [torch.empty_like(padded) for _ in range(world)] if receiving else None
-            ids = [torch.empty_like(padded_rows) for _ in range(world)] if receiving else None
             dist.gather(padded, values, dst=dst, group=group)
             dist.gather(padded_rows, ids, dst=dst, group=group)
-            if not receiving:
-                return None
         full = moved.new_zeros(num_rows, *moved.shape[1:])
         for size, value, index in zip(sizes, values, ids, strict=True):
             full[index[:size].to(full.device)] = value[:size].to(full.device)
@@ -293,12 +302,14 @@ def save_partitioned(
     rank, world = _group_info(group)
     context = "saving partitioned rows"
     agreement = Agreement(group, context)
-    local, rows = _distributed_field(agreement, local, rows, num_rows)
-    sums = (0, 0) if local is None or rows is None else digest(rows, local)
+    field, row_ids = _distributed_field(agreement, local, rows, num_rows)
+    sums = (0, 0) if field is None or row_ids is None else digest(row_ids, field)
     agreement.per_rank("first checksum", sums[0])
     agreement.per_rank("second checksum", sums[1])
     shared = agreement.exchange()
-    agree_on_rows(rows, num_rows, name="rows", what="rows", group=group, context=context)
+    # exchange() raised on every rank if this rank's field failed its checks
+    assert field is not None and row_ids is not None
+    agree_on_rows(row_ids, num_rows, name="rows", what="rows", group=group, context=context)
     run = [
         [int(first), int(second)]
         for first, second in zip(shared["first checksum"], shared["second checksum"], strict=True)
@@ -308,8 +319,8 @@ def save_partitioned(
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         part = {
-            "rows": rows,
-            "values": local.detach().cpu(),
+            "rows": row_ids,
+            "values": field.detach().cpu(),
             "num_rows": int(num_rows),
             "rank": rank,
             "world_size": world,
@@ -341,20 +352,23 @@ def load_partitioned(directory: str | os.PathLike) -> Tensor:
     """
     directory = Path(directory)
     where = f"directory {str(directory)!r}"
-    parts = (
-        sorted(p for p in directory.iterdir() if _PART.search(p.name)) if directory.is_dir() else []
-    )
+    parts: list[tuple[Path, re.Match[str]]] = []  # (file, its name's rank and world size)
+    if directory.is_dir():
+        for path in sorted(directory.iterdir()):
+            match = _PART.search(path.name)
+            if match:
+                parts.append((path, match))
     if not parts:
         raise FileNotFoundError(f"{where} holds no part-*-of-*.pt files")
-    worlds = {int(_PART.search(p.name).group(2)) for p in parts}
+    worlds = {int(match.group(2)) for _, match in parts}
     if len(worlds) != 1:
         raise ValueError(f"{where} mixes parts of runs with world sizes {sorted(worlds)}")
     (world,) = worlds
-    ranks = sorted(int(_PART.search(p.name).group(1)) for p in parts)
+    ranks = sorted(int(match.group(1)) for _, match in parts)
     if ranks != list(range(world)):
         missing = sorted(set(range(world)) - set(ranks))
         raise ValueError(f"{where}: parts of ranks {missing} are missing (world size {world})")
-    pieces = [torch.load(p, weights_only=True) for p in parts]
+    pieces = [torch.load(path, weights_only=True) for path, _ in parts]
     num_rows = {piece["num_rows"] for piece in pieces}
     if len(num_rows) != 1:
         raise ValueError(f"{where}: parts disagree on the number of rows ({sorted(num_rows)})")

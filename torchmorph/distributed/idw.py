@@ -132,6 +132,8 @@ class ShardedIDW(nn.Module):
     ``target_rows`` is given, else a few numbers).
     """
 
+    target_rows: Tensor  # a buffer, registered in __init__
+
     def __init__(
         self,
         controls: Tensor,
@@ -151,29 +153,35 @@ class ShardedIDW(nn.Module):
         self.group = group
         context = "building a ShardedIDW"
         agreement = Agreement(group, context)
-        controls = agreement.attempt("controls", _points, controls, "controls")
-        targets = agreement.attempt("targets", _points, targets, "targets", controls)
-        power = agreement.attempt("power", check_positive, power, "power")
+        checked_controls = agreement.attempt("controls", _points, controls, "controls")
+        checked_targets = agreement.attempt(
+            "targets", _points, targets, "targets", checked_controls
+        )
+        checked_power = agreement.attempt("power", check_positive, power, "power")
         tolerance = agreement.attempt(
             "coincidence_tolerance", _check_tolerance, coincidence_tolerance
         )
-        count = 0 if targets is None else targets.shape[0]
+        count = 0 if checked_targets is None else checked_targets.shape[0]
         rows = None
         if target_rows is not None:
             rows = agreement.attempt(
                 "target_rows", local_rows, target_rows, "target_rows", count, None
             )
-        agreement.same_tensor("controls", controls)
-        agreement.same("power", power)
+        agreement.same_tensor("controls", checked_controls)
+        agreement.same("power", checked_power)
         agreement.same("coincidence_tolerance", tolerance)
         agreement.same_presence("target_rows", target_rows is not None)
         agreement.per_rank("targets", count)
         counts = [int(value) for value in agreement.exchange()["targets"]]
+        # exchange() raised on every rank if a check above failed on one
+        assert checked_controls is not None and checked_targets is not None
+        assert checked_power is not None and tolerance is not None
+        controls, targets, power = checked_controls, checked_targets, checked_power
 
         self.num_global_targets = sum(counts)
         self.coincidence_tolerance = tolerance
         scaled = _global_tolerance(controls, targets, tolerance, group)
-        failure = None
+        failure: tuple[str, Exception] | None = None
         if rows is None:
             start = sum(counts[: self.rank])
             rows = torch.arange(start, start + count)
@@ -208,6 +216,7 @@ class ShardedIDW(nn.Module):
             failure=failure,
             steps=("IDW(controls, targets)",),
         )
+        assert rows is not None  # None only after a failure, which agree_on_rows raised
         self.register_buffer("target_rows", rows.to(controls.device))
 
     @property

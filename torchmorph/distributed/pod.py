@@ -104,17 +104,17 @@ def sharded_pod_basis(
     SVD's arbitrary signs: compare modes up to sign).
     """
     agreement = Agreement(group, "computing a sharded POD basis")
-    snapshots = agreement.attempt("snapshots", _check_snapshots, snapshots)
-    energy_tolerance = agreement.attempt(
-        "energy_tolerance", check_energy_tolerance, energy_tolerance
-    )
+    checked = agreement.attempt("snapshots", _check_snapshots, snapshots)
+    tolerance = agreement.attempt("energy_tolerance", check_energy_tolerance, energy_tolerance)
     num_modes = agreement.attempt("num_modes", check_num_modes, num_modes)
-    agreement.same_tensor("snapshots", snapshots, rows_dim=1)
-    agreement.same("energy_tolerance", energy_tolerance)
+    agreement.same_tensor("snapshots", checked, rows_dim=1)
+    agreement.same("energy_tolerance", tolerance)
     agreement.same("num_modes", num_modes)
-    agreement.per_rank("points", 0 if snapshots is None else snapshots.shape[1])
+    agreement.per_rank("points", 0 if checked is None else checked.shape[1])
     points = agreement.exchange()["points"]
-    return _tsqr_basis(snapshots, int(sum(points)), energy_tolerance, num_modes, group)
+    # exchange() raised on every rank if a check above failed on one
+    assert checked is not None and tolerance is not None
+    return _tsqr_basis(checked, int(sum(points)), tolerance, num_modes, group)
 
 
 def _tsqr_basis(
@@ -357,6 +357,8 @@ class ShardedPOD(PODBase):
         agreement.same("morph.num_global_outputs", total)
         agreement.per_rank("rows", 0 if fitted is None else fitted[0].shape[1])
         total_rows = int(sum(agreement.exchange()["rows"]))
+        # exchange() raised on every rank if a check above failed on one
+        assert inputs is not None and fitted is not None
         if total is not None:
             agree_on_rows(
                 output_rows,
