@@ -141,6 +141,7 @@ def cell_orientations(
                     squared = vector.square().sum(0)  # simplex, one at least half as long)
                     longest = squared if longest is None else torch.maximum(longest, squared)
             determinants = torch.stack(columns, -1)
+            assert longest is not None  # every kind has a frame, every frame edges
             bound = FLAT_CELL_TOLERANCE * longest ** (kind.dim / 2)
             total = determinants.sum(-1)
             flat = torch.nonzero(total.abs() <= bound * determinants.shape[-1]).flatten()
@@ -172,7 +173,9 @@ def _determinant(vectors: list[Tensor]) -> Tensor:
     return a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
 
 
-def _facet_copies(blocks, orientations):
+def _facet_copies(
+    blocks: Sequence[CellBlock], orientations: Sequence[Tensor]
+) -> dict[str, tuple[Tensor, Tensor]]:
     """Every facet of every cell, outward: per facet kind, (nodes (F, k), owner cells)."""
     copies: dict[str, list[tuple[Tensor, Tensor]]] = {}
     offset = 0

@@ -501,7 +501,8 @@ def _as_face_sets(
         _check_name(key, "face_sets")
         argument = f"face_sets[{key!r}]"
         blocks = []
-        items = list(value.items()) if isinstance(value, Mapping) else list(value)
+        # (kind, nodes) pairs, or meshio CellBlocks
+        items: list[Any] = list(value.items()) if isinstance(value, Mapping) else list(value)
         for position, item in enumerate(items):
             kind, nodes = (item.type, item.data) if hasattr(item, "type") else item
             if kind not in allowed:

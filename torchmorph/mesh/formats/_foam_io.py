@@ -46,6 +46,13 @@ _WHITE_OR_PARENTHESIS[list(b"()")] = True
 _GZIP_MAGIC = b"\x1f\x8b"
 
 
+def _skip(data: bytes, position: int) -> int:
+    """The position after the white space and comments that start at ``position``."""
+    match = _SKIP.match(data, position)
+    assert match is not None  # the pattern matches the empty string too
+    return match.end()
+
+
 @dataclass(frozen=True)
 class FoamFormat:
     """How a file's lists are stored: ``binary`` or ASCII, the byte sizes of labels and
@@ -95,7 +102,7 @@ def read_foam_file(path: Path) -> FoamFile:
             raw = gzip.decompress(raw)
         except (OSError, EOFError) as error:
             raise ValueError(f"case: {path}: not a readable gzip file ({error})") from None
-    position = _SKIP.match(raw, 0).end()
+    position = _skip(raw, 0)
     token = _TOKEN.match(raw, position)
     if token is None or token.group() != b"FoamFile":
         raise ValueError(f"case: {path}: no FoamFile header at the start of the file")
@@ -133,7 +140,7 @@ def read_labels(file: FoamFile, position: int, what: str) -> tuple[np.ndarray, i
 def read_points(file: FoamFile, position: int) -> tuple[np.ndarray, int, int]:
     """The points (vectorField) from ``position``: (N, 3) float64, the position where the
     list starts (its size) and the position after it."""
-    start = _SKIP.match(file.data, position).end()
+    start = _skip(file.data, position)
     count, position, opening = _list_start(file, position, "points")
     if opening == b"{":
         value, position = _uniform(file, position, "points")
@@ -185,7 +192,7 @@ def read_boundary(file: FoamFile) -> list[dict]:
         raise file.fail("expected a list of patch dictionaries")
     patches: list[dict] = []
     while True:
-        position = _SKIP.match(data, position).end()
+        position = _skip(data, position)
         token = _TOKEN.match(data, position)
         if token is None:
             raise file.fail("the list of patches is truncated (no closing parenthesis)")
@@ -199,7 +206,7 @@ def read_boundary(file: FoamFile) -> list[dict]:
         entries: dict[str, str] = {}
         position = opening_brace
         while True:
-            start = _SKIP.match(data, position).end()
+            start = _skip(data, position)
             words, position, closing = _entry(data, start, file.path)
             if closing:
                 break
@@ -298,7 +305,7 @@ def _unquote(word: str) -> str:
 
 
 def _expect(data: bytes, position: int, mark: bytes, path: Path, where: str) -> int:
-    position = _SKIP.match(data, position).end()
+    position = _skip(data, position)
     if data[position : position + 1] != mark:
         found = data[position : position + 20].decode("latin-1") or "the end of the file"
         raise ValueError(f"case: {path}: {where}: expected {mark.decode()!r}, found {found!r}")
@@ -312,7 +319,7 @@ def _entry(data: bytes, position: int, path: Path) -> tuple[list[str], int, bool
     words: list[str] = []
     depth = 0
     while True:
-        position = _SKIP.match(data, position).end()
+        position = _skip(data, position)
         token = _TOKEN.match(data, position)
         if token is None:
             raise ValueError(f"case: {path}: a dictionary is truncated (no closing brace)")
@@ -339,12 +346,12 @@ def _entry(data: bytes, position: int, path: Path) -> tuple[list[str], int, bool
 def _list_start(file: FoamFile, position: int, what: str) -> tuple[int, int, bytes]:
     """The optional size of a list and its opening mark (``(`` or ``{``)."""
     data = file.data
-    position = _SKIP.match(data, position).end()
+    position = _skip(data, position)
     count = -1
     number = _COUNT.match(data, position)
     if number is not None:
         count = int(number.group())
-        position = _SKIP.match(data, number.end()).end()
+        position = _skip(data, number.end())
     opening = data[position : position + 1]
     if opening not in (b"(", b"{"):
         found = data[position : position + 20].decode("latin-1") or "the end of the file"
@@ -381,7 +388,7 @@ def _ascii_entries(file: FoamFile, position: int, what: str) -> tuple[bytes, int
     """The text of a list of parenthesised entries, up to (not including) the list's
     closing parenthesis, and the position after it."""
     data = file.data
-    inner = _SKIP.match(data, position).end()
+    inner = _skip(data, position)
     if data[inner : inner + 1] == b")":
         return b"", inner + 1
     end = _LIST_END.search(data, position)
@@ -408,6 +415,7 @@ def _numbers(
     by ``np.fromstring``. A token that is not a number raises; so does a count other than
     ``expected`` (the tokens are counted when no count is expected, to be sure none was
     skipped)."""
+    values: np.ndarray | None
     if not text.strip():
         values = np.zeros(0, dtype=dtype)
     else:

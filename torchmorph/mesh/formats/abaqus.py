@@ -445,7 +445,7 @@ def write_deck(deck: AbaqusDeck, points: Any, path: str | os.PathLike) -> None:
     target = Path(path)
     if not target.parent.is_dir():
         raise FileNotFoundError(f"path: directory {str(target.parent)!r} does not exist")
-    lines = {}
+    lines: dict[int, list[str]] = {}  # the edited files' lines, by index in deck.files
     moved = np.flatnonzero((new_points != deck.points).any(axis=1))
     for row in moved:
         file, line = int(deck.node_files[row]), int(deck.node_lines[row])

@@ -41,6 +41,7 @@ from __future__ import annotations
 import gzip
 import os
 import shutil
+from collections.abc import Container
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -429,13 +430,15 @@ class Pseudo2D:
             lifted = displacement.new_zeros(shape)
             front = torch.as_tensor(self.front, device=displacement.device)
             back = torch.as_tensor(self.back, device=displacement.device)
-        else:
-            lifted = np.zeros(shape, dtype=np.result_type(displacement.dtype, np.float32))
-            front, back = self.front, self.back
+            for column, axis in enumerate(self.in_plane):
+                lifted[..., front, axis] = displacement[..., column]
+                lifted[..., back, axis] = displacement[..., column]
+            return lifted
+        lifted_array = np.zeros(shape, dtype=np.result_type(displacement.dtype, np.float32))
         for column, axis in enumerate(self.in_plane):
-            lifted[..., front, axis] = displacement[..., column]
-            lifted[..., back, axis] = displacement[..., column]
-        return lifted
+            lifted_array[..., self.front, axis] = displacement[..., column]
+            lifted_array[..., self.back, axis] = displacement[..., column]
+        return lifted_array
 
 
 def pseudo_2d(case: FoamCase, *, tolerance: float = 1e-6) -> Pseudo2D | None:
@@ -564,7 +567,7 @@ def _patch_faces(patch: FoamPatch) -> np.ndarray:
     return np.arange(patch.start_face, patch.start_face + patch.n_faces)
 
 
-def _groups(patches: list[FoamPatch], skip: set[str] = frozenset()) -> dict[str, list[str]]:
+def _groups(patches: list[FoamPatch], skip: Container[str] = frozenset()) -> dict[str, list[str]]:
     groups: dict[str, list[str]] = {}
     for patch in patches:
         for group in patch.in_groups:
