@@ -303,13 +303,13 @@ class PODBase(nn.Module):
             out = out if batched else out.unsqueeze(0)
         beta = self._coefficients(inputs)
         # the slice copies write into out= tensors: not for autograd, vmap, jvp or compile
-        slices = (
-            self._runs is not None
+        runs = self._runs
+        if (
+            runs is not None
             and not is_traced(beta)
             and not (torch.is_grad_enabled() and beta.requires_grad)
-        )
-        if slices:
-            result = expand_by_runs(beta, self.modes_, inputs, self._runs, self.num_outputs_, out)
+        ):
+            result = expand_by_runs(beta, self.modes_, inputs, runs, self.num_outputs_, out)
         else:
             result = expand(
                 beta,

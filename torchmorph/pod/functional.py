@@ -100,7 +100,7 @@ def _svd_basis(
     """Thin SVD of the (scaled, float64) n × D·M matrix Uᵀ: rows of modes, all σ."""
     _, singular_values, vh = torch.linalg.svd(matrix, full_matrices=False)
     kept = _kept_modes(singular_values.square(), energy_tolerance, num_modes, matrix.shape[0])
-    _check_rank(num_modes, singular_values, tuple(matrix.shape), dtype)
+    _check_rank(num_modes, singular_values, (matrix.shape[0], matrix.shape[1]), dtype)
     return vh[:kept], singular_values
 
 
@@ -130,7 +130,7 @@ def _correlation_basis(
     if gap <= 0.0 or torch.finfo(torch.float64).eps * float(eigenvalues[0]) > tolerance * gap:
         return None
     singular_values = eigenvalues.sqrt()
-    _check_rank(num_modes, singular_values, tuple(matrix.shape), dtype)
+    _check_rank(num_modes, singular_values, (matrix.shape[0], matrix.shape[1]), dtype)
     leading = vectors[:, count - kept :].flip(1)  # (n, N), descending
     rough = (leading.mT @ matrix) / singular_values[:kept].unsqueeze(1)  # (N, D·M)
     basis, triangle = torch.linalg.qr(rough.mT)  # (D·M, N): orthonormal columns

@@ -153,9 +153,9 @@ def _sidw(
 
     tree = cKDTree(points, balanced_tree=False)
     query_radius = outer * (1.0 + _QUERY_SLACK)
-    farthest = strategy == "farthest"
-    # distance to the nearest selected point, exact wherever it is < bR (else inf)
-    nearest_selected = np.full(count, np.inf) if farthest else None
+    # distance to the nearest selected point, exact wherever it is < bR (else inf);
+    # kept for the "farthest" strategy only
+    nearest_selected = np.full(count, np.inf) if strategy == "farthest" else None
     nearest_distance = _NearestSelected(points)
 
     def visit(center: int) -> np.ndarray:
@@ -164,7 +164,7 @@ def _sidw(
         distance = _distances(points[ball], points[center])
         inside = distance < outer
         ball, distance = ball[inside], distance[inside]
-        if farthest:
+        if nearest_selected is not None:
             nearest_selected[ball] = np.minimum(nearest_selected[ball], distance)
         live = alive[ball]
         near = distance < radius
@@ -189,6 +189,7 @@ def _sidw(
         if strategy == "centroid":
             members = points[beta]
             return int(beta[np.argmin(_distances(members, members.mean(axis=0)))])
+        assert nearest_selected is not None  # the strategy is "farthest"
         gap = nearest_selected[beta]
         unknown = np.isinf(gap)
         if unknown.any():  # only after a restart: no selected point within bR
