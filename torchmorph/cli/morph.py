@@ -362,7 +362,7 @@ def run(args: argparse.Namespace) -> int:
                         "interior is interpolated"
                     )
         if args.enrich:
-            _check_names(mesh, _split_names(args.enrich), "--enrich")
+            _check_names(mesh, _split_names(args.enrich) or [], "--enrich")
         moving_label = ", ".join(moving) if moving else ""
         rows, layout, dropped = _boundary_rows(
             array,
@@ -454,7 +454,7 @@ def run(args: argparse.Namespace) -> int:
         f"{args.mesh}: {mesh.dim}-D, {mesh.num_nodes} nodes, {kinds} "
         f"({morph.num_boundary} boundary, {morph.num_interior} interior nodes)",
     )
-    if moving is not None:
+    if moving_nodes is not None:  # the --moving sets were given
         _line(
             "moving",
             f"{moving_label}: {moving_nodes.size} nodes; the other "

@@ -207,7 +207,7 @@ class CaseSpec:
     title: str
     mesh_case: str
     moving: tuple[str, ...]
-    displacement: Callable[[Tensor, Tensor], Tensor]
+    displacement: Callable[[Tensor, Tensor | float], Tensor]
     parameter: str
     unit: str
     domain: tuple[float, float]

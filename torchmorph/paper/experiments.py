@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from torchmorph._timing import median_time
+from torchmorph.idw import Mode
 from torchmorph.mesh.norms import relative_l2_error
 from torchmorph.mesh.quality import edge_ratio, inverted, quality_summary
 from torchmorph.mesh.tetmesh import TetMesh
@@ -24,7 +25,7 @@ from torchmorph.paper.cases import (
 )
 
 if TYPE_CHECKING:
-    from torchmorph.pod.reducer import PODReducer
+    from torchmorph.pod.reducer import OnlineVariant, PODReducer
 
 __all__ = [
     "CaseContext",
@@ -98,7 +99,7 @@ class CaseContext:
     boundary_star: Tensor
     reference_star: Tensor
     reference_quality: dict[str, Any]
-    mode: str = "auto"
+    mode: Mode = "auto"
 
     def error(self, displacement: Tensor, reference: Tensor | None = None) -> Tensor:
         """Relative error in the P1 mass-matrix norm against full IDW at μ* (or ``reference``)."""
@@ -117,7 +118,7 @@ def prepare_case(
     size: str = "paper",
     mesher: str = "gmsh",
     mesh: TetMesh | None = None,
-    mode: str = "auto",
+    mode: Mode = "auto",
     verbose: bool = False,
 ) -> CaseContext:
     """Load the mesh and assemble full IDW (the reference of every error).
@@ -246,7 +247,7 @@ def selection_point(
         error=error,
         max_q=summary["max_edge_ratio"],
         mean_q=summary["mean_edge_ratio"],
-        inverted=summary["num_inverted"],
+        inverted=int(summary["num_inverted"]),
         error_nodal=error_nodal,
     )
 
@@ -311,7 +312,7 @@ def fit_pod(
     parameters: Tensor,
     *,
     num_modes: int | None = None,
-    online: str = "projection",
+    online: OnlineVariant = "projection",
 ) -> PODReducer:
     from torchmorph.pod.reducer import PODReducer
 

@@ -112,8 +112,8 @@ def plot_case(
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
         from matplotlib.collections import PolyCollection
-    except ImportError as error:  # pragma: no cover - matplotlib is a test dependency
-        raise ImportError("plots need matplotlib: pip install 'torchmorph[plot]'") from error
+    except ImportError as missing:  # pragma: no cover - matplotlib is a test dependency
+        raise ImportError("plots need matplotlib: pip install 'torchmorph[plot]'") from missing
 
     spec, mesh = context.spec, context.mesh
     points = mesh.points.detach().cpu().numpy()

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from torchmorph.idw import Mode
 from torchmorph.mesh.norms import relative_l2_error
 from torchmorph.mesh.quality import quality_summary
 from torchmorph.mesh.tetmesh import TetMesh
@@ -27,7 +28,7 @@ from torchmorph.paper.experiments import (
 from torchmorph.paper.reports import CaseResult, MethodResult, write_outputs
 
 if TYPE_CHECKING:
-    from torchmorph.pod.reducer import PODReducer
+    from torchmorph.pod.reducer import OnlineVariant, PODReducer
 
 __all__ = ["reproduce"]
 
@@ -41,8 +42,8 @@ def reproduce(
     seed: int = 0,
     verbose: bool = True,
     repeats: int = 5,
-    online: str = "projection",
-    mode: str = "auto",
+    online: OnlineVariant = "projection",
+    mode: Mode = "auto",
     variant: str | None = None,
     mesh: TetMesh | None = None,
 ) -> CaseResult:
@@ -152,7 +153,7 @@ def reproduce(
                 controls=morph.num_controls,
                 online_s=online_s,
                 error=error,
-                inverted=summary["num_inverted"],
+                inverted=int(summary["num_inverted"]),
                 max_q=summary["max_edge_ratio"],
                 mean_q=summary["mean_edge_ratio"],
                 selection_s=selection_s,
