@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import importlib
 import math
-from typing import TYPE_CHECKING
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -21,11 +21,10 @@ from torchmorph._checks import check_choice, is_traced, plain_tensor
 from torchmorph.idw.backends import Backend
 from torchmorph.idw.backends.torch import TorchBackend
 
-if TYPE_CHECKING:
-    from torchmorph.idw.functional import Implementation
+__all__ = ["FUSED_BACKENDS", "IMPLEMENTATIONS", "Implementation", "backend_for", "fused_available"]
 
-__all__ = ["FUSED_BACKENDS", "IMPLEMENTATIONS", "backend_for", "fused_available"]
-
+#: The values of ``implementation`` (see the module notes).
+Implementation = Literal["auto", "fused", "torch"]
 IMPLEMENTATIONS: tuple[Implementation, ...] = ("auto", "fused", "torch")
 
 #: The fused backend of each device type: (module, class), loaded on first use. Devices

@@ -35,13 +35,11 @@ torch elsewhere.
 
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
 from torch import Tensor
 
 from torchmorph._checks import check_finite, check_same_device_dtype, check_vectors, is_traced
-from torchmorph.idw._dispatch import apply_with, assemble_weights, backend_for
+from torchmorph.idw._dispatch import Implementation, apply_with, assemble_weights, backend_for
 from torchmorph.idw._geometry import points_arguments, prepare
 
 __all__ = ["DEFAULT_COINCIDENCE_TOLERANCE", "Implementation", "idw_apply", "idw_weights"]
@@ -49,8 +47,6 @@ __all__ = ["DEFAULT_COINCIDENCE_TOLERANCE", "Implementation", "idw_apply", "idw_
 DEFAULT_COINCIDENCE_TOLERANCE = 1e-10
 """Targets closer to a control than this fraction of the cloud's bounding-box
 diagonal take that control's displacement exactly."""
-
-Implementation = Literal["auto", "fused", "torch"]
 
 
 def idw_weights(
