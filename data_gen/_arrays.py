@@ -160,7 +160,7 @@ def untangle(
     offsets = np.concatenate([[0], np.cumsum(np.bincount(tets.ravel(), minlength=len(points)))])
     tet_of = order // 4
     edges = np.unique(np.sort(tets[:, _TET_EDGES].reshape(-1, 2), axis=1), axis=0)
-    neighbours = [[] for _ in range(len(points))]
+    neighbours: list[list[int]] = [[] for _ in range(len(points))]
     for a, b in edges:
         neighbours[a].append(b)
         neighbours[b].append(a)

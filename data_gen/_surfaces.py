@@ -32,11 +32,11 @@ WING_PATCHES = ("upper", "lower", "root", "tip")
 HULL_PATCHES = ("starboard", "port")
 
 
-def _union(*arrays: np.ndarray) -> np.ndarray:
-    arrays = [a for a in arrays if a is not None]
-    if not arrays:
+def _union(*arrays: np.ndarray | None) -> np.ndarray:
+    present = [a for a in arrays if a is not None]
+    if not present:
         return np.zeros(0, dtype=np.int64)
-    return np.unique(np.concatenate(arrays)).astype(np.int64)
+    return np.unique(np.concatenate(present)).astype(np.int64)
 
 
 def _node_tets(tets: np.ndarray, num_nodes: int) -> tuple[np.ndarray, np.ndarray]:

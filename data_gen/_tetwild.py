@@ -106,9 +106,9 @@ def _wing_surface(profile_points: int, span_points: int, z0: float, z1: float):
     for s in range(1, n - 2):
         cap += [[upper[s], upper[s + 1], lower[s]], [lower[s], upper[s + 1], lower[s + 1]]]
     cap.append([upper[n - 2], upper[n - 1], lower[n - 2]])
-    cap = np.array(cap)
-    faces = np.concatenate(faces + [cap, cap[:, ::-1] + (span_points - 1) * k])
-    return vertices, _outward(vertices, faces)
+    caps = np.array(cap)
+    all_faces = np.concatenate(faces + [caps, caps[:, ::-1] + (span_points - 1) * k])
+    return vertices, _outward(vertices, all_faces)
 
 
 def _outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -61,7 +61,8 @@ def save(path: Path, mesh: MeshArrays) -> bool:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_output(path) as temporary, open(temporary, "wb") as stream:
-            np.savez_compressed(stream, **arrays)
+            # numpy's stubs let the names fill allow_pickle (a bool): none is that name
+            np.savez_compressed(stream, **arrays)  # type: ignore[arg-type]
     except OSError as error:
         warnings.warn(
             f"could not write the mesh cache entry {str(path)!r} "

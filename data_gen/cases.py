@@ -38,6 +38,7 @@ from __future__ import annotations
 import copy
 import time
 from pathlib import Path
+from types import ModuleType
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -375,6 +376,7 @@ def cache_path(
 
 
 def _generate(case: str, mesher: str, params: dict, *, seed: int, verbose: bool):
+    backend: ModuleType
     if mesher == "gmsh":
         from data_gen import _gmsh as backend
     else:

@@ -102,17 +102,17 @@ HULL_BOX_BOUNDS = (
 )
 
 
-def naca_half_thickness(x: np.ndarray) -> np.ndarray:
+def naca_half_thickness(x: np.ndarray | float) -> np.ndarray:
     """Half thickness y_t(x) of the closed-trailing-edge NACA0012 profile.
 
     Parameters
     ----------
-    x : array, any shape
+    x : array, any shape, or float
         Chord-wise coordinate [m]; clipped to [0, CHORD].
 
     Returns
     -------
-    array, same shape as ``x``
+    array, same shape as ``x`` (a NumPy float for a float)
         ``5 t c (0.2969 √ξ - 0.1260 ξ - 0.3516 ξ² + 0.2843 ξ³ - 0.1036 ξ⁴)``,
         ξ = x / c, t = 0.12, c = 1.01; zero at both ends.
     """
