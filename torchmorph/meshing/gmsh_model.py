@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from types import ModuleType
 
 import numpy as np
 
@@ -22,7 +23,9 @@ __all__ = [
 
 
 @contextlib.contextmanager
-def gmsh_session(name: str, *, seed: int, verbose: bool, threads: int = 1) -> Iterator[object]:
+def gmsh_session(
+    name: str, *, seed: int, verbose: bool, threads: int = 1
+) -> Iterator[ModuleType]:
     """A fresh gmsh model with deterministic settings (``threads`` threads, one by default,
     and ``Mesh.RandomSeed``); yields the ``gmsh`` module. gmsh is finalised after use
     unless the caller had initialised it (then only the model is removed)."""
