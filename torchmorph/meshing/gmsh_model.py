@@ -23,9 +23,7 @@ __all__ = [
 
 
 @contextlib.contextmanager
-def gmsh_session(
-    name: str, *, seed: int, verbose: bool, threads: int = 1
-) -> Iterator[ModuleType]:
+def gmsh_session(name: str, *, seed: int, verbose: bool, threads: int = 1) -> Iterator[ModuleType]:
     """A fresh gmsh model with deterministic settings (``threads`` threads, one by default,
     and ``Mesh.RandomSeed``); yields the ``gmsh`` module. gmsh is finalised after use
     unless the caller had initialised it (then only the model is removed)."""
