@@ -56,13 +56,13 @@ def check_max_elements(max_elements: Any) -> int | None:
         isinstance(max_elements, bool)
         or not isinstance(max_elements, Real)
         or not math.isfinite(max_elements)
-        or not max_elements >= 1
+        or not float(max_elements) >= 1
         or max_elements != math.floor(max_elements)
     ):
         raise ValueError(
             f"max_elements must be an integer >= 1 or None (no limit), got {max_elements!r}"
         )
-    return int(max_elements)
+    return int(math.floor(max_elements))  # integral: the floor is its value, exactly
 
 
 def check_size(
@@ -79,10 +79,10 @@ def check_size(
     if (
         isinstance(value, bool)
         or not isinstance(value, Real)
-        or not (math.isfinite(value) and value > 0)
+        or not (math.isfinite(value) and float(value) > 0)
     ):
         raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
-    if extent is not None and value > extent:
+    if extent is not None and float(value) > extent:
         raise ValueError(
             f"{label} must be at most {what} largest extent {extent:.4g} (less than one "
             f"element across it), got {value!r}; are the sizes in the geometry's units?"
