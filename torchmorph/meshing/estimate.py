@@ -73,6 +73,8 @@ def size_at(
     distance = np.asarray(distance, dtype=np.float64)
     if body_size is None or body_size >= size:
         return np.full(distance.shape, float(size))
+    if grading is None:
+        raise ValueError("grading is needed with a body_size below size")
     return np.minimum(size, body_size + (size - body_size) * distance / grading)
 
 
@@ -191,12 +193,22 @@ def estimate_tets(
     Returns
     -------
     TetEstimate
+
+    Raises
+    ------
+    ValueError
+        If ``body_size`` is below ``size`` and ``grading``, ``bounds``, ``body_vertices``
+        or ``body_faces`` is missing.
     """
     factor = TETS_PER_REGULAR[mesher]
     uniform = factor * _INVERSE_REGULAR * volume / size**3
     sizes = {labels[0]: size}
     if body_size is None or body_size >= size:
         return TetEstimate(uniform, uniform, volume, sizes)
+    if grading is None or bounds is None or body_vertices is None or body_faces is None:
+        raise ValueError(
+            "grading, bounds, body_vertices and body_faces are needed with a body_size below size"
+        )
     sizes.update({labels[1]: body_size, labels[2]: grading})
     bounds = np.asarray(bounds, dtype=np.float64)
     step = (bounds[1] - bounds[0]) / cells
