@@ -9,7 +9,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -211,6 +211,8 @@ def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, np
     except ImportError as error:
         raise ImportError(f"reading {path.suffix} surfaces needs trimesh: {_EXTRA}") from error
     loaded = trimesh.load(str(path), process=False, force="mesh")
+    if not isinstance(loaded, trimesh.Trimesh):  # what force="mesh" asks for
+        raise ValueError(f"trimesh read no triangle mesh but a {type(loaded).__name__}")
     vertices = np.asarray(loaded.vertices, dtype=np.float64)
     faces = np.asarray(loaded.faces, dtype=np.int64)
     groups: dict[str, np.ndarray] = {}
@@ -533,7 +535,14 @@ def feature_edges(surface: Surface, angle: float) -> tuple[np.ndarray, list[np.n
     return pairs[:-1][same][sharp], patches
 
 
-def box_bounds(bodies: Sequence[Surface], box: float | Sequence[float]) -> np.ndarray:
+class _Bounded(Protocol):
+    """Anything with the bounds of a :class:`Surface`: ``bounds[0]`` low, ``bounds[1]`` high."""
+
+    @property
+    def bounds(self) -> np.ndarray: ...
+
+
+def box_bounds(bodies: Sequence[_Bounded], box: float | Sequence[float]) -> np.ndarray:
     padding = np.asarray(box, dtype=np.float64).reshape(-1)
     if padding.size == 1:
         padding = np.repeat(padding, 6)
