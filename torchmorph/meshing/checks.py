@@ -17,7 +17,7 @@ import math
 import sys
 import time
 from numbers import Integral, Real
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 
@@ -62,9 +62,18 @@ def check_max_elements(max_elements: Any) -> int | None:
         raise ValueError(
             f"max_elements must be an integer >= 1 or None (no limit), got {max_elements!r}"
         )
-    return int(math.floor(max_elements))  # integral: the floor is its value, exactly
+    whole = math.floor(max_elements)  # integral (checked above): its value, exactly
+    return int(whole)
 
 
+@overload
+def check_size(
+    label: str, value: None, *, extent: float | None = None, what: str = "the domain's"
+) -> None: ...
+@overload
+def check_size(
+    label: str, value: float, *, extent: float | None = None, what: str = "the domain's"
+) -> float: ...
 def check_size(
     label: str, value: Any, *, extent: float | None = None, what: str = "the domain's"
 ) -> float | None:
