@@ -45,7 +45,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 
@@ -86,6 +86,20 @@ if TYPE_CHECKING:
 __all__ = ["mesh_surfaces", "tetrahedralize"]
 
 # --------------------------------------------------------------------------- fTetWild
+
+
+class _TetWildOptions(TypedDict, total=False):
+    """The keyword arguments given to ``pytetwild.tetrahedralize``."""
+
+    edge_length_abs: float
+    epsilon: float
+    stop_energy: float
+    num_opt_iter: int
+    num_threads: int
+    quiet: bool
+    bg_vertices: np.ndarray
+    bg_tets: np.ndarray
+    bg_values: np.ndarray
 
 
 @contextlib.contextmanager
@@ -182,7 +196,7 @@ def tetrahedralize(
     check_budget(estimate, max_elements)
     offset = far_offset(low, high)
     vertices = vertices - offset
-    options = {
+    options: _TetWildOptions = {
         "edge_length_abs": float(edge_length),
         "epsilon": float(epsilon),
         "stop_energy": float(stop_energy),
@@ -191,11 +205,11 @@ def tetrahedralize(
         "quiet": not verbose,
     }
     if sizing is not None:
-        options.update(
-            bg_vertices=np.ascontiguousarray(np.asarray(sizing[0]) - offset, dtype=np.float64),
-            bg_tets=np.ascontiguousarray(sizing[1], dtype=np.int32),
-            bg_values=np.ascontiguousarray(sizing[2], dtype=np.float64),
+        options["bg_vertices"] = np.ascontiguousarray(
+            np.asarray(sizing[0]) - offset, dtype=np.float64
         )
+        options["bg_tets"] = np.ascontiguousarray(sizing[1], dtype=np.int32)
+        options["bg_values"] = np.ascontiguousarray(sizing[2], dtype=np.float64)
     if progress:
         print(
             f"fTetWild: meshing {len(faces)} surface triangles (edge length {edge_length:.3g}"
@@ -507,6 +521,7 @@ def mesh_surfaces(
     volume = Surface(vertices, faces).volume
     sizing = None
     if body_edge_length is not None:
+        assert walls is not None  # body_edge_length needs box or bounds (checked above)
         grading = grading if grading is not None else body_extent
         body_vertices, body_faces = _merge([(body, False) for body in bodies])
         a, b, c = (body_vertices[body_faces[:, k]] for k in range(3))
@@ -527,6 +542,7 @@ def mesh_surfaces(
     report(f"estimate: about {estimate.total:,.0f} tetrahedra ({limit})")
     check_budget(estimate, max_elements)
     if body_edge_length is not None:
+        assert walls is not None and grading is not None  # as for the estimate above
         sizing = _sizing_field(walls.bounds, bodies, edge_length, body_edge_length, grading)
 
     points, tets = tetrahedralize(
