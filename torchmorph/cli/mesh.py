@@ -6,6 +6,7 @@ import argparse
 import re
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +19,9 @@ from torchmorph.cli._common import (
     _seconds,
 )
 from torchmorph.meshing.estimate import MAX_ELEMENTS
+
+if TYPE_CHECKING:
+    from torchmorph.meshing.surfaces import Surface
 
 
 def add_parser(commands, common: argparse.ArgumentParser) -> None:
@@ -243,7 +247,7 @@ def run(args: argparse.Namespace) -> int:
         meshing.is_cad_input([_surface_argument(text)[1] for text in args.surfaces])
     except ValueError as error:
         raise CommandError(str(error).removeprefix("surfaces: ")) from error
-    surfaces = {}
+    surfaces: dict[str, str | Surface] = {}  # CAD files by path, triangle surfaces read
     for text in args.surfaces:
         name, path = _surface_argument(text)
         if meshing.is_cad_file(path):  # gmsh reads it (mesh_surfaces -> mesh_cad)

@@ -106,7 +106,8 @@ def _iges_unit(text: str) -> str | None:
     delimiter = ","
     if section.startswith("1H"):
         delimiter = section[2]
-    fields, position = [], 0
+    fields: list[str] = []
+    position = 0
     while position < len(section) and len(fields) < 15:
         hollerith = re.match(r"\s*(\d+)H", section[position:])
         if hollerith:
