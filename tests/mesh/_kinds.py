@@ -153,7 +153,7 @@ def quadratic(points: np.ndarray, cells, full: bool = False):
     """The quadratic version of a linear mesh: a node at the middle of every edge (shared
     between cells), and with ``full`` at the centre of every quad face and of quad/hex
     cells (quad9, hexahedron27, wedge18, pyramid14)."""
-    points = [p for p in points]
+    points = list(points)
     mids: dict[tuple[int, ...], int] = {}
 
     def node_at(key: tuple[int, ...]) -> int:

@@ -23,6 +23,7 @@ from torchmorph.mesh import (
     relative_l2_error,
     scaled_jacobian,
 )
+from torchmorph.mesh.cells import CELL_KINDS
 
 F64 = torch.float64
 
@@ -93,7 +94,9 @@ def test_morph_equals_an_independent_float64_idw_from_the_true_boundary(name, or
     assert torch.equal(field[torch.from_numpy(boundary)], torch.from_numpy(values))
     expected = idw_reference(points[interior], p, values)
     scale = np.abs(values).max()
-    np.testing.assert_allclose(field[torch.from_numpy(interior)].numpy(), expected, atol=1e-12 * scale)
+    np.testing.assert_allclose(
+        field[torch.from_numpy(interior)].numpy(), expected, atol=1e-12 * scale
+    )
 
 
 @pytest.mark.parametrize(("name", "order"), [(n, "quadratic") for n in LINEAR])
@@ -137,7 +140,9 @@ def test_inverted_cells_are_found_for_every_kind():
         points, cells = linear(name)
         mesh = Mesh(points, cells)
         # push the node at the middle of the box's bottom (or a corner) through its cells
-        node = int(np.argmin(np.linalg.norm(points - points.mean(0) * [1, 1, 0][: mesh.dim], axis=1)))
+        node = int(
+            np.argmin(np.linalg.norm(points - points.mean(0) * [1, 1, 0][: mesh.dim], axis=1))
+        )
         move = torch.zeros(mesh.num_nodes, mesh.dim, dtype=F64)
         move[node, -1] = 5.0
         flipped = inverted(mesh, move)
@@ -152,7 +157,7 @@ def test_inverted_cells_are_found_for_every_kind():
 
 def test_mirrored_cells_are_valid_and_their_facets_point_out():
     points, cells = box(("hexahedron", "pyramid"), 2)
-    mirrored = [(kind, nodes[:, list(Mesh_kind(kind).mirror)]) for kind, nodes in cells]
+    mirrored = [(kind, nodes[:, list(CELL_KINDS[kind].mirror)]) for kind, nodes in cells]
     mesh = Mesh(points, mirrored)
     assert all(bool((o == -1).all()) for o in mesh.orientation)
     torch.testing.assert_close(mesh.volumes.sum(), torch.tensor(8.0, dtype=F64))
@@ -162,12 +167,6 @@ def test_mirrored_cells_are_valid_and_their_facets_point_out():
         p = mesh.points[block.nodes]
         normal = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=1)
         assert bool(((normal * (p.mean(1) - centre)).sum(1) > 0).all())
-
-
-def Mesh_kind(name):  # noqa: N802 - reads as the kind table's entry
-    from torchmorph.mesh.cells import CELL_KINDS
-
-    return CELL_KINDS[name]
 
 
 def test_quality_by_kind_and_the_error_norm_on_a_hybrid_mesh():
@@ -219,7 +218,9 @@ def test_markers_node_sets_face_sets_and_groups():
     assert mesh.markers == ("corner", "bottom", "left", "walls")
     assert mesh.node_set("bottom").tolist() == [0, 3, 6]
     assert mesh.node_set("walls").tolist() == [0, 1, 2, 3, 6]
-    with pytest.raises(ValueError, match=r"unknown marker 'top'; known: corner, bottom, left, walls"):
+    with pytest.raises(
+        ValueError, match=r"unknown marker 'top'; known: corner, bottom, left, walls"
+    ):
         mesh.node_set("top")
     with pytest.raises(ValueError, match=r"facet kind 'triangle' is not a facet of a 2-D mesh"):
         Mesh(points, cells, face_sets={"x": [("triangle", [[0, 1, 2]])]})
@@ -234,7 +235,9 @@ def test_a_2d_displacement_for_a_3d_mesh_is_refused():
     morph = MeshMorph(mesh)
     with pytest.raises(ValueError, match=r"boundary_displacement must have shape \(8, 3\)"):
         morph(torch.zeros(8, 2, dtype=F64))
-    with pytest.raises(ValueError, match=r"points must have shape \(N, 2\) for cells of dimension 2"):
+    with pytest.raises(
+        ValueError, match=r"points must have shape \(N, 2\) for cells of dimension 2"
+    ):
         Mesh(np.zeros((4, 3)) + np.eye(4, 3), [("quad", [[0, 1, 2, 3]])])
 
 
