@@ -1,5 +1,5 @@
 """Parametrized displacement families and the morphs they drive, shared by the gradient and
-torch.func tests (tests/test_gradients.py, tests/test_func.py)."""
+torch.func tests (tests/idw/test_gradients.py, tests/idw/test_func.py)."""
 
 from __future__ import annotations
 

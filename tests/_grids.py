@@ -1,5 +1,6 @@
 """A Kuhn-split grid cube built independently of ``torchmorph.mesh.box_mesh``, for tests of
-the library's mesh code (tests/test_mesh.py, tests/test_quality.py, tests/test_io.py)."""
+the library's mesh code (tests/mesh/test_mesh.py, tests/mesh/test_quality.py,
+tests/mesh/test_io.py)."""
 
 from __future__ import annotations
 

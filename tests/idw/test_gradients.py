@@ -1,7 +1,7 @@
 """Gradients through the morphs, checked against central finite differences (float64,
 relative error <= 1e-6) and ``torch.autograd.gradcheck``.
 
-Covered here (tests/test_idw.py, tests/test_morph.py and tests/test_pod.py hold the
+Covered here (tests/idw/test_idw.py, tests/test_morph.py and tests/pod/test_pod.py hold the
 gradients with respect to displacements and IDW positions):
 
 - a parametrized family μ -> boundary displacement through IDW (dense and
