@@ -34,19 +34,20 @@ _FLAT = 1e-5  # a surface whose bounding box is thinner than this [m] is planar 
 def _profile_splines(occ, num_points: int) -> int:
     """The wing's profile face in the plane z = 0; returns its surface tag."""
     x, y = naca_profile(num_points)
-    upper = [
-        occ.addPoint(float(a), float(b), 0.0) for a, b in zip(x[::-1], y[::-1], strict=True)
-    ]  # TE -> LE
-    leading, trailing = upper[-1], upper[0]
-    lower = [leading]
+    x, y = x[::-1], y[::-1]  # both sides from the trailing to the leading edge
+    upper = [occ.addPoint(float(a), float(b), 0.0) for a, b in zip(x, y, strict=True)]
+    trailing, leading = upper[0], upper[-1]
+    lower = [trailing]
     lower += [occ.addPoint(float(a), float(-b), 0.0) for a, b in zip(x[1:-1], y[1:-1], strict=True)]
-    lower.append(trailing)
-    # end tangents: vertical at the leading edge (G1 there), along the sides at the sharp TE
+    lower.append(leading)
+    # end tangents: along the sides at the sharp TE, vertical at the leading edge (G1 there).
+    # Both splines start at the TE: the lower side interpolated towards the TE with its end
+    # tangent prescribed overshoots it (x = 1.012 c) and crosses the chord line there.
     h = 1e-6 * CHORD
     slope = float((naca_half_thickness(CHORD) - naca_half_thickness(CHORD - h)) / h)
     upper_curve = occ.addSpline(upper, tangents=[-1.0, -slope, 0.0, 0.0, -1.0, 0.0])
-    lower_curve = occ.addSpline(lower, tangents=[0.0, -1.0, 0.0, 1.0, -slope, 0.0])
-    loop = occ.addCurveLoop([upper_curve, lower_curve])
+    lower_curve = occ.addSpline(lower, tangents=[-1.0, slope, 0.0, 0.0, 1.0, 0.0])
+    loop = occ.addCurveLoop([upper_curve, -lower_curve])
     face = occ.addPlaneSurface([loop])
     # the interpolation points are free vertices now: remove them
     occ.remove([(0, tag) for tag in upper[1:-1] + lower[1:-1]])

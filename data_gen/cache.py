@@ -27,7 +27,7 @@ __all__ = ["FORMAT_VERSION", "cache_key", "default_cache_dir", "load", "load_or_
 
 #: Bumped whenever a change to the builders changes the meshes they make, so
 #: that stale cache entries are not reused.
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 _SET_PREFIX = "set:"
 
 

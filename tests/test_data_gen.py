@@ -354,6 +354,32 @@ def test_naca_profile_closed_trailing_edge():
     assert x[np.argmax(y)] == pytest.approx(0.3 * CHORD, abs=0.01)
 
 
+def test_gmsh_profile_curves_follow_the_naca_profile():
+    """Both OpenCASCADE splines of the profile stay on their side of the chord, end at the
+    sharp trailing edge and follow the closed-form half-thickness (a spline interpolated
+    towards the trailing edge with its end tangent prescribed overshot it to x = 1.012 c
+    and crossed the chord line)."""
+    pytest.importorskip("gmsh")
+    from data_gen._gmsh import _profile_splines
+    from torchmorph.meshing.gmsh_model import gmsh_session
+
+    with gmsh_session("profile", seed=0, verbose=False) as gmsh:
+        face = _profile_splines(gmsh.model.occ, 121)
+        gmsh.model.occ.synchronize()
+        sides = []
+        for _, curve in gmsh.model.getBoundary([(2, face)]):
+            (low,), (high,) = gmsh.model.getParametrizationBounds(1, abs(curve))
+            t = np.linspace(low, high, 20001)
+            xyz = np.reshape(gmsh.model.getValue(1, abs(curve), t), (-1, 3))
+            x, y = xyz[:, 0], xyz[:, 1]
+            side = np.sign(y[len(y) // 2])
+            sides.append(side)
+            assert x.min() >= -1e-12 and x.max() <= CHORD * (1 + 1e-12)
+            assert (side * y).min() >= -1e-12  # never across the chord line
+            assert np.abs(np.abs(y) - naca_half_thickness(x)).max() < 5e-5 * CHORD
+    assert sorted(sides) == [-1.0, 1.0]
+
+
 def test_project_to_profile_finds_the_nearest_point():
     rng = np.random.default_rng(0)
     x, y = rng.uniform(-0.05, 1.06, 300), rng.uniform(-0.1, 0.1, 300)

@@ -20,15 +20,15 @@ from torchmorph.paper import reproduce  # noqa: E402 (after the skip: needs gmsh
 # method: (controls, nodal error, mass error)
 SMALL = {
     "wing": {
-        "mesh": (1427, 273, 1154, 4720),
-        "SIDW": (91, 0.019182, 0.010624),
-        "ESIDW": (186, 0.015616, 0.0087424),
-        "POD-ESIDW": (186, 0.015616, 0.0087424),
+        "mesh": (1438, 282, 1156, 4774),
+        "SIDW": (92, 0.015410, 0.0086343),
+        "ESIDW": (192, 0.012545, 0.0070917),
+        "POD-ESIDW": (192, 0.012545, 0.0070917),
     },
     "fluid_wing": {
-        "mesh": (2451, 851, 1600, 9557),
-        "ESIDW": (1583, 0.00045366, 0.0014574),
-        "POD-ESIDW": (1583, 0.00045366, 0.0014574),
+        "mesh": (2403, 828, 1575, 9333),
+        "ESIDW": (1557, 0.00047726, 0.0015917),
+        "POD-ESIDW": (1557, 0.00047726, 0.0015917),
     },
     "hull": {
         "mesh": (1724, 821, 903, 7421),
@@ -114,9 +114,9 @@ def test_report_names_both_norms(small_results):
 # the figures docs/results.md reports (seed 0): method -> (controls, nodal, mass)
 PAPER = {
     "wing": {
-        "mesh": (2631, 805, 1826, 9626),
-        "SIDW": (110, 0.0196, 0.0125),
-        "ESIDW": (374, 0.0186, 0.0120),
+        "mesh": (2664, 839, 1825, 9803),
+        "SIDW": (105, 0.0210, 0.0134),
+        "ESIDW": (365, 0.0177, 0.0115),
     },
     "hull": {
         "mesh": (7018, 3173, 3845, 29710),
