@@ -21,6 +21,11 @@ EXIT_USAGE = 2
 EXIT_INVERTED = 3
 EXIT_INTERRUPTED = 130
 
+#: The MESH argument's help: the formats :func:`torchmorph.mesh.io.read_mesh` reads.
+MESH_HELP = (
+    "mesh file (.vtu, .vtk, .xdmf, .msh, .su2, .inp, .mesh, .cgns, .exo, .bdf, .med) or "
+    "OpenFOAM case directory"
+)
 #: Displacement file extensions understood by ``morph --displacement``.
 DISPLACEMENT_FORMATS = (".npy", ".npz", ".csv", ".txt", ".dat")
 

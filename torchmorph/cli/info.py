@@ -8,11 +8,14 @@ import time
 
 import numpy as np
 
-from torchmorph.cli._common import EXIT_OK, _line, _progress_option, _read, _seconds, _Stages
-
-MESH_HELP = (
-    "mesh file (.vtu, .vtk, .xdmf, .msh, .su2, .inp, .mesh, .cgns, .exo, .bdf, .med) or "
-    "OpenFOAM case directory"
+from torchmorph.cli._common import (
+    EXIT_OK,
+    MESH_HELP,
+    _line,
+    _progress_option,
+    _read,
+    _seconds,
+    _Stages,
 )
 
 

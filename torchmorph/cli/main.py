@@ -3,9 +3,10 @@
 Subcommands
 -----------
 ``torchmorph info MESH``
-    Node, tetrahedron, boundary and interior counts, the node sets with their
-    sizes, the bounding box, the quality ``Q`` (max/mean edge ratio) and the
-    smallest tetrahedron volume of a mesh file.
+    The dimension, node counts and cells by kind, the markers (node sets, face
+    sets, groups) with their node counts, the bounding box, the quality (edge
+    ratio ``Q``, smallest scaled Jacobian and volume) and the inverted cells of a
+    mesh file, solver deck or OpenFOAM case.
 ``torchmorph morph MESH --displacement FILE [--moving SET ...] -o OUT``
     Morph a mesh (the paper's Algorithm 2, Section 2.2.1): prescribe the displacement of the
     boundary nodes, interpolate the interior by IDW from all boundary nodes
@@ -14,54 +15,57 @@ Subcommands
 ``torchmorph reproduce wing|fluid-wing|hull``
     Run one of the paper's test cases (:func:`torchmorph.paper.reproduce`).
 ``torchmorph mesh SURFACE [SURFACE ...] -o OUT``
-    Tetrahedralise your own closed surfaces (STL, OBJ, PLY, OFF) with fTetWild,
-    optionally in a box, with named boundary node sets
-    (:func:`torchmorph.meshing.mesh_surfaces`).
+    Tetrahedralise your own closed surfaces (STL, OBJ, PLY, OFF) with fTetWild or
+    CAD files (STEP, IGES) with gmsh, optionally in a box, with named boundary node
+    sets (:mod:`torchmorph.meshing`).
 
 Displacement files (``morph --displacement``)
 ---------------------------------------------
 ``.npy`` (``numpy.save``), ``.npz`` (the array named ``displacement``, or the
 only array), ``.csv`` (comma-separated) or ``.txt``/``.dat`` (whitespace
-separated, read by ``numpy.loadtxt``). Accepted shapes, with ``n_moving`` the
-number of nodes in the union of the ``--moving`` sets, ``N_b`` the number of
-boundary nodes and ``N`` the number of nodes:
+separated, read by ``numpy.loadtxt``). Accepted shapes, with ``D`` the mesh's
+dimension (2 or 3), ``n_moving`` the number of nodes in the union of the
+``--moving`` sets, ``N_b`` the number of boundary nodes and ``N`` the number of
+nodes:
 
-- ``(n_moving, 3)``: one row per node of the moving sets, in the order of the
+- ``(n_moving, D)``: one row per node of the moving sets, in the order of the
   sorted union of their node ids (ascending global node number);
-- ``(N_b, 3)``: one row per boundary node, in the order of the mesh's sorted
-  boundary node ids (``TetMesh.boundary_nodes``);
-- ``(N, 3)``: a nodal field; its boundary rows are used, its interior rows are
+- ``(N_b, D)``: one row per boundary node, in the order of the mesh's sorted
+  boundary node ids (``Mesh.boundary_nodes``);
+- ``(N, D)``: a nodal field; its boundary rows are used, its interior rows are
   ignored (the interior is what IDW computes);
-- ``(3,)``: one translation applied to every node of the moving sets;
-- any of these with a leading batch axis ``(B, ..., 3)``: the field
+- ``(D,)``: one translation applied to every node of the moving sets;
+- any of these with a leading batch axis ``(B, ..., D)``: the field
   ``--batch-index i`` is used (default: the only one when ``B == 1``).
 
 With ``--moving`` every boundary node outside the moving sets is fixed (zero
 displacement), whatever the file holds for it (a warning says so when those
 rows were not zero). Without ``--moving`` the file must give every boundary
-node, as ``(N_b, 3)`` or ``(N, 3)``, and all its boundary rows are used.
+node, as ``(N_b, D)`` or ``(N, D)``, and all its boundary rows are used.
 When two layouts have the same number of rows they coincide (the moving nodes
 are then all the boundary nodes, or every node is a boundary node), so a shape
 is never ambiguous.
 
 Output (``morph -o``)
 ---------------------
-The *reference* mesh (``--write-deformed``: the deformed one) with its node sets
-(point data ``set:<name>``), point data ``displacement`` (N, 3) — ParaView's
-"Warp By Vector" on it shows the morph — and ``control_point`` (1 for the
-control points of the IDW), and cell data ``quality`` (``Q`` after the morph),
-``quality_reference`` (``Q`` before) and ``inverted`` (1 for a tetrahedron whose
-signed volume is <= 0 after the morph). Formats: ``.vtu``, ``.vtk``,
-``.xdmf``/``.xmf``, ``.msh``.
+A solver's own input given in the same format (an OpenFOAM case directory, a
+CalculiX/Abaqus deck, an SU2 file) comes back whole with only its coordinates
+moved (:func:`torchmorph.mesh.io.write_morphed`). Any other output is the
+*reference* mesh (``--write-deformed``: the deformed one) with its markers,
+point data ``displacement`` (N, D) — ParaView's "Warp By Vector" on it shows the
+morph — and ``control_point`` (1 for the control points of the IDW), and cell
+data ``quality`` (``Q`` after the morph), ``quality_reference`` (``Q`` before)
+and ``inverted`` (1 for a cell that the morph inverts), in any format
+:func:`torchmorph.mesh.io.write_mesh` writes (``.vtu``, ``.vtk``, ``.xdmf``,
+``.msh``, ...; a ``.msh`` file of several cell blocks gets no cell data).
 
 Exit codes
 ----------
 0 success; 1 runtime error (missing or unreadable file, unknown node set, bad
 displacement shape, invalid selection, missing optional dependency); 2 usage
 error (argparse: unknown option, bad number, out-of-range ``R``/``a``/``b``);
-3 the morph inverted tetrahedra and ``--strict`` was given (without
-``--strict`` inverted tetrahedra only print a WARNING and the output is still
-written); 130 interrupted. Error messages go to stderr, one line, without a
+3 the morph inverted cells and ``--strict`` was given (without ``--strict``
+inverted cells only print a WARNING and the output is still written); 130 interrupted. Error messages go to stderr, one line, without a
 Python traceback (``--debug`` shows it).
 """
 
@@ -72,27 +76,9 @@ import sys
 from collections.abc import Sequence
 
 from torchmorph.cli import info, mesh, morph, reproduce
-from torchmorph.cli._common import (
-    DISPLACEMENT_FORMATS,
-    EXIT_ERROR,
-    EXIT_INTERRUPTED,
-    EXIT_INVERTED,
-    EXIT_OK,
-    EXIT_USAGE,
-    CommandError,
-)
+from torchmorph.cli._common import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_USAGE, CommandError
 
-__all__ = [
-    "DISPLACEMENT_FORMATS",
-    "EXIT_ERROR",
-    "EXIT_INTERRUPTED",
-    "EXIT_INVERTED",
-    "EXIT_OK",
-    "EXIT_USAGE",
-    "CommandError",
-    "build_parser",
-    "main",
-]
+__all__ = ["build_parser", "main"]
 
 _MESH_EXTRA_HINT = "install the optional mesh dependencies: pip install 'torchmorph[mesh]'"
 
@@ -126,12 +112,12 @@ def build_parser() -> argparse.ArgumentParser:
     common = _common_options()
     parser = argparse.ArgumentParser(
         prog="torchmorph",
-        description="IDW / Selective IDW morphing of tetrahedral meshes (Ballarin, D'Amario, "
+        description="IDW / Selective IDW morphing of volume meshes (Ballarin, D'Amario, "
         "Perotto, Rozza 2017: A POD-Selective Inverse Distance Weighting method for "
         "fast parametrized shape morphing, Sections 2-3), tetrahedral meshes from "
         "your own surfaces, and the reproduction of the paper's test cases.",
         epilog="Run 'torchmorph COMMAND --help' for the options of a command. Exit codes: "
-        "0 ok, 1 runtime error, 2 usage error, 3 inverted tetrahedra with --strict.",
+        "0 ok, 1 runtime error, 2 usage error, 3 inverted cells with --strict.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -164,7 +150,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     -------
     int
         The exit code: 0 ok, 1 runtime error, 2 usage error, 3 inverted
-        tetrahedra with ``morph --strict``, 130 interrupted.
+        cells with ``morph --strict``, 130 interrupted.
     """
     parser = build_parser()
     try:

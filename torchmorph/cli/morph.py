@@ -14,6 +14,7 @@ import numpy as np
 from torchmorph.cli._common import (
     EXIT_INVERTED,
     EXIT_OK,
+    MESH_HELP,
     CommandError,
     _boundary_rows,
     _check_names,
@@ -74,12 +75,12 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         parents=[common],
         help="morph a mesh from a boundary displacement",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Morph a tetrahedral mesh: boundary nodes take the prescribed displacement\n"
+        description="Morph a mesh: boundary nodes take the prescribed displacement\n"
         "exactly, interior nodes are interpolated by IDW from the control points (all\n"
         "boundary nodes, or a selection: --select / --region, with --enrich).",
         epilog=_MORPH_EPILOG,
     )
-    morph.add_argument("mesh", metavar="MESH", help="mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)")
+    morph.add_argument("mesh", metavar="MESH", help=MESH_HELP)
     morph.add_argument(
         "--moving",
         nargs="+",
@@ -100,7 +101,9 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         "-o",
         required=True,
         metavar="OUT",
-        help="output mesh file (.vtu, .vtk, .xdmf, .xmf, .msh)",
+        help="output: the source's format for a solver's own input (OpenFOAM case, "
+        ".inp deck, .su2), which comes back with only its coordinates moved; else a "
+        "mesh file with the morph's fields (.vtu, .vtk, .xdmf, .msh, ...)",
     )
     selection = morph.add_argument_group(
         "control-point selection (default: every boundary node, plain IDW)"
@@ -184,7 +187,7 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
     out.add_argument(
         "--strict",
         action="store_true",
-        help=f"exit with code {EXIT_INVERTED} when the morph inverts tetrahedra "
+        help=f"exit with code {EXIT_INVERTED} when the morph inverts cells "
         "(the output is written all the same)",
     )
     _progress_option(out)
@@ -192,17 +195,19 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
 
 
 _MORPH_EPILOG = """\
-displacement file layouts (n_moving = nodes in the union of the --moving sets,
-N_b = boundary nodes, N = all nodes):
-  (n_moving, 3)  rows of the moving nodes, in ascending global node id
-  (N_b, 3)       rows of the boundary nodes, in ascending global node id
-  (N, 3)         a nodal field; its boundary rows are used
-  (3,)           one translation of every moving node
-  (B, ..., 3)    a batch of any of these; pick one with --batch-index
+displacement file layouts (D = the mesh's dimension, 2 or 3; n_moving = nodes
+in the union of the --moving sets, N_b = boundary nodes, N = all nodes):
+  (n_moving, D)  rows of the moving nodes, in ascending global node id
+  (N_b, D)       rows of the boundary nodes, in ascending global node id
+  (N, D)         a nodal field; its boundary rows are used
+  (D,)           one translation of every moving node
+  (B, ..., D)    a batch of any of these; pick one with --batch-index
 Boundary nodes outside the --moving sets are fixed (zero displacement).
 
-output: the reference mesh with point data 'displacement' (use ParaView's
-Warp By Vector) and 'control_point', cell data 'quality' (Q after the morph),
+output: an OpenFOAM case, .inp deck or .su2 file given as input and as output
+comes back whole with only its coordinates moved; any other output is the
+reference mesh with point data 'displacement' (use ParaView's Warp By Vector)
+and 'control_point', cell data 'quality' (Q after the morph),
 'quality_reference' and 'inverted'.
 
 examples:
