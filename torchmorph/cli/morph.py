@@ -169,7 +169,7 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         metavar="I",
-        help="field to use from a batched file (B, ..., 3); negative counts from the end",
+        help="field to use from a batched file (B, ..., D); negative counts from the end",
     )
     idw.add_argument("--device", default="cpu", help="torch device (default cpu), e.g. cuda")
     idw.add_argument(

@@ -129,7 +129,7 @@ def idw_apply(
     ----------
     controls : Tensor, shape (N_c, D), keyword
     targets : Tensor, shape (N_t, D), keyword
-    displacements : Tensor, shape (N_c, 3) or (B, N_c, 3), keyword
+    displacements : Tensor, shape (N_c, D) or (B, N_c, D), keyword
     power, coincidence_tolerance
         As in :func:`idw_weights`.
     block_bytes : int, optional
@@ -141,7 +141,7 @@ def idw_apply(
 
     Returns
     -------
-    Tensor, shape (N_t, 3) or (B, N_t, 3)
+    Tensor, shape (N_t, D) or (B, N_t, D)
         Same values as ``idw_weights(controls=..., targets=...) @ displacements``.
 
     Notes

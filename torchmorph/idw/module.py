@@ -50,9 +50,9 @@ class IDW(nn.Module):
 
     Parameters
     ----------
-    controls : Tensor, shape (N_c, 3)
-        Control points (e.g. the selected boundary nodes).
-    targets : Tensor, shape (N_t, 3)
+    controls : Tensor, shape (N_c, D)
+        Control points (e.g. the selected boundary nodes), D = 2 or 3.
+    targets : Tensor, shape (N_t, D)
         Points whose displacement is interpolated (e.g. the interior nodes).
     power : float
         IDW exponent p > 0; default 4 (the paper's).
@@ -285,14 +285,14 @@ class IDW(nn.Module):
 
         Parameters
         ----------
-        displacements : Tensor, shape (N_c, 3) or (B, N_c, 3)
+        displacements : Tensor, shape (N_c, D) or (B, N_c, D)
         controls, targets : Tensor, optional
             Moved positions (same shapes as the reference) to use instead of the
             stored geometry; W is then rebuilt differentiably from them.
 
         Returns
         -------
-        Tensor, shape (N_t, 3) or (B, N_t, 3)
+        Tensor, shape (N_t, D) or (B, N_t, D)
         """
         dim = self.controls.shape[1]
         check_vectors(
