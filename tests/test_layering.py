@@ -30,7 +30,7 @@ ABOVE_THE_CORE = (
     "data_gen",
 )
 #: The only library modules that may import data_gen (the paper's reproduction).
-MAY_USE_DATA_GEN = ("torchmorph.paper", "torchmorph.cli.reproduce")
+MAY_USE_DATA_GEN = ("torchmorph.paper",)
 #: Shared helpers every subpackage may use.
 SHARED = ("torchmorph._checks", "torchmorph._state", "torchmorph._atomic", "torchmorph._timing")
 

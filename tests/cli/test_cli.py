@@ -486,9 +486,13 @@ def test_moving_set_with_interior_nodes(tmp_path, capsys):
 
 @pytest.fixture
 def fake_paper(monkeypatch):
-    """Replace torchmorph.paper by a module that records its calls."""
+    """Replace torchmorph.paper by a module that records its calls (case names resolved by
+    the real one)."""
+    from torchmorph.paper import case_key
+
     calls = []
     module = types.ModuleType("torchmorph.paper")
+    module.case_key = case_key
 
     def reproduce(case, **options):
         calls.append((case, options))
@@ -535,6 +539,13 @@ def test_reproduce_missing_dependency_names_extra(fake_paper, capsys):
     assert main(["reproduce", "hull"]) == EXIT_ERROR
     err = _error(capsys)
     assert "gmsh" in err and "pip install 'torchmorph[mesh]'" in err
+
+
+def test_reproduce_without_the_reproduction_installed(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "torchmorph.paper", None)  # import fails
+    monkeypatch.delattr(torchmorph, "paper", raising=False)
+    assert main(["reproduce", "wing", "--size", "small"]) == EXIT_ERROR
+    assert "torchmorph.paper is not part of this installation" in _error(capsys)
 
 
 def test_reproduce_bad_arguments(capsys):

@@ -8,19 +8,19 @@ from pathlib import Path
 
 from torchmorph.cli._common import EXIT_OK, CommandError
 
-#: Case names of ``reproduce`` (aliases: data_gen.cases.CASE_ALIASES, the one table).
-_CASES = ("wing", "fluid-wing", "hull")
-
 
 def _case_name(text: str) -> str:
-    from data_gen.cases import canonical_case
-
+    """The reproduction's key of a case name or letter (:func:`torchmorph.paper.case_key`)."""
     try:
-        return canonical_case(text).replace("_", "-")
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"unknown case {text!r}; choose from {', '.join(_CASES)} (or A, B, C)"
-        ) from None
+        from torchmorph.paper import case_key
+    except ModuleNotFoundError as error:
+        if error.name == "torchmorph.paper":
+            return text  # run() says that the reproduction is not installed
+        raise
+    try:
+        return case_key(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def add_parser(commands, common: argparse.ArgumentParser) -> None:
