@@ -8,12 +8,14 @@ as PyTorch modules.
 from torchmorph import _moved  # noqa: F401  (0.1.0's module names, deprecated)
 from torchmorph.idw import IDW, idw_apply, idw_weights
 from torchmorph.mesh import (
+    Mesh,
     TetMesh,
     box_mesh,
     count_inverted,
     edge_ratio,
     inverted,
     mass_matrix,
+    quality_by_kind,
     quality_summary,
     read_mesh,
     relative_l2_error,
@@ -21,6 +23,7 @@ from torchmorph.mesh import (
     signed_volumes,
     validity_barrier,
     write_mesh,
+    write_morphed,
 )
 from torchmorph.morph import MeshMorph
 from torchmorph.pod import PODReducer
@@ -28,6 +31,7 @@ from torchmorph.selection import Region, SelectionPlan, select_control_points
 
 __all__ = [
     "IDW",
+    "Mesh",
     "MeshMorph",
     "PODReducer",
     "Region",
@@ -40,6 +44,7 @@ __all__ = [
     "idw_weights",
     "inverted",
     "mass_matrix",
+    "quality_by_kind",
     "quality_summary",
     "read_mesh",
     "relative_l2_error",
@@ -48,6 +53,7 @@ __all__ = [
     "signed_volumes",
     "validity_barrier",
     "write_mesh",
+    "write_morphed",
 ]
 
 __version__ = "0.2.0"

@@ -13,6 +13,7 @@ from torchmorph.mesh.io import (
     read_mesh,
     to_meshio,
     write_mesh,
+    write_morphed,
 )
 from torchmorph.mesh.model import CellBlock, Mesh
 from torchmorph.mesh.norms import (
@@ -67,4 +68,5 @@ __all__ = [
     "to_meshio",
     "validity_barrier",
     "write_mesh",
+    "write_morphed",
 ]
