@@ -5,6 +5,14 @@ A mesh is plain data — ``points (N, 3)``, ``tets (M, 4)`` and named node sets 
 checked once on construction. Topological quantities (boundary faces, boundary
 and interior nodes, edges) and geometric ones (volumes, the mass matrix of
 :mod:`torchmorph.mesh.quality`) are derived on first use and cached.
+
+Why a subclass and not a second model: everything in torchmorph takes a
+:class:`~torchmorph.mesh.Mesh`, so there is one model and one API, and a ``TetMesh``
+goes wherever a ``Mesh`` does. It stays for what is tetrahedral only (``tets``,
+``boundary_faces``, ``edges``, :func:`box_mesh`, the flat-tetrahedron bound), which the
+paper's meshes, saved 0.1.0 states and existing code use;
+:func:`~torchmorph.mesh.read_mesh` returns one for a file holding one block of linear
+tetrahedra.
 """
 
 from __future__ import annotations
