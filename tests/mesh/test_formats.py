@@ -134,6 +134,58 @@ def test_unsupported_cells_are_named_never_dropped(tmp_path):
         from_meshio(higher)
 
 
+def test_nastran_keeps_boundary_elements_as_property_ids(tmp_path):
+    mesh = with_markers(*MESHES["hybrid"]())
+    faces = mesh.face_sets["bottom-wall"]
+    mesh = Mesh(
+        mesh.points,
+        [(b.kind, b.nodes) for b in mesh.cells],
+        face_sets={"bottom-wall": faces, "pid7": faces[:1]},
+    )
+    write_mesh(tmp_path / "m.bdf", mesh)
+    again = read_mesh(tmp_path / "m.bdf")
+    assert [(b.kind, b.nodes.tolist()) for b in again.cells] == [
+        (b.kind, b.nodes.tolist()) for b in mesh.cells
+    ]
+    # Nastran holds numbers: pid7 keeps its id, the other name gets the next free one
+    assert set(again.face_sets) == {"pid7", "pid8"}
+    assert torch.equal(again.face_sets["pid8"][0].nodes, faces[0].nodes)
+    assert torch.equal(again.node_set("pid7"), mesh.node_set("pid7"))
+
+
+@pytest.mark.parametrize("name", ["hex+wedge", "hexahedron20", "quad+"])
+def test_abaqus_decks_written_new_get_every_marker_as_an_nset(tmp_path, name):
+    mesh = with_markers(*MESHES[name]())
+    write_mesh(tmp_path / "m.inp", mesh)
+    text = (tmp_path / "m.inp").read_text()
+    again = read_mesh(tmp_path / "m.inp")
+    assert [(b.kind, b.nodes.tolist()) for b in again.cells] == [
+        (b.kind, b.nodes.tolist()) for b in mesh.cells
+    ]
+    assert "*NSET" in text.upper() and not again.face_sets  # no boundary elements written
+    for marker in mesh.markers:
+        assert torch.equal(again.node_set(marker), mesh.node_set(marker)), marker
+
+
+def test_lower_dimensional_cells_of_no_marker_are_kept(tmp_path):
+    import meshio
+
+    points, cells = MESHES["hybrid"]()
+    mesh = Mesh(points, cells)
+    triangles = mesh.boundary_facets[0].nodes.numpy()
+    edges = triangles[:, :2]
+    written = meshio.Mesh(
+        np.asarray(points),
+        [*[(k, np.asarray(c)) for k, c in cells], ("triangle", triangles), ("line", edges)],
+    )
+    meshio.write(tmp_path / "m.vtu", written)
+    again = read_mesh(tmp_path / "m.vtu")
+    assert mesh.boundary_facets[0].kind == "triangle"
+    assert set(again.face_sets) == {"unmarked"} and set(again.node_sets) == {"unmarked_lines"}
+    assert torch.equal(again.face_sets["unmarked"][0].nodes, torch.from_numpy(triangles))
+    assert torch.equal(again.node_set("unmarked_lines"), torch.unique(torch.from_numpy(edges)))
+
+
 def test_the_format_table(tmp_path):
     assert format_of("a.su2") is FORMATS["su2"] and format_of("a.inp") is FORMATS["abaqus"]
     assert format_of("a.MSH") is FORMATS["gmsh"] and format_of("d.inp.gz") is FORMATS["abaqus"]

@@ -10,7 +10,8 @@ Gmsh ``.msh`` (read 2.2/4.1,        physical groups (faces: face sets; points, c
 written 4.1 binary)                 sets), node sets as ``set:`` node data
 SU2 ``.su2``                        markers (``MARKER_TAG``) as face sets, exactly
 medit ``.mesh``/``.meshb``          references of boundary facets (``ref<k>``; no names)
-CGNS, Exodus, Nastran, MED          what meshio reads of them (Exodus node sets)
+Nastran ``.bdf``/``.nas``/``.fem``  property ids of boundary elements (``pid<k>``; no names)
+CGNS, Exodus, MED                   what meshio reads of them (Exodus node sets)
 CalculiX/Abaqus ``.inp``            ``*NSET``s; written back whole, coordinates changed only
 OpenFOAM case (a directory)         patches (face sets) and ``inGroups`` (groups); points
                                     written back, every other file byte-identical;

@@ -8,20 +8,25 @@ and turns the file's markers into node and face sets:
 - node sets from our ``set:<name>`` point data, meshio's ``point_sets`` (Exodus node
   sets, MED, Abaqus) and Gmsh physical groups of points and curves (in 3-D);
 - face sets from the facet blocks (triangles and quads of a 3-D mesh, lines of a 2-D
-  one) named by our ``face_set:<name>`` cell data, Gmsh physical groups, or medit
-  references (``ref<k>``). Unnamed facet blocks (a Gmsh file saved without physical
-  groups holds every boundary triangle) are not markers and are left out.
+  one) named by our ``face_set:<name>`` cell data, Gmsh physical groups, medit
+  references (``ref<k>``) or Nastran property ids (``pid<k>``);
+- lower-dimensional cells that the file puts in no marker are kept all the same: facets
+  as the face set ``unmarked``, edges of a 3-D mesh and vertices as the node sets
+  ``unmarked_lines`` and ``unmarked_points``. Nothing a file holds is dropped.
 
 Writing (:func:`write_meshio`) stores node sets as ``set:<name>`` point data and face
 sets as facet blocks after the domain's, flagged by ``face_set:<name>`` cell data (and,
-in MSH files, as physical groups; in medit files as references, whose names medit
-cannot keep). :func:`move_meshio` writes a file again with new coordinates and
+in MSH files, as physical groups; in medit files as references and in Nastran files as
+property ids, which keep numbers, not names: ``ref<k>``/``pid<k>`` keep their k). An
+Abaqus deck gets every marker as an ``*NSET`` (face sets by their nodes) and no boundary
+elements. :func:`move_meshio` writes a file again with new coordinates and
 everything else as meshio read it, for a morph that must keep the file whole.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -210,9 +215,24 @@ def _block_members(m, index: int, top: int) -> dict[str, np.ndarray]:
     if "medit:ref" in m.cell_data and _TOPOLOGY[block.type] == top - 1:
         refs = np.asarray(m.cell_data["medit:ref"][index])
         for ref in np.unique(refs):
-            if ref != 0:
-                members.setdefault(f"ref{int(ref)}", np.flatnonzero(refs == ref))
+            members.setdefault(f"ref{int(ref)}", np.flatnonzero(refs == ref))
+    if "nastran:ref" in m.cell_data:  # property ids of boundary elements
+        refs = np.asarray(m.cell_data["nastran:ref"][index])
+        for ref in np.unique(refs):
+            members.setdefault(f"pid{int(ref)}", np.flatnonzero(refs == ref))
+    covered = np.zeros(count, dtype=bool)
+    for rows in members.values():
+        covered[rows] = True
+    if not covered.all():  # lower-dimensional cells of no marker: kept under one name
+        members[_UNMARKED.get(top - _TOPOLOGY[block.type], "unmarked_points")] = np.flatnonzero(
+            ~covered
+        )
     return members
+
+
+#: Markers of the lower-dimensional cells that a file puts in no marker, by how many
+#: dimensions below the domain they are: facets form a face set, the rest node sets.
+_UNMARKED = {1: "unmarked", 2: "unmarked_lines"}
 
 
 def meshio_to_data(m) -> MeshData:
@@ -361,9 +381,53 @@ def data_to_meshio(data: MeshData, file_format: str):
             ]
         }
         point_data = {}
+    point_sets: dict[str, np.ndarray] = {}
+    if file_format == "nastran":  # property ids: ``pid<k>`` keeps k, other names the next
+        cell_data["nastran:ref"] = _property_ids(data, cells, owners)
+    if file_format == "abaqus":  # *NSETs: face sets by their nodes, no boundary elements
+        point_sets = {
+            name: np.unique(np.concatenate([np.asarray(n).ravel() for _, n in blocks]))
+            for name, blocks in data.face_sets.items()
+        }
+        point_sets |= {name: np.asarray(nodes) for name, nodes in data.node_sets.items()}
+        cells, point_data = cells[:domain_count], {}
+        cell_data = {key: value[:domain_count] for key, value in cell_data.items()}
+        cell_data = {k: v for k, v in cell_data.items() if not k.startswith(FACE_SET_PREFIX)}
     return meshio.Mesh(
-        points, cells, point_data=point_data, cell_data=cell_data, field_data=field_data
+        points,
+        cells,
+        point_data=point_data,
+        cell_data=cell_data,
+        field_data=field_data,
+        point_sets=point_sets,
     )
+
+
+def _property_ids(data: MeshData, cells: list, owners: list[str | None]) -> list[np.ndarray]:
+    """Nastran property ids per block: the domain's own (cell data ``nastran:ref``) or 1;
+    a face set named ``pid<k>`` gets k, any other name the next free id (Nastran holds
+    numbers, not names)."""
+    own = data.cell_data.get("nastran:ref")
+    kept = {n: int(n[3:]) for n in data.face_sets if re.fullmatch(r"pid[1-9]\d*", n)}
+    taken = set(kept.values()) | {1}
+    if own is not None:
+        taken |= {int(v) for block in own for v in np.unique(np.asarray(block))}
+    ids: dict[str, int] = {}
+    for name in data.face_sets:
+        if name in kept:
+            ids[name] = kept[name]
+        else:
+            ids[name] = max(taken) + 1
+            taken.add(ids[name])
+    result = []
+    for index, ((_, nodes), owner) in enumerate(zip(cells, owners, strict=True)):
+        if owner is not None:
+            result.append(np.full(len(nodes), ids[owner], dtype=np.int64))
+        elif own is not None:
+            result.append(np.asarray(own[index], dtype=np.int64))
+        else:
+            result.append(np.ones(len(nodes), dtype=np.int64))
+    return result
 
 
 def write_meshio(path: str | os.PathLike, data: MeshData, file_format: str | None = None) -> None:
