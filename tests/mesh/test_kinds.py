@@ -253,3 +253,24 @@ def test_a_cell_pushed_through_its_neighbour_is_refused_whatever_its_kind():
     with pytest.raises(ValueError, match="both of their cells on the same side"):
         Mesh(squeezed, cells)
     assert hexes.shape == (1, 8)
+
+
+@pytest.mark.parametrize("width", [2, 3, 4])
+def test_facet_sorting_by_keys_and_by_columns_agree(width):
+    """Facets are matched by one int64 key of their three smallest corners where the node
+    count allows it, else column by column: both find the same equal rows."""
+    from torchmorph.mesh._topology import _sort_rows, _sorted_columns
+
+    generator = torch.Generator().manual_seed(width)
+    distinct = torch.arange(300)[:, None] + 300 * torch.arange(width)  # rows of distinct sets
+    shuffled = torch.argsort(torch.rand(300, width, generator=generator), 1)
+    rows = distinct.gather(1, shuffled)
+    rows = torch.cat([rows, rows[::3].flip(1)]).to(torch.int32)  # every third one twice
+    columns = _sorted_columns(rows)
+    assert torch.equal(torch.stack(columns, 1), rows.sort(1).values)
+    found = []
+    for num_nodes in (1200, 2**31 - 1):  # keys fit in int64 / they do not (for width >= 3)
+        order, same = _sort_rows(columns, num_nodes)
+        first, second = order[:-1][same].tolist(), order[1:][same].tolist()
+        found.append({(min(a, b), max(a, b)) for a, b in zip(first, second, strict=True)})
+    assert found[0] == found[1] == {(k, 300 + k // 3) for k in range(0, 300, 3)}

@@ -38,7 +38,7 @@ class Facets(NamedTuple):
     ``first``/``second``: for every interior facet, the global cells on its two sides;
     ``first_corners``/``second_corners``: the corners of each side's outward copy of the
     facet (in the cell's order, flipped for a mirrored cell), one (F_c, c) tensor per
-    corner count, in the order of ``first``.
+    corner count, in the order of ``first`` (int32 node ids where they fit).
     """
 
     boundary: tuple[CellBlock, ...]
@@ -174,9 +174,10 @@ def _determinant(vectors: list[Tensor]) -> Tensor:
 
 
 def _facet_copies(
-    blocks: Sequence[CellBlock], orientations: Sequence[Tensor]
+    blocks: Sequence[CellBlock], orientations: Sequence[Tensor], index_dtype: torch.dtype
 ) -> dict[str, tuple[Tensor, Tensor]]:
-    """Every facet of every cell, outward: per facet kind, (nodes (F, k), owner cells)."""
+    """Every facet of every cell, outward: per facet kind, (nodes (F, k) of
+    ``index_dtype``, owner cells)."""
     copies: dict[str, list[tuple[Tensor, Tensor]]] = {}
     offset = 0
     for block, orientation in zip(blocks, orientations, strict=True):
@@ -184,8 +185,9 @@ def _facet_copies(
         count = block.nodes.shape[0]
         owners = torch.arange(offset, offset + count, device=block.nodes.device)
         mirrored = orientation < 0
+        cell_nodes = block.nodes.to(index_dtype)
         for facet_kind, local in kind.facets:
-            nodes = block.nodes[:, list(local)]
+            nodes = cell_nodes[:, list(local)]
             if bool(mirrored.any()):
                 flipped = nodes[:, list(FACET_KINDS[facet_kind][1])]
                 nodes = torch.where(mirrored[:, None], flipped, nodes)
@@ -200,38 +202,39 @@ def _facet_copies(
 _NETWORKS = {2: ((0, 1),), 3: ((0, 1), (1, 2), (0, 1)), 4: ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2))}
 
 
-def _sorted_columns(rows: Tensor) -> Tensor:
-    """Every row's entries in ascending order (a sorting network: a few elementwise
-    minima and maxima, several times faster than ``torch.sort`` along a short row)."""
+def _sorted_columns(rows: Tensor) -> list[Tensor]:
+    """Every row's entries in ascending order, as columns (a sorting network: a few
+    elementwise minima and maxima, several times faster than ``torch.sort`` along a
+    short row)."""
     columns = list(rows.unbind(1))
     for a, b in _NETWORKS[len(columns)]:
         columns[a], columns[b] = (
             torch.minimum(columns[a], columns[b]),
             torch.maximum(columns[a], columns[b]),
         )
-    return torch.stack(columns, 1)
+    return columns
 
 
-def _sort_rows(rows: Tensor, num_nodes: int) -> tuple[Tensor, Tensor]:
-    """Order of the sorted-corner rows (by their first three corners, the smallest ones,
-    which fix a facet of a valid mesh) and, in that order, whether each row equals the
-    next one (all corners compared)."""
-    width = rows.shape[1]
+def _sort_rows(columns: list[Tensor], num_nodes: int) -> tuple[Tensor, Tensor]:
+    """Order of the sorted-corner rows (given as columns; by their first three corners, the
+    smallest ones, which fix a facet of a valid mesh) and, in that order, whether each
+    row equals the next one (all corners compared)."""
+    width = len(columns)
     keyed = min(width, 3)
     if float(num_nodes) ** keyed < 2.0**62:
-        keys = rows[:, 0].clone()
-        for column in range(1, keyed):
-            keys = keys * num_nodes + rows[:, column]
+        keys = columns[0].to(torch.int64)
+        for column in columns[1:keyed]:
+            keys = keys * num_nodes + column
         keys, order = torch.sort(keys)
         same = keys[1:] == keys[:-1]
-        if width > keyed:
-            last = rows[order, keyed:]
-            same &= (last[1:] == last[:-1]).all(1)
+        for column in columns[keyed:]:
+            last = column[order]
+            same &= last[1:] == last[:-1]
         return order, same
-    order = torch.arange(rows.shape[0], device=rows.device)
-    for column in reversed(range(width)):
-        order = order[torch.sort(rows[order, column], stable=True).indices]
-    ordered = rows[order]
+    order = torch.arange(columns[0].shape[0], device=columns[0].device)
+    for column in reversed(columns):
+        order = order[torch.sort(column[order], stable=True).indices]
+    ordered = torch.stack(columns, 1)[order]
     return order, (ordered[1:] == ordered[:-1]).all(1)
 
 
@@ -247,7 +250,9 @@ def match_facets(
     Raises ``ValueError`` if a facet belongs to more than two cells (a non-manifold mesh
     or duplicated cells).
     """
-    copies = _facet_copies(blocks, orientations)
+    # node ids in int32 where they fit: the sort's passes read half the bytes
+    index_dtype = torch.int32 if num_nodes < 2**31 else torch.int64
+    copies = _facet_copies(blocks, orientations, index_dtype)
     device = blocks[0].nodes.device
     by_corners: dict[int, list[tuple[str, Tensor, Tensor]]] = {}
     for facet_kind, (nodes, owners) in copies.items():
@@ -273,11 +278,12 @@ def match_facets(
         single = order[torch.cat([true, ~same]) & torch.cat([~same, true])]
         for index, facet_kind in enumerate(kinds):
             rows = single[kind_ids[single] == index] - int(starts[index])
-            boundary.setdefault(facet_kind, []).append(groups[index][1][rows])
-        firsts.append(owners[order[:-1][same]])
-        seconds.append(owners[order[1:][same]])
-        first_corners.append(corner_rows[order[:-1][same]])
-        second_corners.append(corner_rows[order[1:][same]])
+            boundary.setdefault(facet_kind, []).append(groups[index][1][rows].long())
+        first, second = order[:-1][same], order[1:][same]
+        firsts.append(owners[first])
+        seconds.append(owners[second])
+        first_corners.append(corner_rows[first])
+        second_corners.append(corner_rows[second])
     return Facets(
         boundary=tuple(CellBlock(k, torch.cat(v)) for k, v in boundary.items()),
         first=torch.cat(firsts) if firsts else torch.empty(0, dtype=torch.long, device=device),
