@@ -11,7 +11,9 @@ written 4.1 binary)                 sets), node sets as ``set:`` node data
 SU2 ``.su2``                        markers (``MARKER_TAG``) as face sets, exactly
 medit ``.mesh``/``.meshb``          references of boundary facets (``ref<k>``; no names)
 Nastran ``.bdf``/``.nas``/``.fem``  property ids of boundary elements (``pid<k>``; no names)
-CGNS, Exodus, MED                   what meshio reads of them (Exodus node sets)
+Exodus II ``.e``/``.exo``            node sets, side sets (face sets) and facet blocks, by
+                                    name; written back whole, coordinates changed only
+CGNS, MED                           what meshio reads of them
 CalculiX/Abaqus ``.inp``            ``*NSET``s; written back whole, coordinates changed only
 OpenFOAM case (a directory)         patches (face sets) and ``inGroups`` (groups); points
                                     written back, every other file byte-identical;
@@ -147,6 +149,25 @@ def _su2() -> MeshFormat:
     return MeshFormat("su2", (".su2",), read, write, move)
 
 
+def _exodus() -> MeshFormat:
+    def read(path: Path) -> MeshData:
+        from torchmorph.mesh.formats.exodus import read_exodus
+
+        return read_exodus(path)
+
+    def write(path: Path, data: MeshData) -> None:
+        from torchmorph.mesh.formats.exodus import write_exodus
+
+        write_exodus(path, data)
+
+    def move(source: Path, points: Any, output: Path) -> None:
+        from torchmorph.mesh.formats.exodus import move_exodus
+
+        move_exodus(source, points, output)
+
+    return MeshFormat("exodus", (".e", ".exo"), read, write, move)
+
+
 def _abaqus() -> MeshFormat:
     def read(path: Path) -> MeshData:
         from torchmorph.mesh.formats.abaqus import read_deck
@@ -192,7 +213,7 @@ def _openfoam() -> MeshFormat:
     return MeshFormat("openfoam", (), read, None, move, directory=True)
 
 
-for _factory in (_su2, _abaqus, _openfoam):
+for _factory in (_su2, _exodus, _abaqus, _openfoam):
     register_format(_factory())
 
 #: File extensions :func:`read_mesh` understands, and their format (an OpenFOAM case is a

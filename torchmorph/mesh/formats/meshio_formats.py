@@ -1,12 +1,13 @@
 """The formats meshio reads and writes, with their markers kept: VTU/VTK/XDMF, Gmsh MSH,
-medit, CGNS, Exodus, Nastran, MED.
+medit, CGNS, Nastran, MED (Exodus II files have a reader and writer of their own,
+:mod:`torchmorph.mesh.formats.exodus`).
 
 Reading (:func:`read_meshio`) keeps every cell block of the top dimension, in order
 (a kind torchmorph cannot handle is a ``ValueError`` naming it, never a silent drop),
 and turns the file's markers into node and face sets:
 
-- node sets from our ``set:<name>`` point data, meshio's ``point_sets`` (Exodus node
-  sets, MED, Abaqus) and Gmsh physical groups of points and curves (in 3-D);
+- node sets from our ``set:<name>`` point data, meshio's ``point_sets`` (MED,
+  Abaqus) and Gmsh physical groups of points and curves (in 3-D);
 - face sets from the facet blocks (triangles and quads of a 3-D mesh, lines of a 2-D
   one) named by our ``face_set:<name>`` cell data, Gmsh physical groups, medit
   references (``ref<k>``) or Nastran property ids (``pid<k>``);
@@ -60,8 +61,6 @@ MESHIO_FORMATS: dict[str, str] = {
     ".mesh": "medit",
     ".meshb": "medit",
     ".cgns": "cgns",
-    ".e": "exodus",
-    ".exo": "exodus",
     ".bdf": "nastran",
     ".fem": "nastran",
     ".nas": "nastran",
