@@ -13,7 +13,13 @@ medit ``.mesh``/``.meshb``          references of boundary facets (``ref<k>``; n
 Nastran ``.bdf``/``.nas``/``.fem``  property ids of boundary elements (``pid<k>``; no names)
 Exodus II ``.e``/``.exo``            node sets, side sets (face sets) and facet blocks, by
                                     name; written back whole, coordinates changed only
-CGNS, MED                           what meshio reads of them
+CGNS ``.cgns`` (CGNS/HDF5, one      BCs: element-based ones (``FaceCenter``/``EdgeCenter``)
+unstructured zone)                  and unreferenced boundary sections as face sets, vertex
+                                    ones as node sets, families as groups; written back
+                                    whole, coordinates changed only
+MED ``.med``/``.rmed``/``.mmed``    groups: of nodes as node sets, of boundary faces as
+                                    face sets, of cells as ``cell_set:`` cell data; written
+                                    back whole, coordinates changed only
 CalculiX/Abaqus ``.inp``            ``*NSET``s; written back whole, coordinates changed only
 OpenFOAM case (a directory)         patches (face sets) and ``inGroups`` (groups); points
                                     written back, every other file byte-identical;
@@ -114,7 +120,7 @@ def register_format(mesh_format: MeshFormat) -> None:
 
 def _meshio(name: str, extensions: tuple[str, ...]) -> MeshFormat:
     def read(path: Path) -> MeshData:
-        if name == "xdmf" or name in ("cgns", "med"):
+        if name == "xdmf":
             _require_h5py(path)
         return read_meshio(path, name)
 
@@ -168,6 +174,50 @@ def _exodus() -> MeshFormat:
     return MeshFormat("exodus", (".e", ".exo"), read, write, move)
 
 
+def _cgns() -> MeshFormat:
+    def read(path: Path) -> MeshData:
+        _require_h5py(path)
+        from torchmorph.mesh.formats.cgns import read_cgns
+
+        return read_cgns(path)
+
+    def write(path: Path, data: MeshData) -> None:
+        _require_h5py(path)
+        from torchmorph.mesh.formats.cgns import write_cgns
+
+        write_cgns(path, data)
+
+    def move(source: Path, points: Any, output: Path) -> None:
+        _require_h5py(source)
+        from torchmorph.mesh.formats.cgns import move_cgns
+
+        move_cgns(source, points, output)
+
+    return MeshFormat("cgns", (".cgns",), read, write, move)
+
+
+def _med() -> MeshFormat:
+    def read(path: Path) -> MeshData:
+        _require_h5py(path)
+        from torchmorph.mesh.formats.med import read_med
+
+        return read_med(path)
+
+    def write(path: Path, data: MeshData) -> None:
+        _require_h5py(path)
+        from torchmorph.mesh.formats.med import write_med
+
+        write_med(path, data)
+
+    def move(source: Path, points: Any, output: Path) -> None:
+        _require_h5py(source)
+        from torchmorph.mesh.formats.med import move_med
+
+        move_med(source, points, output)
+
+    return MeshFormat("med", (".med", ".rmed", ".mmed"), read, write, move)
+
+
 def _abaqus() -> MeshFormat:
     def read(path: Path) -> MeshData:
         from torchmorph.mesh.formats.abaqus import read_deck
@@ -213,7 +263,7 @@ def _openfoam() -> MeshFormat:
     return MeshFormat("openfoam", (), read, None, move, directory=True)
 
 
-for _factory in (_su2, _exodus, _abaqus, _openfoam):
+for _factory in (_su2, _exodus, _cgns, _med, _abaqus, _openfoam):
     register_format(_factory())
 
 #: File extensions :func:`read_mesh` understands, and their format (an OpenFOAM case is a

@@ -60,11 +60,9 @@ MESHIO_FORMATS: dict[str, str] = {
     ".msh": "gmsh",
     ".mesh": "medit",
     ".meshb": "medit",
-    ".cgns": "cgns",
     ".bdf": "nastran",
     ".fem": "nastran",
     ".nas": "nastran",
-    ".med": "med",
 }
 
 #: Prefixes of the point and cell data that carry node and face sets.
