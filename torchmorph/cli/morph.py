@@ -322,6 +322,8 @@ def run(args: argparse.Namespace) -> int:
         "openfoam",
         "abaqus",
         "su2",
+        "cgns",
+        "med",
     )
     if output_format.write is None and not solver_output:
         args.parser.error(
