@@ -49,8 +49,8 @@ is never ambiguous.
 Output (``morph -o``)
 ---------------------
 A solver's own input given in the same format (an OpenFOAM case directory, a
-CalculiX/Abaqus deck, an SU2 file) comes back whole with only its coordinates
-moved (:func:`torchmorph.mesh.io.write_morphed`). Any other output is the
+CalculiX/Abaqus deck, an SU2 file, an Exodus II file) comes back whole with only
+its coordinates moved (:func:`torchmorph.mesh.io.write_morphed`). Any other output is the
 *reference* mesh (``--write-deformed``: the deformed one) with its markers,
 point data ``displacement`` (N, D) — ParaView's "Warp By Vector" on it shows the
 morph — and ``control_point`` (1 for the control points of the IDW), and cell

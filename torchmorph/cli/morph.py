@@ -102,8 +102,8 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         required=True,
         metavar="OUT",
         help="output: the source's format for a solver's own input (OpenFOAM case, "
-        ".inp deck, .su2), which comes back with only its coordinates moved; else a "
-        "mesh file with the morph's fields (.vtu, .vtk, .xdmf, .msh, ...)",
+        ".inp deck, .su2, Exodus .exo/.e), which comes back with only its coordinates "
+        "moved; else a mesh file with the morph's fields (.vtu, .vtk, .xdmf, .msh, ...)",
     )
     selection = morph.add_argument_group(
         "control-point selection (default: every boundary node, plain IDW)"
@@ -204,8 +204,9 @@ in the union of the --moving sets, N_b = boundary nodes, N = all nodes):
   (B, ..., D)    a batch of any of these; pick one with --batch-index
 Boundary nodes outside the --moving sets are fixed (zero displacement).
 
-output: an OpenFOAM case, .inp deck or .su2 file given as input and as output
-comes back whole with only its coordinates moved; any other output is the
+output: an OpenFOAM case, .inp deck, .su2 or Exodus (.exo, .e) file given as
+input and as output comes back whole with only its coordinates moved (an
+Exodus file's results, attributes and records too); any other output is the
 reference mesh with point data 'displacement' (use ParaView's Warp By Vector)
 and 'control_point', cell data 'quality' (Q after the morph),
 'quality_reference' and 'inverted'.
@@ -316,12 +317,13 @@ def run(args: argparse.Namespace) -> int:
             output_format = format_of(output, "argument --output/-o")
         except ValueError as error:
             args.parser.error(str(error))
-    # a solver's deck, case or SU2 file comes back whole, moved; other formats get the
-    # reference (or deformed) mesh with the displacement and quality fields
+    # a solver's deck, case, SU2 or Exodus file comes back whole, moved; other formats get
+    # the reference (or deformed) mesh with the displacement and quality fields
     solver_output = output_format is source_format and output_format.name in (
         "openfoam",
         "abaqus",
         "su2",
+        "exodus",
         "cgns",
         "med",
     )

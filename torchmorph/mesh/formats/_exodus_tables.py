@@ -30,12 +30,15 @@ node numbers 0-based here:
   as ``ex_get_side_set_node_list`` lists them; the facet's node order is meshio's for
   ``line3``/``triangle6``/``quad8``/``quad9``. A 2-D QUAD or TRI numbers its edges 1..4
   (1..3); a SHELL's sides 1 and 2 are its faces and 3..6 its edges (TRISHELL 3..5).
+
+:class:`SideIndex` finds the cell and side number of a facet given by its nodes (for
+writing face sets as side sets, and for checking that a block of facets lies on cells).
 """
 
 from __future__ import annotations
 
 import re
-from typing import NamedTuple
+from typing import NamedTuple, NoReturn
 
 import numpy as np
 
@@ -249,30 +252,50 @@ class Block(NamedTuple):
 
 
 class SideIndex:
-    """Every side of the cells of some blocks, to find the cell and side of a facet."""
+    """Every side of the cells of some blocks, to find the cell and side of a facet.
+
+    The sides are keyed by their sorted corners (two int64 keys: the two smallest corners
+    and the other two), sorted once per corner count; a facet is looked up by binary search.
+    """
 
     def __init__(self, blocks: list[Block]) -> None:
         self.blocks = blocks
-        parts: dict[int, list[tuple[np.ndarray, ...]]] = {}
+        self._size = 1 + max((int(b.nodes.max()) for b in blocks if b.nodes.size), default=0)
+        self._parts: dict[int, list[tuple[np.ndarray, int, int, int]]] = {}
         for position, block in enumerate(blocks):
             assert block.type.sides is not None
             count = block.nodes.shape[0]
             for number, side in enumerate(SIDES[block.type.sides], 1):
-                if side.face:
-                    continue
-                corners = block.nodes[:, list(side.corners)]
-                parts.setdefault(len(side.corners), []).append(
-                    (
-                        corners,
-                        np.full(count, position),
-                        np.arange(count),
-                        np.full(count, number),
+                if not side.face:
+                    self._parts.setdefault(len(side.corners), []).append(
+                        (block.nodes[:, list(side.corners)], position, count, number)
                     )
-                )
-        self._candidates = {
-            width: tuple(np.concatenate(column) for column in zip(*rows, strict=True))
-            for width, rows in parts.items()
-        }
+        self._sorted: dict[int, tuple[np.ndarray, ...]] = {}
+
+    def _keys(self, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ordered = np.sort(corners, axis=1).astype(np.int64)
+        size, width = self._size, ordered.shape[1]
+        first = ordered[:, 0] * size + ordered[:, 1]
+        if width == 2:
+            return first, np.zeros_like(first)
+        if width == 3:
+            return first, ordered[:, 2]
+        return first, ordered[:, 2] * size + ordered[:, 3]
+
+    def _candidates(self, width: int) -> tuple[np.ndarray, ...]:
+        """(oriented corners, block positions, rows, sides, first keys, second keys), sorted
+        by the keys."""
+        if width not in self._sorted:
+            parts = self._parts[width]
+            oriented = np.concatenate([corners for corners, *_ in parts])
+            owner = np.concatenate([np.full(count, p) for _, p, count, _ in parts])
+            rows = np.concatenate([np.arange(count) for _, _, count, _ in parts])
+            sides = np.concatenate([np.full(count, number) for *_, count, number in parts])
+            first, second = self._keys(oriented)
+            order = np.lexsort((second, first))
+            columns = (oriented, owner, rows, sides, first, second)
+            self._sorted[width] = tuple(column[order] for column in columns)
+        return self._sorted[width]
 
     def find(self, kind: str, nodes: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
         """The global element numbers (0-based) and side numbers (1-based) of the facets
@@ -282,26 +305,26 @@ class SideIndex:
         width = FACET_CORNERS[kind]
         if not len(nodes):
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        corners = nodes[:, :width]
-        if width not in self._candidates:
+        if width not in self._parts:
             _no_side(label, kind, nodes, 0)
-        oriented, owner, rows, sides = self._candidates[width]
-        both = np.concatenate([np.sort(oriented, axis=1), np.sort(corners, axis=1)])
-        _, ids = np.unique(both, axis=0, return_inverse=True)
-        ids = ids.reshape(-1)
-        candidate_ids, query_ids = ids[: len(oriented)], ids[len(oriented) :]
-        order = np.argsort(candidate_ids, kind="stable")
-        ordered = candidate_ids[order]
-        left = np.searchsorted(ordered, query_ids, side="left")
-        right = np.searchsorted(ordered, query_ids, side="right")
-        missing = np.flatnonzero(right == left)
+        corners = nodes[:, :width]
+        oriented, owner, rows, sides, first_keys, second_keys = self._candidates(width)
+        first, second = self._keys(corners)
+        left = np.searchsorted(first_keys, first, side="left")
+        right = np.searchsorted(first_keys, first, side="right")
+        found = np.full((2, len(nodes)), -1)  # the first two sides with these corners
+        for offset in range(int((right - left).max())):
+            at = np.minimum(left + offset, len(first_keys) - 1)
+            hit = (left + offset < right) & (second_keys[at] == second)
+            slot = np.where(found[0] < 0, 0, 1)
+            store = hit & (found[1] < 0)
+            found[slot[store], np.flatnonzero(store)] = at[store]
+        missing = np.flatnonzero(found[0] < 0)
         if missing.size:
             _no_side(label, kind, nodes, int(missing[0]))
-        first = order[left]
-        second = order[np.minimum(left + 1, len(order) - 1)]
-        turns = _turns_as(oriented[first], corners)
-        pick = (right - left >= 2) & ~turns & _turns_as(oriented[second], corners)
-        chosen = np.where(pick, second, first)
+        first_side, second_side = found[0], np.where(found[1] < 0, found[0], found[1])
+        pick = ~_turns_as(oriented[first_side], corners) & _turns_as(oriented[second_side], corners)
+        chosen = np.where(pick, second_side, first_side)
         owner, rows, sides = owner[chosen], rows[chosen], sides[chosen]
         for position, number in {(int(p), int(s)) for p, s in zip(owner, sides, strict=True)}:
             block = self.blocks[position]
@@ -343,7 +366,7 @@ def _turns_as(sides: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return after == corners[rows, (corners.argmin(1) + 1) % width]
 
 
-def _no_side(label: str, kind: str, nodes: np.ndarray, row: int) -> None:
+def _no_side(label: str, kind: str, nodes: np.ndarray, row: int) -> NoReturn:
     raise ValueError(
         f"{label}: row {row} ({kind} {nodes[row].tolist()}) is no side of a cell of the mesh"
     )

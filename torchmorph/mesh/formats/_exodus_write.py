@@ -61,7 +61,10 @@ def layout(data: MeshData) -> Layout:
     for position, (kind, nodes) in enumerate(data.cells):
         label = f"data.cells[{position}] ({kind})"
         if kind not in EXODUS_TYPES:
-            raise ValueError(f"{label}: Exodus holds no {kind!r} elements here")
+            raise ValueError(
+                f"{label}: {kind!r} cells are not written to Exodus files; the kinds are "
+                + ", ".join(EXODUS_TYPES)
+            )
         sides = side_table(kind)
         if (sides in ("quad", "triangle")) != (dim == 2):
             raise ValueError(f"{label}: not a cell of a {dim}-D mesh")
@@ -99,7 +102,7 @@ def layout(data: MeshData) -> Layout:
         if rows.size and (rows[0] < 0 or rows[-1] >= num_nodes):
             raise ValueError(f"{label}: rows outside [0, {num_nodes})")
         node_sets.append((_name(name, label), rows + 1))
-    nodal = _variables(data.point_data, "data.point_data", [num_nodes])
+    nodal = _variables(data.point_data, "data.point_data", [num_nodes], nodal=True)
     sizes = [len(nodes) for _, nodes in data.cells]
     per_block = _variables(data.cell_data, "data.cell_data", sizes)
     kept = [k for k, size in enumerate(sizes) if size]
@@ -134,16 +137,15 @@ def _name(name: Any, label: str) -> str:
     return name
 
 
-def _variables(fields: dict, label: str, sizes: list[int]) -> list[tuple[str, list[np.ndarray]]]:
-    """Fields split into Exodus variables: (name, one array per block)."""
+def _variables(
+    fields: dict, label: str, sizes: list[int], *, nodal: bool = False
+) -> list[tuple[str, list[np.ndarray]]]:
+    """Fields split into Exodus variables: (name, one array per block; one array for
+    ``nodal`` fields)."""
     result = []
     for key, value in fields.items():
         where = f"{label}[{key!r}]"
-        arrays = (
-            [np.asarray(value)]
-            if len(sizes) == 1 and label.endswith("point_data")
-            else [np.asarray(a) for a in value]
-        )
+        arrays = [np.asarray(value)] if nodal else [np.asarray(a) for a in value]
         if len(arrays) != len(sizes):
             raise ValueError(f"{where}: {len(arrays)} arrays for {len(sizes)} cell blocks")
         width = {a.shape[1] if a.ndim == 2 else 0 for a in arrays}
@@ -155,15 +157,21 @@ def _variables(fields: dict, label: str, sizes: list[int]) -> list[tuple[str, li
         k = width.pop()
         suffixes = (
             [""]
-            if k == 0
+            if k <= 1
             else [f"_{c}" for c in "xyz"[:k]]
             if k <= 3
             else [f"_{c}" for c in range(1, k + 1)]
         )
         for column, suffix in enumerate(suffixes):
             name = _name(f"{key}{suffix}", where)
-            parts = [(a if k == 0 else a[:, column]).astype(np.float64) for a in arrays]
+            parts = [
+                (a.reshape(len(a)) if k <= 1 else a[:, column]).astype(np.float64) for a in arrays
+            ]
             result.append((name, parts))
+    names = [name for name, _ in result]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise ValueError(f"{label}: the variable name(s) {', '.join(repeated)} come twice")
     return result
 
 

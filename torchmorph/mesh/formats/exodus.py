@@ -37,10 +37,17 @@ a :class:`~torchmorph.mesh.formats.MeshData`:
   are not read, and are kept by :func:`move_exodus`.
 
 :func:`write_exodus` writes such a file (netCDF 64-bit offset, float64, 32-bit
-integers); face sets become side sets (each facet the side of the cell it belongs to),
-node sets node sets, point and cell data nodal and element variables at one time step
-0.0 (vectors as ``_x``/``_y``/``_z`` components, wider fields as ``_1`` … ``_k``). It holds
-no groups. :func:`move_exodus` writes a file again with only its coordinates changed.
+integers; the dimensions, variables and attributes of the Exodus library's own files).
+Face sets become side sets: each facet is the side of the cell it belongs to (a facet
+between two cells, as in an internal side set, that of the cell for which its corners
+turn outward), and must be all of that side, of its kind (a hexahedron20's side is a
+``quad8``); read back, it lists its nodes as the manual does,
+which starts a hexahedron's side 4 and a wedge's side 3 at another corner than
+:data:`torchmorph.mesh.cells.CELL_KINDS` (the same facet, turning the same way). Node
+sets become node sets, point and cell data nodal and element variables at one time step
+0.0 (vectors as ``_x``/``_y``/``_z`` components, wider fields as ``_1`` … ``_k``); groups
+are not written (Exodus has none). :func:`move_exodus` writes a file again with only its
+coordinates changed.
 """
 
 from __future__ import annotations
@@ -310,7 +317,7 @@ def _side_sets(
         if key in result:
             raise ValueError(f"{label}: a second side set named {key!r}")
         variables = (nc.variables.get(f"elem_ss{number}"), nc.variables.get(f"side_ss{number}"))
-        if _size(nc, f"num_side_ss{number}") == 0 or None in variables:
+        if _size(nc, f"num_side_ss{number}") == 0 or any(v is None for v in variables):
             result[key] = []
             continue
         elements = _integers(nc, f"elem_ss{number}") - 1
