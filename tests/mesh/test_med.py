@@ -103,6 +103,37 @@ def test_a_file_written_by_meshio_with_families(tmp_path):
     assert torch.equal(point_data["T"], torch.arange(8.0, dtype=torch.float64))
 
 
+FIXTURE = Path(__file__).resolve().parents[1] / "data" / "medloader_block.med"
+
+
+def test_a_file_written_by_salomes_med_library():
+    """A file MEDCoupling's MEDLoader wrote (tests/data/make_medloader_block.py): cells it
+    oriented itself come out positive, every mid-edge node at the middle of its edge as
+    torchmorph's kinds number the edges, the groups where they were put."""
+    from torchmorph.mesh.cells import CELL_KINDS
+
+    mesh, _, cell_data = read_mesh(FIXTURE, return_data=True)
+    assert mesh.cell_counts == {"hexahedron20": 1, "wedge15": 2}
+    assert all((o == 1).all() for o in mesh.orientation)
+    points = mesh.points.numpy()
+    for block in mesh.cells:
+        linear = CELL_KINDS[CELL_KINDS[block.kind].linear]
+        nodes = block.nodes.numpy()
+        for k, (a, b) in enumerate(linear.edges):
+            middle = (points[nodes[:, a]] + points[nodes[:, b]]) / 2
+            np.testing.assert_array_equal(points[nodes[:, linear.num_nodes + k]], middle)
+    x, z = points[:, 0], points[:, 2]
+    for name, on in (("inlet", x == 0), ("outlet", x == 2), ("floor", z == 0)):
+        assert torch.equal(mesh.node_set(name), torch.from_numpy(np.flatnonzero(on))), name
+    assert [b.kind for b in mesh.face_sets["floor"]] == ["quad8", "triangle6"]
+    unmarked = mesh.node_set("unmarked")  # the skin's other faces
+    assert torch.equal(
+        torch.unique(torch.cat([unmarked, mesh.node_set("floor")])), mesh.boundary_nodes
+    )
+    assert torch.equal(mesh.node_sets["origin"], torch.tensor([0]))
+    assert torch.equal(cell_data["cell_set:prisms"], torch.tensor([0, 1, 1], dtype=torch.uint8))
+
+
 def test_a_file_written_again_moved_keeps_every_other_dataset(tmp_path):
     source = tmp_path / "f.med"
     meshio_file(source)
