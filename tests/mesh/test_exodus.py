@@ -338,6 +338,86 @@ def test_the_side_tables_agree_with_the_cell_kinds_facets():
             assert match[start:corners] + match[:start] == local[:corners], (kind, local, match)
 
 
+# The Exodus library (SEACAS's C library, Debian's libexodusii-dev) reads a file and
+# lists every side's nodes from its own side tables (ex_get_side_set_node_list).
+EXODUS_LIBRARY_READER = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include <exodusII.h>
+int main(int argc, char **argv) {
+  int cpu_ws = 8, io_ws = 0, ndim, nnodes, nelem, nblk, nns, nss;
+  float version;
+  char title[MAX_LINE_LENGTH + 1];
+  int exoid = ex_open(argv[1], EX_READ, &cpu_ws, &io_ws, &version);
+  if (exoid < 0 || ex_get_init(exoid, title, &ndim, &nnodes, &nelem, &nblk, &nns, &nss)) return 1;
+  int *ids = malloc(sizeof(int) * (nss + 1));
+  char **names = malloc(sizeof(char *) * (nss + 1));
+  for (int k = 0; k < nss; k++) names[k] = calloc(MAX_STR_LENGTH + 1, 1);
+  if (ex_get_side_set_ids(exoid, ids) || ex_get_names(exoid, EX_SIDE_SET, names)) return 1;
+  for (int k = 0; k < nss; k++) {
+    int sides, factors, length;
+    ex_get_side_set_param(exoid, ids[k], &sides, &factors);
+    ex_get_side_set_node_list_len(exoid, ids[k], &length);
+    int *counts = malloc(sizeof(int) * sides), *nodes = calloc(length + 16, sizeof(int));
+    if (ex_get_side_set_node_list(exoid, ids[k], counts, nodes)) return 1;
+    printf("%s", names[k]);
+    for (int j = 0; j < counts[0]; j++) printf(" %d", nodes[j]);
+    printf("\n");
+  }
+  return ex_close(exoid);
+}
+"""
+
+
+@pytest.fixture(scope="module")
+def exodus_library(tmp_path_factory):
+    """The compiled reader of ``EXODUS_LIBRARY_READER`` (skips without a C compiler and
+    the Exodus library)."""
+    import shutil
+    import subprocess
+
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        pytest.skip("no C compiler")
+    folder = tmp_path_factory.mktemp("exodus_library")
+    (folder / "reader.c").write_text(EXODUS_LIBRARY_READER)
+    for library in ("-lexodus", "-lexoIIv2c"):  # SEACAS's name, Debian's
+        built = subprocess.run(
+            [compiler, "-o", str(folder / "reader"), str(folder / "reader.c"), library, "-lnetcdf"],
+            capture_output=True,
+        )
+        if built.returncode == 0:
+            return folder / "reader"
+    pytest.skip("the Exodus II C library is not installed (Debian: libexodusii-dev)")
+
+
+@pytest.mark.parametrize("name", list(KINDS))
+def test_the_exodus_library_lists_the_sides_we_read(tmp_path, exodus_library, name):
+    """Every boundary facet as a side set of its own, written by us; the Exodus library's
+    side node list of each equals our facet. (Exodus 6's library predates WEDGE18's and
+    PYRAMID14's face-centre nodes, and counts a WEDGE15's triangle as 7 nodes: the nodes
+    it lists are compared.)"""
+    import subprocess
+
+    mesh = Mesh(*KINDS[name]())
+    facets = [(b.kind, row[None]) for b in mesh.boundary_facets for row in b.nodes]
+    face_sets = {f"facet{k}": [facet] for k, facet in enumerate(facets)}
+    write_mesh(tmp_path / "m.exo", Mesh(mesh.points, list(mesh.cells), face_sets=face_sets))
+    ours = {
+        k: blocks[0][1][0].tolist()
+        for k, blocks in read_exodus(tmp_path / "m.exo").face_sets.items()
+    }
+    listed = subprocess.run([exodus_library, tmp_path / "m.exo"], capture_output=True, text=True)
+    assert listed.returncode == 0, listed.stderr
+    lines = [line.split() for line in listed.stdout.splitlines()]
+    assert [line[0] for line in lines] == list(ours)
+    for key, *nodes in lines:
+        nodes = [int(node) - 1 for node in nodes]
+        count = min(len(nodes), len(ours[key]))
+        assert count >= len(ours[key]) - 1  # at most a face centre missing
+        assert nodes[:count] == ours[key][:count], key
+
+
 # --------------------------------------------------------------------------- markers
 
 
