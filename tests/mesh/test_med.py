@@ -178,7 +178,11 @@ def test_bad_files_and_meshes_are_refused_by_name(tmp_path):
         ValueError, match="MED group names are non-empty strings of at most 80 bytes"
     ):
         write_mesh(tmp_path / "n.med", long_name)
-    assert not (tmp_path / "p.med").exists() and not (tmp_path / "n.med").exists()
+    with pytest.raises(ValueError, match="MED field names hold 1 to 64 bytes"):
+        write_mesh(
+            tmp_path / "f.med", Mesh(*box(("tetra",), 1)), point_data={"f" * 65: torch.ones(8)}
+        )
+    assert not {"p.med", "n.med", "f.med"} & {p.name for p in tmp_path.iterdir()}
 
 
 @pytest.mark.parametrize("name", ["tetra", "wedge15", "quad+"])

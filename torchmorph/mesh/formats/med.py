@@ -503,6 +503,10 @@ def _write_fields(f, data: MeshData, kinds: list[str], num_points: int) -> None:
                 ]
                 entries.append((name, "MAI." + _TYPE_OF[kind], np.concatenate(parts)))
     for name, support, values in entries:
+        if not 0 < len(name.encode("utf-8")) <= 64:
+            raise ValueError(
+                f"data[{name!r}]: MED field names hold 1 to 64 bytes; rename the field"
+            )
         columns = values.reshape(values.shape[0], -1).astype(np.float64)
         if name not in fields:
             field = fields.create_group(name, track_order=True)
