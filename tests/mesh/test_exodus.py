@@ -369,10 +369,43 @@ int main(int argc, char **argv) {
 """
 
 
+# ... and writes one: a HEX20 in Exodus's numbering beside a WEDGE, a side set on sides
+# of both, an unnamed node set.
+EXODUS_LIBRARY_WRITER = r"""
+#include <exodusII.h>
+int main(int argc, char **argv) {
+  int cpu_ws = 8, io_ws = 8;
+  int exoid = ex_create(argv[1], EX_CLOBBER, &cpu_ws, &io_ws);
+  double c[8][3] = {{0,0,0},{1,0,0},{1,1,0},{0,1,0},{0,0,1},{1,0,1},{1,1,1},{0,1,1}};
+  int mids[12][2] = {{1,2},{2,3},{3,4},{4,1},{1,5},{2,6},{3,7},{4,8},{5,6},{6,7},{7,8},{8,5}};
+  double x[22], y[22], z[22];
+  for (int i = 0; i < 8; i++) { x[i] = c[i][0]; y[i] = c[i][1]; z[i] = c[i][2]; }
+  for (int i = 0; i < 12; i++) {
+    int a = mids[i][0] - 1, b = mids[i][1] - 1;
+    x[8 + i] = (c[a][0] + c[b][0]) / 2; y[8 + i] = (c[a][1] + c[b][1]) / 2;
+    z[8 + i] = (c[a][2] + c[b][2]) / 2;
+  }
+  x[20] = 2; y[20] = 0; z[20] = 0; x[21] = 2; y[21] = 0; z[21] = 1;
+  int hex[20], wedge[6] = {2, 21, 3, 6, 22, 7}, elements[3] = {1, 2, 1}, sides[3] = {4, 4, 2};
+  int nodes[2] = {21, 1};
+  for (int i = 0; i < 20; i++) hex[i] = i + 1;
+  char *names[1] = {"walls"};
+  if (exoid < 0 || ex_put_init(exoid, "by the library", 3, 22, 2, 2, 1, 1)
+      || ex_put_coord(exoid, x, y, z) || ex_put_elem_block(exoid, 7, "HEX20", 1, 20, 0)
+      || ex_put_elem_block(exoid, 9, "WEDGE", 1, 6, 0) || ex_put_elem_conn(exoid, 7, hex)
+      || ex_put_elem_conn(exoid, 9, wedge) || ex_put_side_set_param(exoid, 40, 3, 0)
+      || ex_put_side_set(exoid, 40, elements, sides) || ex_put_names(exoid, EX_SIDE_SET, names)
+      || ex_put_node_set_param(exoid, 50, 2, 0) || ex_put_node_set(exoid, 50, nodes))
+    return 1;
+  return ex_close(exoid);
+}
+"""
+
+
 @pytest.fixture(scope="module")
 def exodus_library(tmp_path_factory):
-    """The compiled reader of ``EXODUS_LIBRARY_READER`` (skips without a C compiler and
-    the Exodus library)."""
+    """The compiled programs ``reader`` and ``writer`` of the two sources above (skips
+    without a C compiler and the Exodus library)."""
     import shutil
     import subprocess
 
@@ -380,15 +413,38 @@ def exodus_library(tmp_path_factory):
     if compiler is None:
         pytest.skip("no C compiler")
     folder = tmp_path_factory.mktemp("exodus_library")
-    (folder / "reader.c").write_text(EXODUS_LIBRARY_READER)
-    for library in ("-lexodus", "-lexoIIv2c"):  # SEACAS's name, Debian's
-        built = subprocess.run(
-            [compiler, "-o", str(folder / "reader"), str(folder / "reader.c"), library, "-lnetcdf"],
-            capture_output=True,
-        )
-        if built.returncode == 0:
-            return folder / "reader"
-    pytest.skip("the Exodus II C library is not installed (Debian: libexodusii-dev)")
+    programs = {}
+    for name, source in (("reader", EXODUS_LIBRARY_READER), ("writer", EXODUS_LIBRARY_WRITER)):
+        (folder / f"{name}.c").write_text(source)
+        for library in ("-lexodus", "-lexoIIv2c"):  # SEACAS's name, Debian's
+            command = [compiler, "-o", str(folder / name), str(folder / f"{name}.c"), library]
+            if subprocess.run([*command, "-lnetcdf"], capture_output=True).returncode == 0:
+                programs[name] = folder / name
+                break
+        else:
+            pytest.skip("the Exodus II C library is not installed (Debian: libexodusii-dev)")
+    return programs
+
+
+def test_a_file_the_exodus_library_wrote(tmp_path, exodus_library):
+    import subprocess
+
+    assert subprocess.run([exodus_library["writer"], tmp_path / "lib.exo"]).returncode == 0
+    data = read_exodus(tmp_path / "lib.exo")
+    hex20 = [*range(12), 16, 17, 18, 19, 12, 13, 14, 15]  # VTK's order of Exodus's nodes
+    assert [(kind, nodes.tolist()) for kind, nodes in data.cells] == [
+        ("hexahedron20", [hex20]),
+        ("wedge", [[1, 20, 2, 5, 21, 6]]),
+    ]
+    # the manual: HEX side 4 is 1, 5, 8, 4, 13, 20, 16, 12; side 2 is 2, 3, 7, 6, 10, 15,
+    # 18, 14; WEDGE side 4 is 1, 3, 2 (of the wedge's nodes 2, 21, 3, ...)
+    quads = [[1, 5, 8, 4, 13, 20, 16, 12], [2, 3, 7, 6, 10, 15, 18, 14]]
+    assert [(kind, nodes.tolist()) for kind, nodes in data.face_sets["walls"]] == [
+        ("quad8", (np.array(quads) - 1).tolist()),
+        ("triangle", [[1, 2, 20]]),
+    ]
+    assert list(data.node_sets) == ["nodeset_50"]
+    np.testing.assert_array_equal(data.node_sets["nodeset_50"], [0, 20])
 
 
 @pytest.mark.parametrize("name", list(KINDS))
@@ -407,7 +463,8 @@ def test_the_exodus_library_lists_the_sides_we_read(tmp_path, exodus_library, na
         k: blocks[0][1][0].tolist()
         for k, blocks in read_exodus(tmp_path / "m.exo").face_sets.items()
     }
-    listed = subprocess.run([exodus_library, tmp_path / "m.exo"], capture_output=True, text=True)
+    reader = exodus_library["reader"]
+    listed = subprocess.run([reader, tmp_path / "m.exo"], capture_output=True, text=True)
     assert listed.returncode == 0, listed.stderr
     lines = [line.split() for line in listed.stdout.splitlines()]
     assert [line[0] for line in lines] == list(ours)
