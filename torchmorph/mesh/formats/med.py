@@ -29,7 +29,8 @@ mean, keeps boundary faces as unnamed blocks and orders the nodes as the file do
   point and cell data.
 
 One mesh of one computation step; structured grids are refused. :func:`write_med`
-writes MED 4.1 as MEDCoupling writes it (a mesh named ``mesh``): one block per kind
+writes a MED 3.0 file (as meshio does; MEDCoupling 9.14 reads its mesh, groups and
+fields, and Salome releases back to 8.3 read 3.0 files) named ``mesh``: one block per kind
 (blocks of one kind are merged, as MED holds one per type), the face sets' facets as
 boundary elements (a facet in several face sets once, its family naming them all), node
 sets, face sets and ``cell_set:`` cell data as groups (names of at most 80 bytes),
@@ -415,7 +416,7 @@ def write_med(path: str | os.PathLike, data: MeshData) -> None:
     element_numbers, element_table = _numbered(all_members, -1, 1)
     with atomic_output(path) as temporary, h5py.File(temporary, "w", track_order=True) as f:
         info = f.create_group("INFOS_GENERALES")
-        for key, value in (("MAJ", 4), ("MIN", 1), ("REL", 0)):
+        for key, value in (("MAJ", 3), ("MIN", 0), ("REL", 0)):  # fields laid out as MED 3
             info.attrs.create(key, np.int64(value))
         mesh = f.create_group("ENS_MAA", track_order=True).create_group("mesh", track_order=True)
         space = points.shape[1]
