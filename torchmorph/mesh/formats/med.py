@@ -29,8 +29,8 @@ mean, keeps boundary faces as unnamed blocks and orders the nodes as the file do
   point and cell data.
 
 One mesh of one computation step; structured grids are refused. :func:`write_med`
-writes a MED 3.0 file (as meshio does; MEDCoupling 9.14 reads its mesh, groups and
-fields, and Salome releases back to 8.3 read 3.0 files) named ``mesh``: one block per kind
+writes MED 4.1 (``PENTA18`` needs 4) as MEDCoupling writes it, a mesh named ``mesh``
+(MEDCoupling 9.14 reads its mesh, groups and fields back): one block per kind
 (blocks of one kind are merged, as MED holds one per type), the face sets' facets as
 boundary elements (a facet in several face sets once, its family naming them all), node
 sets, face sets and ``cell_set:`` cell data as groups (names of at most 80 bytes),
@@ -91,6 +91,10 @@ _DIM = {"vertex": 0, "line": 1, "line3": 1} | {name: kind.dim for name, kind in 
 _NODES = {name: code % 100 for name, (_, code) in MED_KINDS.items()}
 _NO_PROFILE = "MED_NO_PROFILE_INTERNAL"
 _UNMARKED = {1: "unmarked", 2: "unmarked_lines"}
+#: The bit of each type in MED 4.1's index of a field's types (MEDCoupling writes these).
+_GEO_BIT = {"PO1": 0, "SE2": 1, "SE3": 2, "TR3": 4, "QU4": 5, "TR6": 6, "QU8": 8, "QU9": 9}
+_GEO_BIT |= {"TE4": 10, "PY5": 11, "PE6": 12, "HE8": 13, "T10": 14, "P13": 16, "P15": 17}
+_GEO_BIT |= {"P18": 18, "H20": 19, "H27": 20}
 _STEP = "-0000000000000000001-0000000000000000001"
 
 
@@ -416,7 +420,7 @@ def write_med(path: str | os.PathLike, data: MeshData) -> None:
     element_numbers, element_table = _numbered(all_members, -1, 1)
     with atomic_output(path) as temporary, h5py.File(temporary, "w", track_order=True) as f:
         info = f.create_group("INFOS_GENERALES")
-        for key, value in (("MAJ", 3), ("MIN", 0), ("REL", 0)):  # fields laid out as MED 3
+        for key, value in (("MAJ", 4), ("MIN", 1), ("REL", 0)):
             info.attrs.create(key, np.int64(value))
         mesh = f.create_group("ENS_MAA", track_order=True).create_group("mesh", track_order=True)
         space = points.shape[1]
@@ -503,7 +507,12 @@ def _write_fields(f, data: MeshData, kinds: list[str], num_points: int) -> None:
                     if k == kind
                 ]
                 entries.append((name, "MAI." + _TYPE_OF[kind], np.concatenate(parts)))
+    supports: dict[str, set[str]] = {}
+    for name, support, _ in entries:
+        supports.setdefault(name, set()).add(support)
     for name, support, values in entries:
+        if "NOE" in supports[name] and len(supports[name]) > 1:
+            raise ValueError(f"data[{name!r}]: a point field and a cell field of one name")
         if not 0 < len(name.encode("utf-8")) <= 64:
             raise ValueError(
                 f"data[{name!r}]: MED field names hold 1 to 64 bytes; rename the field"
@@ -523,6 +532,15 @@ def _write_fields(f, data: MeshData, kinds: list[str], num_points: int) -> None:
             for key, value in (("NDT", 1), ("NOR", 1), ("RDT", -1), ("ROR", -1)):
                 step.attrs.create(key, np.int64(value))
             step.attrs.create("PDT", np.float64(0.0))
+            # MED 4.1's index of a field's supports: entity kinds (cells 1, nodes 8) and
+            # geometric types (bits of MED's type list), on the field and on its step
+            on_nodes = supports[name] == {"NOE"}
+            mask = 1 if on_nodes else sum(1 << _GEO_BIT[t[4:]] for t in supports[name])
+            for node in (field, step):
+                _bitfield(node, "LEN", 8 if on_nodes else 1)
+                _bitfield(node, "LGN" if on_nodes else "LGC", mask)
+            field.attrs.create("LAA", np.int64(1))
+            field.attrs.create("LNA" if on_nodes else "LCA", np.int64(1))
         step = next(iter(fields[name].values()))
         group = step.create_group(support, track_order=True)
         set_text_attribute(group, "GAU", "")
@@ -532,6 +550,15 @@ def _write_fields(f, data: MeshData, kinds: list[str], num_points: int) -> None:
         profile.attrs.create("NGA", np.int64(1))
         set_text_attribute(profile, "GAU", "")
         profile.create_dataset("CO", data=columns.ravel(order="F"))
+
+
+def _bitfield(node, key: str, value: int) -> None:
+    """A 32-bit bitfield attribute (HDF5's B32), as the MED library writes its masks."""
+    import h5py
+
+    bits = h5py.h5t.STD_B32LE
+    attribute = h5py.h5a.create(node.id, key.encode(), bits, h5py.h5s.create(h5py.h5s.SCALAR))
+    attribute.write(np.array(value, dtype="<u4"), mtype=bits)
 
 
 # --------------------------------------------------------------------------- moving
