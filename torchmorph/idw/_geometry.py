@@ -182,17 +182,16 @@ def free_memory(device: torch.device) -> int:
         return 2**63 - 1
 
 
-def warn_duplicate_controls(controls: Tensor, tolerance: float) -> None:
+def warn_duplicate_controls(controls: Tensor, tolerance: float, targets: Tensor) -> None:
     """Warn when controls lie within the coincidence radius of one another: a target on
-    them takes the mean of their displacements."""
-    if controls.shape[0] < 2 or is_traced(controls):
+    them takes the mean of their displacements. Both clouds are normalised together
+    first, so that clouds the dtype cannot resolve are refused before any warning."""
+    if controls.shape[0] < 2 or is_traced(controls) or is_traced(targets):
         return
     from scipy.spatial import cKDTree
 
     with torch.no_grad():
-        _, normalised, radius2 = normalise(
-            controls.new_zeros(0, controls.shape[1]), controls.detach(), tolerance
-        )
+        _, normalised, radius2 = normalise(targets.detach(), controls.detach(), tolerance)
         points = normalised.double().cpu().numpy()
     distances, _ = cKDTree(points).query(points, k=2)
     close = int((distances[:, 1] ** 2 <= radius2).sum())

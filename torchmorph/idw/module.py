@@ -158,7 +158,7 @@ class IDW(nn.Module):
                     f"{controls.device}; use mode='matrix_free'"
                 )
         self.mode: str = mode
-        warn_duplicate_controls(controls, self.coincidence_tolerance)
+        warn_duplicate_controls(controls, self.coincidence_tolerance, targets)
         # copies, so that later in-place edits of the caller's tensors cannot leave W stale
         self.register_buffer("controls", controls if controls.requires_grad else controls.clone())
         self.register_buffer("targets", targets if targets.requires_grad else targets.clone())
