@@ -1,13 +1,14 @@
-"""The formats meshio reads and writes, with their markers kept: VTU/VTK/XDMF, Gmsh MSH,
-medit, CGNS, Nastran, MED (Exodus II files have a reader and writer of their own,
-:mod:`torchmorph.mesh.formats.exodus`).
+"""The formats read and written through meshio, with their markers kept: VTU/VTK/XDMF,
+Gmsh MSH, medit, Nastran (Exodus II, CGNS and MED files have readers and writers of their
+own: :mod:`torchmorph.mesh.formats.exodus`, :mod:`~torchmorph.mesh.formats.cgns`,
+:mod:`~torchmorph.mesh.formats.med`; new Abaqus decks are written through meshio too).
 
 Reading (:func:`read_meshio`) keeps every cell block of the top dimension, in order
 (a kind torchmorph cannot handle is a ``ValueError`` naming it, never a silent drop),
 and turns the file's markers into node and face sets:
 
-- node sets from our ``set:<name>`` point data, meshio's ``point_sets`` (MED,
-  Abaqus) and Gmsh physical groups of points and curves (in 3-D);
+- node sets from our ``set:<name>`` point data, meshio's ``point_sets`` and Gmsh
+  physical groups of points and curves (in 3-D);
 - face sets from the facet blocks (triangles and quads of a 3-D mesh, lines of a 2-D
   one) named by our ``face_set:<name>`` cell data, Gmsh physical groups, medit
   references (``ref<k>``) or Nastran property ids (``pid<k>``);
