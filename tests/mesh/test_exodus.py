@@ -1,8 +1,8 @@
 """Exodus II files (``.e``, ``.exo``): every kind's round trip with node and side sets,
 side numbers and quadratic node orders against the Exodus II manual (files written here
 with netCDF4 directly, not by torchmorph), files of meshio's independent Exodus writer,
-files written again moved with everything else kept, errors, and a morph through the
-command."""
+files written again moved with everything else kept, and a morph through the
+command (errors: test_exodus_errors.py)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from _kinds import CENTRES, EDGES, box, columns, idw_reference, quadratic, recta
 from test_formats import with_markers
 
 from torchmorph.mesh import Mesh, read_mesh, write_mesh
-from torchmorph.mesh.formats.exodus import move_exodus, read_exodus, write_exodus
-from torchmorph.mesh.io import mesh_data, mesh_from_data, write_morphed
+from torchmorph.mesh.formats.exodus import move_exodus, read_exodus
+from torchmorph.mesh.io import mesh_from_data, write_morphed
 
 netCDF4 = pytest.importorskip("netCDF4")
 
@@ -589,82 +589,6 @@ def test_a_planar_file_and_the_coord_layout_move(tmp_path):
     with pytest.raises(ValueError, match=r"points must have shape \(9, 2\), got \(9, 3\)"):
         move_exodus(tmp_path / "m.exo", lifted, tmp_path / "bad.exo")
     assert not (tmp_path / "bad.exo").exists()
-
-
-# --------------------------------------------------------------------------- errors
-
-
-def _hex_file(path, elem_type="HEX8", side_sets=(), extra=()):
-    points, cells = box(("hexahedron",), 1)
-    raw_exodus(path, points, [(elem_type, cells[0][1] + 1), *extra], side_sets=side_sets)
-
-
-@pytest.mark.parametrize(
-    ("arguments", "message"),
-    [
-        ({"side_sets": [("wall", [1, 99], [1, 2])]}, (r"side set 10 \('wall'\): entry 1 names "
-         r"element 99, outside the file's elements 1\.\.1")),
-        ({"side_sets": [("wall", [1], [7])]}, (r"side set 10 \('wall'\): side 7 of element 1 \(element block 10 "
-         r"\(HEX8\)\) is not one of its sides 1\.\.6")),
-        ({"elem_type": "HEX9"}, (r"element block 10: element type 'HEX9' names 9 nodes "
-         r"per element, the block has 8")),
-        ({"elem_type": "BRICK"}, (r"element block 10: element type 'BRICK' is not "
-         r"supported; supported: TETRA/TET")),
-        ({"extra": [("BEAM2", [[1, 2]])]}, (r"element block 20 \(BEAM2\): 1-D elements in a "
-         r"3-D mesh cannot be represented")),
-        ({"extra": [("QUAD4", [[1, 2, 3, 7]])]}, (r"element block 20 \(QUAD4\): row 0 \(quad "
-         r"\[0, 1, 2, 6\]\) is no side of a cell of the mesh; a block of 2-D elements")),
-    ],
-)  # fmt: skip
-def test_read_errors_name_the_file_and_the_entry(tmp_path, arguments, message):
-    _hex_file(tmp_path / "bad.exo", **arguments)
-    with pytest.raises(ValueError, match=r"path: '.*bad\.exo': " + message):
-        read_mesh(tmp_path / "bad.exo")
-
-
-def test_missing_and_foreign_files(tmp_path):
-    with pytest.raises(FileNotFoundError, match="does not exist"):
-        read_exodus(tmp_path / "none.exo")
-    with pytest.raises(FileNotFoundError, match="does not exist"):
-        read_mesh(tmp_path / "none.e")
-    (tmp_path / "text.exo").write_text("not netCDF\n")
-    with pytest.raises(ValueError, match="is not a netCDF file"):
-        read_mesh(tmp_path / "text.exo")
-
-
-def test_write_errors_leave_nothing(tmp_path):
-    mesh = Mesh(*KINDS["hexahedron20"]())
-    data = mesh_data(mesh)
-    facet = mesh.boundary_facets[0]  # quad8 facets
-    data.face_sets = {"linear": [("quad", facet.nodes[:1, :4].numpy())]}
-    with pytest.raises(
-        ValueError, match=r"data.face_sets\['linear'\]\[0\]: row 0 .* a quad8: give it"
-    ):
-        write_exodus(tmp_path / "m.exo", data)
-    nodes = facet.nodes[:2].numpy().copy()
-    elsewhere = np.setdiff1d(np.arange(mesh.num_nodes), nodes[0])[0]
-    nodes[1, 0] = elsewhere  # a corner off the face
-    data.face_sets = {"nowhere": [("quad8", nodes)]}
-    with pytest.raises(ValueError, match=r"\]\[0\]: row 1 .* is no side of a cell of the mesh"):
-        write_exodus(tmp_path / "m.exo", data)
-    nodes = facet.nodes[:1].numpy().copy()
-    nodes[0, 7] = elsewhere  # a mid-side node off the face
-    data.face_sets = {"midway": [("quad8", nodes)]}
-    with pytest.raises(ValueError, match="row 0 .* has the corners of side .* not its other nodes"):
-        write_exodus(tmp_path / "m.exo", data)
-    data.face_sets = {"edge": [("line", np.array([[0, 1]]))]}
-    with pytest.raises(ValueError, match="'line' is not a facet of a 3-D mesh"):
-        write_exodus(tmp_path / "m.exo", data)
-    assert not list(tmp_path.iterdir())
-
-
-def test_without_netcdf4_the_message_names_the_extra(tmp_path, monkeypatch):
-    import sys
-
-    write_mesh(tmp_path / "m.exo", Mesh(*KINDS["quad"]()))
-    monkeypatch.setitem(sys.modules, "netCDF4", None)
-    with pytest.raises(ImportError, match=r"netCDF4 package: pip install 'torchmorph\[exodus\]'"):
-        read_mesh(tmp_path / "m.exo")
 
 
 # --------------------------------------------------------------------------- the command

@@ -255,12 +255,17 @@ class SideIndex:
     """Every side of the cells of some blocks, to find the cell and side of a facet.
 
     The sides are keyed by their sorted corners (two int64 keys: the two smallest corners
-    and the other two), sorted once per corner count; a facet is looked up by binary search.
+    and the other two, each pair ``a * num_points + b``), sorted once per corner count; a
+    facet is looked up by binary search. ``num_points`` bounds every node number of the
+    cells and of the facets looked up (a facet may use a node no cell does).
     """
 
-    def __init__(self, blocks: list[Block]) -> None:
+    def __init__(self, blocks: list[Block], num_points: int) -> None:
         self.blocks = blocks
-        self._size = 1 + max((int(b.nodes.max()) for b in blocks if b.nodes.size), default=0)
+        self._size = int(num_points)
+        used = max((int(b.nodes.max()) for b in blocks if b.nodes.size), default=-1)
+        if used >= self._size:
+            raise ValueError(f"num_points: {num_points}, but the cells use node {used}")
         self._parts: dict[int, list[tuple[np.ndarray, int, int, int]]] = {}
         for position, block in enumerate(blocks):
             assert block.type.sides is not None
@@ -305,6 +310,8 @@ class SideIndex:
         width = FACET_CORNERS[kind]
         if not len(nodes):
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        if nodes.min() < 0 or nodes.max() >= self._size:
+            raise ValueError(f"{label}: node numbers outside [0, {self._size})")
         if width not in self._parts:
             _no_side(label, kind, nodes, 0)
         corners = nodes[:, :width]

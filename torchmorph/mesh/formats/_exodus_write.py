@@ -79,7 +79,7 @@ def layout(data: MeshData) -> Layout:
         start += len(nodes)
     if not blocks:
         raise ValueError("data.cells holds no cells")
-    index = SideIndex(blocks)
+    index = SideIndex(blocks, num_nodes)
     facets = {"line", "line3"} if dim == 2 else set(FACET_CORNERS) - {"line", "line3"}
     side_sets = []
     for name, members in data.face_sets.items():
@@ -98,7 +98,10 @@ def layout(data: MeshData) -> Layout:
     node_sets = []
     for name, rows in data.node_sets.items():
         label = f"data.node_sets[{name!r}]"
-        rows = np.unique(np.asarray(rows, dtype=np.int64).reshape(-1))
+        rows = np.asarray(rows)
+        if rows.size and rows.dtype.kind not in "iu":
+            raise ValueError(f"{label}: node rows must be integers, got {rows.dtype} values")
+        rows = np.unique(rows.astype(np.int64).reshape(-1))
         if rows.size and (rows[0] < 0 or rows[-1] >= num_nodes):
             raise ValueError(f"{label}: rows outside [0, {num_nodes})")
         node_sets.append((_name(name, label), rows + 1))

@@ -72,6 +72,7 @@ from torchmorph.mesh.formats._exodus_tables import (
     facet_kind,
 )
 from torchmorph.mesh.formats._exodus_write import layout, write
+from torchmorph.mesh.formats._netcdf3 import shortfall
 
 __all__ = ["INSTALL_HINT", "move_exodus", "read_exodus", "write_exodus"]
 
@@ -110,11 +111,12 @@ def read_exodus(path: str | os.PathLike) -> MeshData:
     ImportError
         Without the netCDF4 package (the message says how to install it).
     ValueError
-        Naming the file and what is wrong: not a netCDF file, no coordinates or cells,
-        an element type that is not supported (named, with the supported ones), a block
-        that is no volume or planar domain nor its facets, node numbers out of range, a
-        side set's element out of range or side number not of its element's kind, two
-        node or side sets of one name, a non-planar 2-D mesh in 3-D coordinates.
+        Naming the file and what is wrong: not a netCDF file or a truncated one, no
+        coordinates or cells, an element type that is not supported (named, with the
+        supported ones), a block that is no volume or planar domain nor its facets, node
+        numbers out of range or not integers, a side set's element out of range or side
+        number not of its element's kind, two node or side sets of one name, a set or
+        variable missing or of the wrong length, a non-planar 2-D mesh in 3-D coordinates.
     """
     path = Path(path)
     if not path.is_file():
@@ -128,11 +130,19 @@ def read_exodus(path: str | os.PathLike) -> MeshData:
             f"path: {source!r} is not a netCDF file, as Exodus II files are ({error})"
         ) from error
     with dataset:
+        short = shortfall(path)
+        if short:
+            raise ValueError(f"path: {source!r} is truncated: {short}")
         dataset.set_auto_mask(False)
         try:
             return _read(dataset)
         except ValueError as error:
             raise ValueError(f"path: {source!r}: {error}") from error
+        except (RuntimeError, OSError) as error:  # the netCDF library's errors
+            raise ValueError(
+                f"path: {source!r}: the netCDF library cannot read it ({error}): a damaged "
+                "or truncated file"
+            ) from error
 
 
 def _read(nc: Any) -> MeshData:
@@ -168,7 +178,7 @@ def _read(nc: Any) -> MeshData:
         planar, points = float(z[0]), np.ascontiguousarray(points[:, :2])
     domain = [block for block in blocks if block.type.dim == top]
     cells = [(block.type.kind, _to_vtk(block.type.kind, block.nodes)) for block in domain]
-    index = SideIndex(domain)
+    index = SideIndex(domain, len(points))
     face_sets = _side_sets(nc, blocks, {block.number for block in domain})
     for block in blocks:
         if block.type.dim == top - 1:
@@ -203,14 +213,30 @@ def _size(nc: Any, name: str) -> int:
     return len(nc.dimensions[name]) if name in nc.dimensions else 0
 
 
+def _whole(values: Any, name: str) -> np.ndarray:
+    """The values of the variable ``name`` as int64, where they are whole numbers."""
+    array = np.asarray(values)
+    if array.dtype.kind not in "iu":
+        if array.dtype.kind != "f":
+            raise ValueError(f"{name} holds {array.dtype} values, not integers")
+        bad = np.flatnonzero(~np.isfinite(array) | (array != np.round(array)))
+        if bad.size:
+            value = array.reshape(-1)[bad[0]]
+            raise ValueError(f"{name} holds {value}, not an integer")
+    return array.astype(np.int64)
+
+
 def _integers(nc: Any, name: str) -> np.ndarray:
-    return np.asarray(nc.variables[name][:], dtype=np.int64).reshape(-1)
+    return _whole(nc.variables[name][:], name).reshape(-1)
 
 
 def _ids(nc: Any, name: str, count: int) -> list[int]:
     if name not in nc.variables:
         return list(range(1, count + 1))
-    return [int(value) for value in _integers(nc, name)[:count]]
+    ids = _integers(nc, name)
+    if ids.size != count:
+        raise ValueError(f"{name} holds {ids.size} ids for {count} entries")
+    return ids.tolist()
 
 
 def _names(nc: Any, name: str, count: int) -> list[str]:
@@ -218,8 +244,10 @@ def _names(nc: Any, name: str, count: int) -> list[str]:
     if name not in nc.variables or count == 0:
         return [""] * count
     variable = nc.variables[name]
+    if len(variable.shape) != 2 or variable.shape[0] != count:
+        raise ValueError(f"{name} has shape {variable.shape}, not ({count}, len_name)")
     variable.set_auto_chartostring(False)
-    raw = np.asarray(variable[:]).reshape(count, -1)
+    raw = np.asarray(variable[:])
     names = []
     for row in raw:
         text = b"".join(c if isinstance(c, bytes) else str(c).encode() for c in row.tolist())
@@ -263,12 +291,14 @@ def _blocks(nc: Any, num_nodes: int) -> list[Block]:
         )
         variable = nc.variables.get(f"connect{number}")
         if size == 0:
+            if variable is not None and variable.size:
+                raise ValueError(f"{label}: connect{number} but no num_el_in_blk{number}")
             continue
         if variable is None or "elem_type" not in variable.ncattrs():
             raise ValueError(f"{label}: {size} elements but no connect{number} with an elem_type")
         name = variable.getncattr("elem_type")
         name = name.decode() if isinstance(name, bytes) else str(name)
-        nodes = np.asarray(variable[:], dtype=np.int64)
+        nodes = _whole(variable[:], f"connect{number}")
         if nodes.ndim != 2 or nodes.shape[0] != size:
             raise ValueError(f"{label}: connect{number} has shape {nodes.shape}, not ({size}, n)")
         try:
@@ -316,14 +346,21 @@ def _side_sets(
         key = name or f"sideset_{ident}"
         if key in result:
             raise ValueError(f"{label}: a second side set named {key!r}")
-        variables = (nc.variables.get(f"elem_ss{number}"), nc.variables.get(f"side_ss{number}"))
-        if _size(nc, f"num_side_ss{number}") == 0 or any(v is None for v in variables):
+        size = _size(nc, f"num_side_ss{number}")
+        members = (f"elem_ss{number}", f"side_ss{number}")
+        missing = [member for member in members if member not in nc.variables]
+        if size == 0 and len(missing) == 2:
             result[key] = []
             continue
-        elements = _integers(nc, f"elem_ss{number}") - 1
-        sides = _integers(nc, f"side_ss{number}")
-        if elements.shape != sides.shape:
-            raise ValueError(f"{label}: elem_ss{number} and side_ss{number} differ in length")
+        if missing:
+            raise ValueError(f"{label}: {size} sides but no {' or '.join(missing)}")
+        elements = _integers(nc, members[0]) - 1
+        sides = _integers(nc, members[1])
+        if elements.shape != (size,) or sides.shape != (size,):
+            raise ValueError(
+                f"{label}: {members[0]} and {members[1]} hold {elements.size} and "
+                f"{sides.size} values, num_side_ss{number} is {size}"
+            )
         bad = np.flatnonzero((elements < 0) | (elements >= num_elem))
         if bad.size:
             raise ValueError(
@@ -345,27 +382,30 @@ def _facets(
 ) -> list[tuple[str, np.ndarray]]:
     """The facets of side-set entries (block positions, global elements, sides), grouped
     by kind in the order each kind first appears, entries of one kind in order."""
-    pairs = which * 1024 + sides
     found: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     first: dict[str, int] = {}
-    for pair in np.unique(pairs).tolist():
-        block, side = blocks[pair // 1024], pair % 1024
-        entries = np.flatnonzero(pairs == pair)
-        element = f"element {elements[entries[0]] + 1} ({block.label})"
+    for position in np.unique(which).tolist():
+        block = blocks[position]
+        in_block = np.flatnonzero(which == position)
         if block.number not in domain or block.type.sides is None:
+            element = f"element {elements[in_block[0]] + 1} ({block.label})"
             raise ValueError(f"{label}: {element} is not a cell of the mesh's domain")
         table = SIDES[block.type.sides]
-        if not 1 <= side <= len(table) or table[side - 1].face:
-            valid = [k for k, s in enumerate(table, 1) if not s.face]
+        valid = [k for k, s in enumerate(table, 1) if not s.face]
+        bad = in_block[~np.isin(sides[in_block], valid)]
+        if bad.size:
             raise ValueError(
-                f"{label}: side {side} of {element} is not one of its sides "
+                f"{label}: entry {bad[0]}: side {sides[bad[0]]} of element "
+                f"{elements[bad[0]] + 1} ({block.label}) is not one of its sides "
                 f"{valid[0]}..{valid[-1]}"
                 + (" (1 and 2 are the shell's faces)" if valid[0] > 1 else "")
             )
-        kind, local = facet_kind(block.type.kind, table[side - 1])
-        rows = elements[entries] - block.start
-        found.setdefault(kind, []).append((entries, block.nodes[rows][:, list(local)]))
-        first[kind] = min(first.get(kind, len(pairs)), int(entries[0]))
+        for side in np.unique(sides[in_block]).tolist():
+            entries = in_block[sides[in_block] == side]
+            kind, local = facet_kind(block.type.kind, table[side - 1])
+            rows = elements[entries] - block.start
+            found.setdefault(kind, []).append((entries, block.nodes[rows][:, list(local)]))
+            first[kind] = min(first.get(kind, len(elements)), int(entries[0]))
     result = []
     for kind in sorted(found, key=first.__getitem__):
         entries = np.concatenate([e for e, _ in found[kind]])
@@ -387,8 +427,13 @@ def _node_sets(
         if key in result:
             raise ValueError(f"{label}: a second node set named {key!r}")
         nodes = np.zeros(0, dtype=np.int64)
-        if _size(nc, f"num_nod_ns{number}") and f"node_ns{number}" in nc.variables:
-            nodes = _integers(nc, f"node_ns{number}") - 1
+        size, member = _size(nc, f"num_nod_ns{number}"), f"node_ns{number}"
+        if size and member not in nc.variables:
+            raise ValueError(f"{label}: {size} nodes but no {member}")
+        if member in nc.variables:
+            nodes = _integers(nc, member) - 1
+            if nodes.size != size:
+                raise ValueError(f"{label}: {member} holds {nodes.size} values, not {size}")
         bad = np.flatnonzero((nodes < 0) | (nodes >= num_nodes))
         if bad.size:
             raise ValueError(
@@ -430,10 +475,13 @@ def _results(
         elif "vals_nod_var" in variables:  # the older layout: (time, variable, node)
             values = variables["vals_nod_var"][steps - 1, number - 1]
         else:
-            continue
+            raise ValueError(f"nodal variable {key!r}: no vals_nod_var{number}")
         values = np.asarray(values, dtype=np.float64).reshape(-1)
-        if values.size == num_nodes:
-            nodal.append((key, values))
+        if values.size != num_nodes:
+            raise ValueError(
+                f"nodal variable {key!r}: {values.size} values for the {num_nodes} nodes"
+            )
+        nodal.append((key, values))
     point_data = {
         base: np.stack([nodal[k][1] for k in group], 1) if len(group) > 1 else nodal[group[0]][1]
         for base, group in _fields([name for name, _ in nodal])
@@ -445,8 +493,14 @@ def _results(
         for block in domain:
             variable = variables.get(f"vals_elem_var{number}eb{block.number}")
             values = np.full(len(block.nodes), np.nan)
-            if variable is not None and variable.shape[-1] == len(block.nodes):
+            if variable is not None:
                 values, present = np.asarray(variable[steps - 1], dtype=np.float64), True
+                if values.size != len(block.nodes):
+                    raise ValueError(
+                        f"element variable {name or number!r}: vals_elem_var{number}eb"
+                        f"{block.number} holds {values.size} values for the "
+                        f"{len(block.nodes)} elements of {block.label}"
+                    )
             arrays.append(values.reshape(-1))
         if present:
             per_block.append((name or f"element_variable_{number}", arrays))
