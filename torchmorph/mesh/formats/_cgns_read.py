@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,6 +21,7 @@ from torchmorph.mesh.formats._cgns_nodes import (
     label,
     text,
 )
+from torchmorph.mesh.formats._sets import separate_node_sets
 
 _DIM = {"vertex": 0, "line": 1, "line3": 1} | {name: kind.dim for name, kind in CELL_KINDS.items()}
 _NODES_OF = {code: nodes for code, (_, nodes) in CGNS_KINDS.items()}
@@ -50,6 +53,22 @@ class _BC:
 
 
 # --------------------------------------------------------------------------- reading
+
+
+@contextmanager
+def malformed(source: str) -> Iterator[None]:
+    """Errors of reading a malformed file (a missing node or attribute, data of the wrong
+    shape) as a ``ValueError`` naming the file; those naming it already as they are."""
+    try:
+        yield
+    except ValueError as error:
+        if str(error).startswith("path: "):
+            raise
+        raise ValueError(f"path: {source!r}: malformed CGNS file ({error})") from error
+    except (KeyError, IndexError, TypeError, AttributeError, OSError) as error:
+        raise ValueError(
+            f"path: {source!r}: malformed CGNS file ({type(error).__name__}: {error})"
+        ) from error
 
 
 def _open(path: Path):
@@ -145,6 +164,11 @@ def _mixed(section, name: str, connectivity: np.ndarray, count: int, source: str
                 f"path: {source!r}: section {name!r}: ElementStartOffset does not match its "
                 f"{count} elements"
             )
+        if offsets[0] != 0 or (np.diff(offsets) <= 0).any():
+            raise ValueError(
+                f"path: {source!r}: section {name!r}: ElementStartOffset must start at 0 and "
+                "increase from element to element"
+            )
         types = connectivity[offsets[:-1]]
         lengths = np.diff(offsets) - 1
         bad = [int(t) for t in np.unique(types) if int(t) not in _NODES_OF]
@@ -201,9 +225,24 @@ def _sections(zone, num_points: int, source: str) -> list[_Block]:
                 f"path: {source!r}: section {name!r} lacks its type, ElementRange or "
                 "ElementConnectivity"
             )
+        bounds = array(ranges).ravel()
+        if header.size < 1 or header.dtype.kind not in "iu":
+            raise ValueError(
+                f"path: {source!r}: section {name!r}: its data (element type, boundary count) "
+                f"is {header.size} {header.dtype} values, not integers"
+            )
+        if bounds.size != 2 or bounds.dtype.kind not in "iu":
+            raise ValueError(
+                f"path: {source!r}: section {name!r}: ElementRange holds {bounds.size} "
+                f"{bounds.dtype} values, not two integers (the first and last element id)"
+            )
         code = int(header.ravel()[0])
-        first, last = (int(v) for v in array(ranges).ravel()[:2])
+        first, last = int(bounds[0]), int(bounds[1])
         count = last - first + 1
+        if count < 0:
+            raise ValueError(
+                f"path: {source!r}: section {name!r}: ElementRange {first}..{last} runs backwards"
+            )
         connectivity = array(connectivity_node).ravel().astype(np.int64)
         if code == 20:
             types, starts = _mixed(section, name, connectivity, count, source)
@@ -246,15 +285,22 @@ def _boundary_conditions(zone, source: str) -> list[_BC]:
                     location = text(child)
                 elif child_name in ("PointRange", "ElementRange"):
                     values = array(child).ravel()
-                    if values.size != 2:
+                    if values.size != 2 or values.dtype.kind not in "iu":
                         raise ValueError(
-                            f"path: {source!r}: BC {name!r}: {child_name} of {values.size} values "
-                            "(a structured zone's range)"
+                            f"path: {source!r}: BC {name!r}: {child_name} of {values.size} "
+                            f"{values.dtype} values, not two integer ids (a structured zone's "
+                            "range?)"
                         )
                     ids = np.arange(int(values[0]), int(values[1]) + 1, dtype=np.int64)
                     by_element = child_name == "ElementRange"
                 elif child_name in ("PointList", "ElementList"):
-                    ids = array(child).ravel().astype(np.int64)
+                    ids = array(child).ravel()
+                    if ids.size and ids.dtype.kind not in "iu":
+                        raise ValueError(
+                            f"path: {source!r}: BC {name!r}: {child_name} holds {ids.dtype} "
+                            "values, not integer ids"
+                        )
+                    ids = ids.astype(np.int64)
                     by_element = child_name == "ElementList"
                 elif child_label in ("FamilyName_t", "AdditionalFamilyName_t"):
                     families.append(text(child))
@@ -276,7 +322,11 @@ def _boundary_conditions(zone, source: str) -> list[_BC]:
     return conditions
 
 
-def _solutions(zone, num_points: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+def _solutions(
+    zone, num_points: int, num_cells: int, source: str
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The flow solutions' arrays at vertices and at cell centres (flat, in the order of
+    the domain's element ids), a vector's components ``<name>X``/``Y``/``Z`` joined."""
     point_data: dict[str, np.ndarray] = {}
     cell_data: dict[str, np.ndarray] = {}
     for solution_name, solution in children(zone, "FlowSolution_t"):
@@ -285,13 +335,42 @@ def _solutions(zone, num_points: int) -> tuple[dict[str, np.ndarray], dict[str, 
         target = point_data if location == "Vertex" else cell_data
         if location not in ("Vertex", "CellCenter"):
             continue
+        expected = num_points if location == "Vertex" else num_cells
         for name, node in children(solution, "DataArray_t"):
             values = data(node)
-            if values is None or (location == "Vertex" and values.size != num_points):
+            if values is None:
                 continue
+            if values.size != expected:
+                what = "vertices" if location == "Vertex" else "cells"
+                raise ValueError(
+                    f"path: {source!r}: FlowSolution {solution_name!r}: {name} holds "
+                    f"{values.size} values for the zone's {expected} {what} ({location})"
+                )
             key = name if name not in target else f"{solution_name}/{name}"
             target[key] = np.ascontiguousarray(values.ravel())
-    return point_data, cell_data
+    return _vectors(point_data), _vectors(cell_data)
+
+
+def _vectors(fields: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Fields with the components ``<name>X``, ``<name>Y`` (and ``<name>Z``) of one size
+    joined into one (n, 2) or (n, 3) field ``<name>``, where no field has that name."""
+    joined: dict[str, str] = {}
+    for key in fields:
+        stem = key[:-1]
+        if key.endswith("X") and stem and stem not in fields:
+            parts = [stem + axis for axis in "XYZ" if stem + axis in fields]
+            if parts[:2] == [stem + "X", stem + "Y"] and len({fields[p].size for p in parts}) == 1:
+                joined.update(dict.fromkeys(parts, stem))
+    out: dict[str, np.ndarray] = {}
+    for key, values in fields.items():
+        vector = joined.get(key)
+        if vector is None:
+            out[key] = values
+        elif vector not in out:
+            out[vector] = np.column_stack(
+                [fields[vector + a] for a in "XYZ" if vector + a in fields]
+            )
+    return out
 
 
 def _markers(blocks: list[_Block], conditions: list[_BC], top: int, num_points: int, source):
@@ -322,6 +401,18 @@ def _markers(blocks: list[_Block], conditions: list[_BC], top: int, num_points: 
             face_sets[name] = facets
         if nodes:
             node_sets[name] = np.unique(np.concatenate(nodes))
+            if facets:  # the rule of a node set named like a face set (see _sets)
+                taken = {bc.name for bc in conditions} | set(node_sets) | set(face_sets)
+                node_sets.update(
+                    separate_node_sets(
+                        {name: node_sets.pop(name)},
+                        {name: facets},
+                        "BC",
+                        source,
+                        taken=taken - {name},
+                        stacklevel=5,
+                    )
+                )
 
     for bc in conditions:
         for family in bc.families:

@@ -15,6 +15,10 @@ def set_text_attribute(node, key: str, value: str, size: int | None = None) -> N
 
     encoded = value.encode("utf-8")
     size = len(encoded) + 1 if size is None else size
+    if len(encoded) > size - 1:
+        raise ValueError(
+            f"{key}: {value!r} holds {len(encoded)} bytes; the attribute holds at most {size - 1}"
+        )
     string_type = h5py.h5t.C_S1.copy()
     string_type.set_size(size)
     string_type.set_strpad(h5py.h5t.STR_NULLTERM)
@@ -22,6 +26,4 @@ def set_text_attribute(node, key: str, value: str, size: int | None = None) -> N
         del node.attrs[key]
     space = h5py.h5s.create(h5py.h5s.SCALAR)
     attribute = h5py.h5a.create(node.id, key.encode(), string_type, space)
-    attribute.write(
-        np.array(encoded[: size - 1].ljust(size, b"\0"), dtype=f"S{size}"), mtype=string_type
-    )
+    attribute.write(np.array(encoded.ljust(size, b"\0"), dtype=f"S{size}"), mtype=string_type)

@@ -33,8 +33,13 @@ them as torchmorph's markers:
   markers named after the family (where no marker has that name already), so that a
   file whose BCs have generic names can be addressed by family.
 * **Fields**: ``FlowSolution_t`` arrays at ``Vertex`` become point data; those at
-  ``CellCenter`` become cell data where the domain's elements are numbered 1..M in the
-  order of the blocks.
+  ``CellCenter`` cell data (in the order of the domain's element ids, whatever the
+  order of the blocks). Components ``<name>X``, ``<name>Y`` (and ``<name>Z``) of one
+  size are joined into one vector field ``<name>``. An array not of the zone's number
+  of vertices (cells) is an error naming it.
+* **Names**: a BC that refers to facets and to lower elements (edges of a 3-D mesh) is
+  a face set and, where the lower elements' nodes are other than the facets', the node
+  set ``<BC>_nodes`` (with a warning: a mesh keeps only the face set of a name).
 
 One zone only: a file of several zones (in one base or several) is refused, naming
 them (merge the zones first); structured zones and the ADF format are refused too.
@@ -43,12 +48,13 @@ them (merge the zones first); structured zones and the ADF format are refused to
 :func:`write_cgns` writes one base ``Base`` with one zone ``Zone1`` (the names meshio's
 reader expects): the coordinates (R8), one section per domain block (the first named
 ``GridElements``), then one section per face set and kind, numbered after the domain's
-cells, a ``BC_t`` per face set (``PointRange`` over its sections' element ids,
+cells, a ``ZoneBC`` (where there are markers) with a ``BC_t`` per face set (``PointRange`` over its sections' element ids,
 ``GridLocation`` ``FaceCenter``, or ``EdgeCenter`` in 2-D, as ``cg_boco_write`` of CGNS
 3.4 writes an element range), a ``BC_t`` per node set (``GridLocation`` ``Vertex``,
 ``PointList``), groups as families (``Family_t``, ``FamilyName`` on their BCs), point
 data in a ``FlowSolution`` at ``Vertex`` and cell data in ``FlowSolutionCells`` at
-``CellCenter`` (a vector field as one array per component, ``nameX``/``Y``/``Z``). The
+``CellCenter`` (a vector field as one array per component, ``nameX``/``Y``/``Z``;
+integers as ``I4`` where they fit, ``I8`` otherwise, the rest ``R8``). The
 file is stamped CGNS 3.4 and holds no ``MIXED`` sections, so the 3.x and 4.x libraries
 read it alike. :func:`move_cgns` copies a file and replaces only ``GridCoordinates``'
 arrays (same type and shape), every other node kept.
@@ -74,9 +80,11 @@ from torchmorph.mesh.formats._cgns_read import (
     _sections,
     _solutions,
     _the_zone,
+    malformed,
 )
 from torchmorph.mesh.formats._data import MeshData
 from torchmorph.mesh.formats._hdf5 import set_text_attribute
+from torchmorph.mesh.formats._sets import checked_fields, node_rows
 
 __all__ = ["move_cgns", "read_cgns", "write_cgns"]
 
@@ -110,52 +118,55 @@ def read_cgns(path: str | os.PathLike) -> MeshData:
         Naming the file and what is wrong: an ADF or non-HDF5 file, no zone or several,
         a structured zone, polyhedral (``NGON_n``/``NFACE_n``) or unsupported element
         types, node numbers out of range, a BC pointing at element ids that no section
-        holds, or at domain cells, a surface mesh (2-D cells off one plane).
+        holds, or at domain cells, a surface mesh (2-D cells off one plane), a node
+        missing or of the wrong size (naming it).
     """
     path = Path(path)
     source = str(path)
-    with _open(path) as f:
+    with _open(path) as f, malformed(source):
         zone, cell_dim, phys_dim, num_points = _the_zone(f, source)
         points = _coordinates(zone, phys_dim, num_points, source)
         blocks = _sections(zone, num_points, source)
         conditions = _boundary_conditions(zone, source)
-        point_data, flat_cell_data = _solutions(zone, num_points)
-    higher = sorted({b.kind for b in blocks if _DIM[b.kind] > cell_dim})
-    if higher:
-        raise ValueError(
-            f"path: {source!r}: elements of kind {', '.join(higher)} in a base of cell "
-            f"dimension {cell_dim}"
-        )
-    domain = [b for b in blocks if _DIM[b.kind] == cell_dim]
-    if not domain:
-        raise ValueError(f"path: {source!r}: the zone holds no elements of dimension {cell_dim}")
-    planar = None
-    if cell_dim == 2 and phys_dim == 3:
-        z = points[:, 2]
-        if z.size and np.ptp(z) > 1e-12 * max(1.0, float(np.abs(points).max())):
+        num_cells = sum(b.ids.size for b in blocks if _DIM[b.kind] == cell_dim)
+        point_data, flat_cell_data = _solutions(zone, num_points, num_cells, source)
+    with malformed(source):
+        higher = sorted({b.kind for b in blocks if _DIM[b.kind] > cell_dim})
+        if higher:
             raise ValueError(
-                f"path: {source!r}: planar cells with points off one plane z = const: a "
-                "surface mesh in 3-D is not a volume or planar mesh"
+                f"path: {source!r}: elements of kind {', '.join(higher)} in a base of cell "
+                f"dimension {cell_dim}"
             )
-        planar, points = (float(z[0]) if z.size else 0.0), points[:, :2]
-    node_sets, face_sets, groups = _markers(blocks, conditions, cell_dim, num_points, source)
-    cell_data: dict[str, list[np.ndarray]] = {}
-    domain_ids = np.concatenate([b.ids for b in domain])
-    if np.array_equal(domain_ids, np.arange(1, domain_ids.size + 1)):
-        splits = np.cumsum([b.ids.size for b in domain])[:-1]
+        domain = [b for b in blocks if _DIM[b.kind] == cell_dim]
+        if not domain:
+            raise ValueError(
+                f"path: {source!r}: the zone holds no elements of dimension {cell_dim}"
+            )
+        planar = None
+        if cell_dim == 2 and phys_dim == 3:
+            z = points[:, 2]
+            if z.size and np.ptp(z) > 1e-12 * max(1.0, float(np.abs(points).max())):
+                raise ValueError(
+                    f"path: {source!r}: planar cells with points off one plane z = const: a "
+                    "surface mesh in 3-D is not a volume or planar mesh"
+                )
+            planar, points = (float(z[0]) if z.size else 0.0), points[:, :2]
+        node_sets, face_sets, groups = _markers(blocks, conditions, cell_dim, num_points, source)
+        cell_data: dict[str, list[np.ndarray]] = {}
+        # cell-centred values are in the order of the domain's element ids
+        ordered = np.sort(np.concatenate([b.ids for b in domain]))
         for key, values in flat_cell_data.items():
-            if values.size == domain_ids.size:
-                cell_data[key] = np.split(values, splits)
-    return MeshData(
-        points=np.ascontiguousarray(points),
-        cells=[(b.kind, b.nodes) for b in domain],
-        node_sets=node_sets,
-        face_sets=face_sets,
-        groups=groups,
-        point_data=point_data,
-        cell_data=cell_data,
-        planar_coordinate=planar,
-    )
+            cell_data[key] = [values[np.searchsorted(ordered, b.ids)] for b in domain]
+        return MeshData(
+            points=np.ascontiguousarray(points),
+            cells=[(b.kind, b.nodes) for b in domain],
+            node_sets=node_sets,
+            face_sets=face_sets,
+            groups=groups,
+            point_data=point_data,
+            cell_data=cell_data,
+            planar_coordinate=planar,
+        )
 
 
 # --------------------------------------------------------------------------- writing
@@ -237,15 +248,28 @@ def _members(groups: dict[str, list[str]], name: str, seen: frozenset = frozense
     return out
 
 
-def _fields(solution, fields: dict[str, np.ndarray], source: str) -> None:
+def _fields(solution, fields: dict[str, np.ndarray], argument: str, source: str) -> None:
+    """Write checked fields (:func:`checked_fields`): one array per column, a vector's
+    ``<name>X``/``Y``/``Z`` (``<name>_<k>`` beyond three columns)."""
     for name, values in fields.items():
-        values = np.asarray(values)
         columns = values.reshape(values.shape[0], -1)
+        where = f"{argument}[{name!r}]"
+        if columns.dtype.kind == "u" and columns.size and int(columns.max()) >= 2**63:
+            raise ValueError(
+                f"{where}: unsigned integers above 2**63 - 1 do not fit CGNS's I8 (writing "
+                f"{source!r})"
+            )
+        if columns.dtype.kind == "b" or (
+            columns.dtype.kind in "iu" and columns.dtype.itemsize < 4 + (columns.dtype.kind == "i")
+        ):
+            kind = "I4"  # bool, int8 to int32, uint8, uint16
+        else:
+            kind = "I8" if columns.dtype.kind in "iu" else "R8"
         for k in range(columns.shape[1]):
-            suffix = "" if values.ndim == 1 else ("XYZ"[k] if columns.shape[1] <= 3 else f"_{k}")
-            field_name = _check_name(name + suffix, f"data[{name!r}]", source)
-            kind = "I4" if columns.dtype.kind in "iub" and columns.dtype.itemsize <= 4 else "R8"
-            kind = "I8" if columns.dtype.kind in "iu" and columns.dtype.itemsize == 8 else kind
+            suffix = (
+                "" if columns.shape[1] == 1 else ("XYZ"[k] if columns.shape[1] <= 3 else f"_{k}")
+            )
+            field_name = _check_name(name + suffix, where, source)
             new_node(solution, field_name, "DataArray_t", kind, columns[:, k])
 
 
@@ -265,8 +289,11 @@ def write_cgns(path: str | os.PathLike, data: MeshData) -> None:
     ------
     ValueError
         Naming the entry: points not (N, 2) or (N, 3) or not finite, a cell kind CGNS
-        cannot hold here, connectivity of the wrong shape or out of range, a marker or
-        field name CGNS cannot hold (more than 32 characters, ``/``).
+        cannot hold here, connectivity of the wrong shape or out of range, node set rows
+        that are no integers in [0, N), point data not of N rows, cell data not an array
+        of each block's length per block, unsigned integers above 2**63 - 1, a marker or
+        field name CGNS cannot hold (more than 32 characters, ``/``), a group named
+        ``Zone1`` (the zone's name).
     """
     import h5py
 
@@ -285,18 +312,27 @@ def write_cgns(path: str | os.PathLike, data: MeshData) -> None:
         )
         for name, blocks in data.face_sets.items()
     }
-    node_sets = {
-        _check_name(name, "data.node_sets", source): np.unique(np.asarray(nodes, dtype=np.int64))
+    rows_of = {
+        name: node_rows(nodes, f"data.node_sets[{name!r}]", num_points, source)
         for name, nodes in data.node_sets.items()
+    }
+    node_sets = {
+        _check_name(name, "data.node_sets", source): rows
+        for name, rows in rows_of.items()
         if name not in face_sets
     }
-    for name, nodes in node_sets.items():
-        if nodes.size and (nodes.min() < 0 or nodes.max() >= num_points):
-            raise ValueError(
-                f"data.node_sets[{name!r}]: node numbers out of range (writing {source!r})"
-            )
+    sizes = [len(nodes) for _, nodes in cells]
+    point_data = checked_fields(
+        data.point_data, "data.point_data", [num_points], source, nodal=True
+    )
+    cell_data = checked_fields(data.cell_data, "data.cell_data", sizes, source)
     families: dict[str, list[str]] = {}
     for group in data.groups:
+        if group == "Zone1":
+            raise ValueError(
+                f"data.groups: a group named 'Zone1' cannot be written: the zone has that name "
+                f"and the groups become families beside it; rename the group (writing {source!r})"
+            )
         for member in _members(data.groups, group):
             if member in face_sets or member in node_sets:
                 families.setdefault(member, []).append(_check_name(group, "data.groups", source))
@@ -321,8 +357,9 @@ def write_cgns(path: str | os.PathLike, data: MeshData) -> None:
             new_node(
                 new_node(base, family, "Family_t"), "FamilyBC", "FamilyBC_t", "C1", "UserDefined"
             )
-        sizes = np.array([[num_points], [num_cells], [0]])
-        zone = new_node(base, "Zone1", "Zone_t", _index_kind(max(num_points, num_cells)), sizes)
+        zone_sizes = np.array([[num_points], [num_cells], [0]])
+        zone_kind = _index_kind(max(num_points, num_cells))
+        zone = new_node(base, "Zone1", "Zone_t", zone_kind, zone_sizes)
         new_node(zone, "ZoneType", "ZoneType_t", "C1", "Unstructured")
         grid = new_node(zone, "GridCoordinates", "GridCoordinates_t")
         for axis, column in zip(AXES, points.T, strict=False):
@@ -343,7 +380,7 @@ def write_cgns(path: str | os.PathLike, data: MeshData) -> None:
                     zone, _unique(preferred, taken, f"FaceSet{number + 1}"), kind, nodes, next_id
                 )
             ranges[name] = (first, next_id - 1)
-        zone_bc = new_node(zone, "ZoneBC", "ZoneBC_t")
+        zone_bc = new_node(zone, "ZoneBC", "ZoneBC_t") if face_sets or node_sets else None
         location = "FaceCenter" if dim == 3 else "EdgeCenter"
         for name in [*face_sets, *node_sets]:
             names = families.get(name, [])
@@ -366,15 +403,16 @@ def write_cgns(path: str | os.PathLike, data: MeshData) -> None:
                     new_node(bc, "FamilyName", "FamilyName_t", "C1", family)
                 else:
                     new_node(bc, f"AddFamilyName{k}", "AdditionalFamilyName_t", "C1", family)
-        if data.point_data:
+        if point_data:
             solution = new_node(zone, "FlowSolution", "FlowSolution_t")
             new_node(solution, "GridLocation", "GridLocation_t", "C1", "Vertex")
-            _fields(solution, data.point_data, source)
-        complete = {k: v for k, v in data.cell_data.items() if len(v) == len(cells)}
-        if complete:
+            flat = {k: v[0] for k, v in point_data.items()}
+            _fields(solution, flat, "data.point_data", source)
+        if cell_data and cells:
             solution = new_node(zone, "FlowSolutionCells", "FlowSolution_t")
             new_node(solution, "GridLocation", "GridLocation_t", "C1", "CellCenter")
-            _fields(solution, {k: np.concatenate(v) for k, v in complete.items()}, source)
+            flat = {k: np.concatenate(v) for k, v in cell_data.items()}
+            _fields(solution, flat, "data.cell_data", source)
 
 
 # --------------------------------------------------------------------------- moving
@@ -388,11 +426,10 @@ def move_cgns(source: str | os.PathLike, points, output: str | os.PathLike) -> N
     import h5py
 
     source, output = Path(source), Path(output)
-    with _open(source) as f:
+    with _open(source) as f, malformed(str(source)):
         zone, cell_dim, phys_dim, num_points = _the_zone(f, str(source))
-        grid_path = zone["GridCoordinates"].name if "GridCoordinates" in zone else None
-    if grid_path is None:
-        raise ValueError(f"source: {str(source)!r}: the zone has no GridCoordinates")
+        _coordinates(zone, phys_dim, num_points, str(source))  # there, of the zone's size
+        grid_path = zone["GridCoordinates"].name
     points = np.asarray(points, dtype=np.float64)
     columns = cell_dim if cell_dim == 2 and phys_dim == 3 else phys_dim
     if points.shape != (num_points, columns):
