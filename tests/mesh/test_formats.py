@@ -198,3 +198,24 @@ def test_the_format_table(tmp_path):
     write_mesh(tmp_path / "a.su2", mesh)
     with pytest.raises(ValueError, match="output: .* is not a su2 file like the source"):
         write_morphed(tmp_path / "a.su2", mesh.points, tmp_path / "b.vtu")
+
+
+def test_a_node_set_named_like_a_face_set_with_other_nodes_is_kept_renamed():
+    from torchmorph.mesh.formats._data import MeshData
+    from torchmorph.mesh.io import mesh_from_data
+
+    points, cells = MESHES["hex+wedge"]()
+    mesh = Mesh(points, cells)
+    facets = [(b.kind, b.nodes.numpy()[:1]) for b in mesh.boundary_facets[:1]]
+    own = np.unique(facets[0][1])
+    data = MeshData(
+        np.asarray(mesh.points),
+        [(b.kind, b.nodes.numpy()) for b in mesh.cells],
+        node_sets={"same": own, "other": np.union1d(own, [0, 1])},
+        face_sets={"same": facets, "other": facets},
+    )
+    with pytest.warns(UserWarning, match="node set 'other' is named like a face set"):
+        again = mesh_from_data(data)
+    assert set(again.node_sets) == {"other_nodes"}  # 'same' is the face set's own nodes
+    assert torch.equal(again.node_set("other_nodes"), torch.from_numpy(np.union1d(own, [0, 1])))
+    assert torch.equal(again.node_set("other"), torch.from_numpy(own))

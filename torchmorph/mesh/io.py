@@ -312,9 +312,22 @@ def _checked_points(points: Any, shape: tuple[int, ...], argument: str) -> np.nd
 
 def mesh_from_data(data: MeshData, *, name: str | None = None) -> Mesh:
     """The :class:`Mesh` of ``data`` (a :class:`TetMesh` for one block of linear
-    tetrahedra). A node set named like a face set (a reader's nodes of its face markers)
-    is the face set's: the face set carries the marker."""
-    node_sets = {k: v for k, v in data.node_sets.items() if k not in data.face_sets}
+    tetrahedra). A node set named like a face set that holds the face set's nodes (a
+    reader's nodes of its face markers) is the face set's: the face set carries the
+    marker; one that holds other nodes is kept as ``<name>_nodes``, with a warning."""
+    from torchmorph.mesh.formats._sets import separate_node_sets
+
+    node_sets = {
+        k: v
+        for k, v in separate_node_sets(
+            {k: np.asarray(v) for k, v in data.node_sets.items()},
+            data.face_sets,
+            "node set",
+            name or "mesh data",
+            stacklevel=3,
+        ).items()
+        if k not in data.face_sets
+    }
     if len(data.cells) == 1 and data.cells[0][0] == "tetra" and data.points.shape[1] == 3:
         return TetMesh(
             data.points,
