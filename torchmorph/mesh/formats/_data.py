@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["MeshData"]
+__all__ = ["MeshData", "in_plane"]
 
 
 @dataclass
@@ -49,3 +49,16 @@ class MeshData:
     point_data: dict[str, np.ndarray] = field(default_factory=dict)
     cell_data: dict[str, list[np.ndarray]] = field(default_factory=dict)
     planar_coordinate: float | None = None
+
+
+def in_plane(points: np.ndarray, where: str) -> tuple[np.ndarray, float]:
+    """The in-plane coordinates (N, 2) of planar cells stored with three coordinates, and
+    the constant third one; ``ValueError`` (``where``: the file) if the points leave the
+    plane z = const (a surface mesh in 3-D is not a volume or planar mesh)."""
+    z = points[:, 2]
+    if z.size and np.ptp(z) > 1e-12 * max(1.0, float(np.abs(points).max())):
+        raise ValueError(
+            f"{where}: planar cells with points off one plane z = const: a surface mesh in "
+            "3-D is not a volume or planar mesh"
+        )
+    return np.ascontiguousarray(points[:, :2]), (float(z[0]) if z.size else 0.0)

@@ -21,7 +21,7 @@ from torchmorph.mesh.formats._med_tables import (
     MED_KINDS,
     VTK_TO_MED,
 )
-from torchmorph.mesh.formats._sets import checked_fields, node_rows
+from torchmorph.mesh.formats._sets import checked_fields, connectivity, node_rows
 
 __all__ = ["write"]
 
@@ -78,18 +78,7 @@ def _checked(kind, nodes, dim: int, num_points: int, argument: str, source: str)
         raise ValueError(
             f"{argument}: a MED file cannot hold {kind!r} cells: {reason} (writing {source!r})"
         )
-    array = np.asarray(nodes)
-    expected = _NODES[_TYPE_OF[kind]]
-    if array.ndim != 2 or array.shape[1] != expected:
-        raise ValueError(
-            f"{argument}: {kind!r} connectivity must have shape (M, {expected}), got {array.shape} "
-            f"(writing {source!r})"
-        )
-    if array.size and (array.min() < 0 or array.max() >= num_points):
-        raise ValueError(
-            f"{argument}: node numbers must be in 0..{num_points - 1} (writing {source!r})"
-        )
-    return array.astype(np.int64)
+    return connectivity(nodes, kind, _NODES[_TYPE_OF[kind]], num_points, argument, source)
 
 
 def _cell_members(data: MeshData, cells: dict, sizes: list[int], source: str):

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["checked_fields", "node_rows", "separate_node_sets"]
+__all__ = ["checked_fields", "connectivity", "node_rows", "separate_node_sets"]
 
 
 def node_rows(rows: Any, argument: str, num_points: int, source: str) -> np.ndarray:
@@ -25,6 +25,24 @@ def node_rows(rows: Any, argument: str, num_points: int, source: str) -> np.ndar
     if array[0] < 0 or array[-1] >= num_points:
         raise ValueError(f"{argument}: rows outside [0, {num_points}) (writing {source!r})")
     return array
+
+
+def connectivity(
+    nodes: Any, kind: str, expected: int, num_points: int, argument: str, source: str
+) -> np.ndarray:
+    """A block's connectivity as int64 (M, ``expected``); ``ValueError`` naming ``argument``
+    if its shape is another or a node number lies outside [0, ``num_points``)."""
+    array = np.asarray(nodes)
+    if array.ndim != 2 or array.shape[1] != expected:
+        raise ValueError(
+            f"{argument}: {kind!r} connectivity must have shape (M, {expected}), got "
+            f"{array.shape} (writing {source!r})"
+        )
+    if array.size and (array.min() < 0 or array.max() >= num_points):
+        raise ValueError(
+            f"{argument}: node numbers must be in 0..{num_points - 1} (writing {source!r})"
+        )
+    return array.astype(np.int64)
 
 
 def checked_fields(

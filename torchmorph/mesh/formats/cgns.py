@@ -82,9 +82,9 @@ from torchmorph.mesh.formats._cgns_read import (
     _the_zone,
     malformed,
 )
-from torchmorph.mesh.formats._data import MeshData
+from torchmorph.mesh.formats._data import MeshData, in_plane
 from torchmorph.mesh.formats._hdf5 import set_text_attribute
-from torchmorph.mesh.formats._sets import checked_fields, node_rows
+from torchmorph.mesh.formats._sets import checked_fields, connectivity, node_rows
 
 __all__ = ["move_cgns", "read_cgns", "write_cgns"]
 
@@ -144,13 +144,7 @@ def read_cgns(path: str | os.PathLike) -> MeshData:
             )
         planar = None
         if cell_dim == 2 and phys_dim == 3:
-            z = points[:, 2]
-            if z.size and np.ptp(z) > 1e-12 * max(1.0, float(np.abs(points).max())):
-                raise ValueError(
-                    f"path: {source!r}: planar cells with points off one plane z = const: a "
-                    "surface mesh in 3-D is not a volume or planar mesh"
-                )
-            planar, points = (float(z[0]) if z.size else 0.0), points[:, :2]
+            points, planar = in_plane(points, f"path: {source!r}")
         node_sets, face_sets, groups = _markers(blocks, conditions, cell_dim, num_points, source)
         cell_data: dict[str, list[np.ndarray]] = {}
         # cell-centred values are in the order of the domain's element ids
@@ -222,18 +216,8 @@ def _checked_blocks(blocks, dim: int, num_points: int, argument: str, source: st
                 f"{label_here}: {kind!r} cannot stand here: {dim}-D kinds expected (writing "
                 f"{source!r})"
             )
-        array = np.asarray(nodes)
         expected = CGNS_KINDS[_CODE_OF[kind]][1]
-        if array.ndim != 2 or array.shape[1] != expected:
-            raise ValueError(
-                f"{label_here}: {kind!r} connectivity must have shape (M, {expected}), got "
-                f"{array.shape} (writing {source!r})"
-            )
-        if array.size and (array.min() < 0 or array.max() >= num_points):
-            raise ValueError(
-                f"{label_here}: node numbers must be in 0..{num_points - 1} (writing {source!r})"
-            )
-        checked.append((kind, array.astype(np.int64)))
+        checked.append((kind, connectivity(nodes, kind, expected, num_points, label_here, source)))
     return checked
 
 

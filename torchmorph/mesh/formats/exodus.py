@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 
 from torchmorph._atomic import atomic_output
-from torchmorph.mesh.formats._data import MeshData
+from torchmorph.mesh.formats._data import MeshData, in_plane
 from torchmorph.mesh.formats._exodus_tables import (
     SIDES,
     TO_VTK,
@@ -169,13 +169,7 @@ def _read(nc: Any) -> MeshData:
             raise ValueError(f"{block.label}: structural shells in a 2-D file (num_dim 2)")
     planar = None
     if top == 2 and num_dim == 3:
-        z = points[:, 2]
-        if np.ptp(z) > 1e-12 * max(1.0, float(np.abs(points).max())):
-            raise ValueError(
-                "2-D elements with points off one plane z = const: a surface mesh in 3-D "
-                "is not a volume or planar mesh"
-            )
-        planar, points = float(z[0]), np.ascontiguousarray(points[:, :2])
+        points, planar = in_plane(points, "2-D elements")
     domain = [block for block in blocks if block.type.dim == top]
     cells = [(block.type.kind, _to_vtk(block.type.kind, block.nodes)) for block in domain]
     index = SideIndex(domain, len(points))

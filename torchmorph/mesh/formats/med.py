@@ -54,7 +54,7 @@ import numpy as np
 
 from torchmorph._atomic import atomic_output
 from torchmorph.mesh.cells import FACET_KINDS
-from torchmorph.mesh.formats._data import MeshData
+from torchmorph.mesh.formats._data import MeshData, in_plane
 from torchmorph.mesh.formats._med_tables import (
     _DIM,
     _NO_PROFILE,
@@ -247,13 +247,7 @@ def _read(f, source: str) -> MeshData:
         raise ValueError(f"path: {source!r}: the mesh holds no cells of dimension 2 or 3")
     planar = None
     if top == 2 and space == 3:
-        z = points[:, 2]
-        if z.size and np.ptp(z) > 1e-12 * max(1.0, float(np.abs(points).max())):
-            raise ValueError(
-                f"path: {source!r}: planar cells with points off one plane z = const: a "
-                "surface mesh in 3-D is not a volume or planar mesh"
-            )
-        planar, points = (float(z[0]) if z.size else 0.0), points[:, :2]
+        points, planar = in_plane(points, f"path: {source!r}")
     elif space < top:
         raise ValueError(
             f"path: {source!r}: cells of dimension {top} in a space of dimension {space}"

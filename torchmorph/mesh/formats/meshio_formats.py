@@ -38,7 +38,7 @@ import numpy as np
 
 from torchmorph._atomic import atomic_output
 from torchmorph.mesh.cells import CELL_KINDS, FACET_KINDS
-from torchmorph.mesh.formats._data import MeshData
+from torchmorph.mesh.formats._data import MeshData, in_plane
 
 __all__ = [
     "FACE_SET_PREFIX",
@@ -254,14 +254,7 @@ def meshio_to_data(m) -> MeshData:
     cells = [(m.cells[i].type, np.asarray(m.cells[i].data, dtype=np.int64)) for i in domain]
     planar = None
     if top == 2 and points.shape[1] == 3:
-        z = points[:, 2]
-        if z.size and np.ptp(z) > 1e-12 * max(1.0, float(np.abs(points).max())):
-            raise ValueError(
-                "planar cells (triangles, quads) with points off one plane z = const: a "
-                "surface mesh in 3-D is not a volume or planar mesh"
-            )
-        planar = float(z[0]) if z.size else 0.0
-        points = points[:, :2]
+        points, planar = in_plane(points, "points")
     node_sets: dict[str, np.ndarray] = {}
     point_data: dict[str, np.ndarray] = {}
     for key, value in m.point_data.items():
