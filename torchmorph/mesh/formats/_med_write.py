@@ -21,7 +21,7 @@ from torchmorph.mesh.formats._med_tables import (
     MED_KINDS,
     VTK_TO_MED,
 )
-from torchmorph.mesh.formats._sets import checked_fields, connectivity, node_rows
+from torchmorph.mesh.formats._sets import checked_fields, checked_points, connectivity, node_rows
 
 __all__ = ["write"]
 
@@ -115,12 +115,7 @@ def write(path: str | os.PathLike, data: MeshData) -> None:
     import h5py
 
     source = str(path)
-    points = np.asarray(data.points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] not in (2, 3) or not np.isfinite(points).all():
-        raise ValueError(
-            f"data.points: must be finite, of shape (N, 2) or (N, 3), got {points.shape} "
-            f"(writing {source!r})"
-        )
+    points = checked_points(data.points, source)
     num_points, dim = points.shape
     if dim == 2 and data.planar_coordinate is not None:
         points = np.column_stack([points, np.full(num_points, float(data.planar_coordinate))])

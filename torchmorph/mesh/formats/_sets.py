@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["checked_fields", "connectivity", "node_rows", "separate_node_sets"]
+__all__ = ["checked_fields", "checked_points", "connectivity", "node_rows", "separate_node_sets"]
 
 
 def node_rows(rows: Any, argument: str, num_points: int, source: str) -> np.ndarray:
@@ -24,6 +24,17 @@ def node_rows(rows: Any, argument: str, num_points: int, source: str) -> np.ndar
     array = np.unique(array.astype(np.int64).ravel())
     if array[0] < 0 or array[-1] >= num_points:
         raise ValueError(f"{argument}: rows outside [0, {num_points}) (writing {source!r})")
+    return array
+
+
+def checked_points(points: Any, source: str) -> np.ndarray:
+    """``data.points`` as float64 (N, 2) or (N, 3); ``ValueError`` unless finite."""
+    array = np.asarray(points, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] not in (2, 3) or not np.isfinite(array).all():
+        raise ValueError(
+            f"data.points: must be finite, of shape (N, 2) or (N, 3), got {array.shape} "
+            f"(writing {source!r})"
+        )
     return array
 
 

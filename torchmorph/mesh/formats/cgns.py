@@ -84,7 +84,7 @@ from torchmorph.mesh.formats._cgns_read import (
 )
 from torchmorph.mesh.formats._data import MeshData, in_plane
 from torchmorph.mesh.formats._hdf5 import set_text_attribute
-from torchmorph.mesh.formats._sets import checked_fields, connectivity, node_rows
+from torchmorph.mesh.formats._sets import checked_fields, checked_points, connectivity, node_rows
 
 __all__ = ["move_cgns", "read_cgns", "write_cgns"]
 
@@ -282,12 +282,7 @@ def write_cgns(path: str | os.PathLike, data: MeshData) -> None:
     import h5py
 
     source = str(path)
-    points = np.asarray(data.points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] not in (2, 3) or not np.isfinite(points).all():
-        raise ValueError(
-            f"data.points: must be finite, of shape (N, 2) or (N, 3), got {points.shape} "
-            f"(writing {source!r})"
-        )
+    points = checked_points(data.points, source)
     num_points, dim = points.shape
     cells = _checked_blocks(data.cells, dim, num_points, "data.cells", source)
     face_sets = {
