@@ -1,5 +1,5 @@
 """``torchmorph morph`` on solvers' own inputs, judged by the solvers: an OpenFOAM case
-(3-D, and pseudo-2-D in its plane) passed by ``checkMesh`` and solved by ``potentialFoam``,
+(3-D hexahedra, hybrid cells, and pseudo-2-D in its plane) passed by ``checkMesh`` and solved by ``potentialFoam``,
 a CalculiX deck of quadratic elements solved by ``ccx``; the morph checked against an
 independent float64 IDW from the true boundary, and only the coordinates changed."""
 
@@ -22,11 +22,12 @@ from _foam_cases import (
     flat_channel,
     foam,
     fv_dicts,
+    gmsh_case,
     mesh_statistics,
     needs_openfoam,
     potential_fields,
 )
-from _kinds import idw_reference
+from _kinds import box, idw_reference
 
 from torchmorph.cli import EXIT_OK, main
 from torchmorph.mesh import read_mesh
@@ -94,6 +95,46 @@ def test_an_openfoam_case_morphed_passes_checkmesh_and_potentialfoam(tmp_path):
             "top": "symmetry",
         },
     )
+    assert "End" in foam("potentialFoam -writep", out)
+
+
+@pytest.mark.parametrize(
+    ("layers", "kinds"),
+    [
+        (("hexahedron", "pyramid"), {"hexahedra": 16, "pyramids": 96}),
+        (("wedge", "tetra"), {"prisms": 32, "tetrahedra": 96}),
+    ],
+)
+def test_a_hybrid_case_morphed_passes_checkmesh_and_potentialfoam(tmp_path, layers, kinds):
+    """Hexahedra beside pyramids, prisms beside tetrahedra (gmshToFoam's case of our cells):
+    the bottom wall bulges; OpenFOAM counts the cells by kind, finds the mesh OK and
+    solves on it."""
+    needs_openfoam("gmshToFoam", "potentialFoam")
+    points, cells = box(layers, 4)
+    case = tmp_path / "hybrid"
+    case.mkdir()
+    gmsh_case(case, np.asarray(points, dtype=float), [(k, np.asarray(c)) for k, c in cells])
+    mesh = read_mesh(case)
+    source, boundary = mesh.points.numpy(), mesh.boundary_nodes.numpy()
+    low, high = source.min(0), source.max(0)
+    on = source[boundary]
+    inside = (np.abs(on[:, 2] - low[2]) < 1e-12) & np.all(
+        (on[:, :2] > low[:2]) & (on[:, :2] < high[:2]), axis=1
+    )
+    full = np.zeros((boundary.size, 3))
+    unit = (on[inside, :2] - low[:2]) / (high[:2] - low[:2])
+    full[inside, 2] = 0.25 * (high[2] - low[2]) * np.prod(np.sin(np.pi * unit), axis=1)
+    assert inside.sum() == 9
+    np.save(tmp_path / "d.npy", full)
+    out = tmp_path / "morphed"
+    code = main(["morph", str(case), "-d", str(tmp_path / "d.npy"), "-o", str(out), "--strict"])
+    assert code == EXIT_OK
+    _interior_against_idw(source, read_foam_case(out).points, boundary, full)
+    fv_dicts(out)
+    log = foam("checkMesh", out)
+    statistics = mesh_statistics(log)
+    assert "Mesh OK." in log and {k: statistics[k] for k in kinds} == kinds
+    potential_fields(out, {"inlet": "inlet", "outlet": "outlet", "walls": "wall"})
     assert "End" in foam("potentialFoam -writep", out)
 
 
