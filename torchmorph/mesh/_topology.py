@@ -1,7 +1,8 @@
 """Topology of a mesh of any element kinds: cell blocks checked on input, the orientation
 of every cell, and the facets (faces in 3-D, edges in 2-D) matched across blocks — the
 boundary is the facets used once, an interior facet is shared by exactly two cells on
-opposite sides of it."""
+opposite sides of it, and a quadrilateral face against two triangles (a non-conforming
+interface, which would read as boundary) is an error."""
 
 from __future__ import annotations
 
@@ -248,7 +249,8 @@ def match_facets(
     """Match the facets of all blocks by their corners (see :class:`Facets`).
 
     Raises ``ValueError`` if a facet belongs to more than two cells (a non-manifold mesh
-    or duplicated cells).
+    or duplicated cells), or if a quadrilateral face lies against two triangular faces
+    (see :func:`_check_split_quads`).
     """
     # node ids in int32 where they fit: the sort's passes read half the bytes
     index_dtype = torch.int32 if num_nodes < 2**31 else torch.int64
@@ -258,6 +260,7 @@ def match_facets(
     for facet_kind, (nodes, owners) in copies.items():
         by_corners.setdefault(FACET_KINDS[facet_kind][0], []).append((facet_kind, nodes, owners))
     boundary: dict[str, list[Tensor]] = {}
+    single_corners: dict[int, tuple[Tensor, Tensor]] = {}  # boundary corners, owners
     firsts, seconds, first_corners, second_corners = [], [], [], []
     for corners, groups in sorted(by_corners.items()):
         kinds = [k for k, _, _ in groups]
@@ -276,6 +279,7 @@ def match_facets(
             )
         true = torch.ones(1, dtype=torch.bool, device=device)
         single = order[torch.cat([true, ~same]) & torch.cat([~same, true])]
+        single_corners[corners] = (corner_rows[single], owners[single])
         for index, facet_kind in enumerate(kinds):
             rows = single[kind_ids[single] == index] - int(starts[index])
             boundary.setdefault(facet_kind, []).append(groups[index][1][rows].long())
@@ -284,6 +288,8 @@ def match_facets(
         seconds.append(owners[second])
         first_corners.append(corner_rows[first])
         second_corners.append(corner_rows[second])
+    if 3 in single_corners and 4 in single_corners:
+        _check_split_quads(single_corners[4], single_corners[3], blocks, num_nodes, argument)
     return Facets(
         boundary=tuple(CellBlock(k, torch.cat(v)) for k, v in boundary.items()),
         first=torch.cat(firsts) if firsts else torch.empty(0, dtype=torch.long, device=device),
@@ -291,6 +297,69 @@ def match_facets(
         first_corners=tuple(first_corners),
         second_corners=tuple(second_corners),
     )
+
+
+#: The two triangles along each diagonal of a quad (corners in cyclic order): 0-2, 1-3.
+_QUAD_HALVES = (((0, 1, 2), (0, 2, 3)), ((1, 2, 3), (1, 3, 0)))
+
+
+def _check_split_quads(
+    quads: tuple[Tensor, Tensor],
+    triangles: tuple[Tensor, Tensor],
+    blocks: Sequence[CellBlock],
+    num_nodes: int,
+    argument: str,
+) -> None:
+    """Raise ``ValueError`` if a boundary quad's two halves along one of its diagonals are
+    both boundary triangles: a quadrilateral face of one cell against two triangular faces
+    of its neighbours, an interface the facets cannot match (it would read as boundary).
+
+    ``quads`` and ``triangles``: the corners (F, 4) / (F, 3) of the facets used once, in
+    cyclic order, and their owner cells (global). Sorts ``4 Q + T`` rows once.
+    """
+    quad_corners, quad_owners = quads
+    triangle_corners, triangle_owners = triangles
+    count = quad_corners.shape[0]
+    halves = [quad_corners[:, list(half)] for pair in _QUAD_HALVES for half in pair]
+    rows = torch.cat([*halves, triangle_corners])  # (4 Q + T, 3): four halves, then triangles
+    order, same = _sort_rows(_sorted_columns(rows), num_nodes)
+    # runs of equal rows in sorted order: a half is a boundary triangle when its run holds one
+    run = torch.cat([same.new_zeros(1, dtype=torch.long), torch.cumsum(~same, 0)])
+    is_triangle = order >= 4 * count
+    triangle_of_run = torch.full((rows.shape[0],), -1, dtype=torch.long, device=rows.device)
+    triangle_of_run[run[is_triangle]] = order[is_triangle] - 4 * count
+    matched = torch.empty(rows.shape[0], dtype=torch.long, device=rows.device)
+    matched[order] = triangle_of_run[run]
+    against = matched[: 4 * count].reshape(4, count)  # the triangle on each half, or -1
+    split = (against >= 0).reshape(2, 2, count).all(1)  # (diagonal, quad)
+    bad = torch.nonzero(split.any(0)).flatten()
+    if not bad.numel():
+        return
+    quad = int(bad[0])
+    diagonal = 0 if bool(split[0, quad]) else 1
+    faces = [int(against[2 * diagonal + k, quad]) for k in range(2)]
+    first_corner = quad_corners[quad, diagonal]
+    nodes = quad_corners[quad].tolist()
+    raise ValueError(
+        f"{argument}: {bad.numel()} quadrilateral face(s) lie against two triangular faces "
+        f"split along a diagonal (a non-conforming interface: it would read as boundary and "
+        f"its nodes be held fixed), e.g. the quad face with corners {nodes} of "
+        f"{_cell_name(int(quad_owners[quad]), blocks, argument)} against the triangles of "
+        + " and ".join(_cell_name(int(triangle_owners[f]), blocks, argument) for f in faces)
+        + f", split along its diagonal {int(first_corner)}-"
+        f"{int(quad_corners[quad, diagonal + 2])}; insert pyramids between the quad faces and "
+        "the triangles, or split the cells with quad faces along that diagonal (hexahedra "
+        "into wedges or tetrahedra)"
+    )
+
+
+def _cell_name(cell: int, blocks: Sequence[CellBlock], argument: str) -> str:
+    """``"cell 5 of cells[1] (wedge)"`` for the global cell index ``cell``."""
+    for position, block in enumerate(blocks):
+        if cell < block.nodes.shape[0]:
+            return f"cell {cell} of {argument}[{position}] ({block.kind})"
+        cell -= block.nodes.shape[0]
+    raise IndexError(cell)
 
 
 def check_folds(facets: Facets, *, argument: str = "cells") -> None:

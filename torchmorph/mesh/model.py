@@ -64,8 +64,9 @@ class Mesh:
         For points that are not (N, D) with D the cells' dimension, or hold NaN/inf; an
         unknown cell kind (named); cells of two dimensions; indices outside ``[0, N)``;
         flat cells; reference cells inverted at some corners or folded over a neighbour;
-        facets shared by more than two cells; markers with bad names, indices or kinds,
-        or a name used twice.
+        facets shared by more than two cells; a quadrilateral face against two triangular
+        faces split along its diagonal (a non-conforming interface, which would read as
+        boundary); markers with bad names, indices or kinds, or a name used twice.
 
     Notes
     -----
@@ -74,7 +75,9 @@ class Mesh:
     (:attr:`orientation`), and its facets are flipped so that :attr:`boundary_facets`
     point outward. Quadratic cells are measured on their corners (see
     :mod:`torchmorph.mesh.cells`). Not detected: parts of the mesh that overlap without
-    sharing a facet.
+    sharing a facet, and other non-conforming interfaces (hanging nodes: a face or edge
+    against several smaller ones; a quad against a single triangle on three of its
+    corners), whose facets read as boundary.
     """
 
     def __init__(
