@@ -129,7 +129,6 @@ def test_missing_solver_names_the_fsi_extra(elasticity, monkeypatch):
 
 @pytest.fixture(scope="module")
 def demo():
-    pytest.importorskip("matplotlib")
     return load_demo("physics_optimisation")
 
 
@@ -179,6 +178,7 @@ def test_thickness_family_refuses_bad_arguments(demo):
 @pytest.mark.slow
 def test_physics_optimisation_improves_a_valid_wing(demo, tmp_path):
     pytest.importorskip("gmsh")
+    pytest.importorskip("matplotlib")
     result = demo.main(
         [
             "--size",
