@@ -1,4 +1,4 @@
-"""Physics-driven shape optimisation: the stiffest wing of fixed volume, solved through a POD-ESIDW morph.
+"""The stiffest wing of fixed volume: a physics-driven shape optimisation through POD-ESIDW.
 
 The NACA0012 wing of the paper's case A (chord 1.01 m, span L = 2π m) is clamped at
 the root z = 0 and loaded at the tip (a force F along +y spread over the tip face by
@@ -127,6 +127,15 @@ def enclosed_volume_weights(mesh: TetMesh, nodes: Tensor) -> Tensor:
     return weights[nodes]
 
 
+def bernstein_bumps(s: Tensor, num_bumps: int) -> Tensor:
+    """``b_k(s) = C(K, k) s^k (1 − s)^(K−k)``, k = 1..K, shape (len(s), K): the Bernstein
+    polynomials of degree K without ``b_0``, so that every one vanishes at the root."""
+    k = torch.arange(1, num_bumps + 1, dtype=s.dtype, device=s.device)
+    binomial = torch.tensor([math.comb(num_bumps, j) for j in range(1, num_bumps + 1)])
+    binomial = binomial.to(dtype=s.dtype, device=s.device)
+    return binomial * s[:, None] ** k * (1.0 - s[:, None]) ** (num_bumps - k)
+
+
 class SpanwiseThickness(nn.Module):
     """Thickness of the wing's profile along the span, at fixed enclosed volume.
 
@@ -168,12 +177,7 @@ class SpanwiseThickness(nn.Module):
                 f"volume_weights must have shape ({points.shape[0]},), "
                 f"got {tuple(volume_weights.shape)}"
             )
-        s = (points[:, 2] / span).clamp(0.0, 1.0)
-        k = torch.arange(1, num_bumps + 1, dtype=points.dtype, device=points.device)
-        binomial = torch.tensor(
-            [math.comb(num_bumps, int(j)) for j in k.tolist()], dtype=points.dtype
-        ).to(points.device)
-        bumps = binomial * s[:, None] ** k * (1.0 - s[:, None]) ** (num_bumps - k)
+        bumps = bernstein_bumps((points[:, 2] / span).clamp(0.0, 1.0), num_bumps)
         self.register_buffer("profile", points[:, 1].clone())
         self.register_buffer("bumps", bumps)
         self.register_buffer("volume_weights", volume_weights.clone())
@@ -195,8 +199,9 @@ class SpanwiseThickness(nn.Module):
     def forward(self, mu: Tensor) -> Tensor:
         """Boundary displacement, shape (N_b, 3) for μ (K,), (B, N_b, 3) for μ (B, K)."""
         if mu.shape[-1:] != (self.num_bumps,) or mu.ndim not in (1, 2):
+            count = self.num_bumps
             raise ValueError(
-                f"mu must have shape ({self.num_bumps},) or (B, {self.num_bumps}), got {tuple(mu.shape)}"
+                f"mu must have shape ({count},) or (B, {count}), got {tuple(mu.shape)}"
             )
         factor = self.scale(mu)[..., None] * self.thickness(mu) - 1.0
         dy = factor * self.profile
@@ -205,12 +210,7 @@ class SpanwiseThickness(nn.Module):
 
     def section_thickness(self, mu: Tensor, s: Tensor) -> Tensor:
         """The normalised thickness c(μ) t(s) at span fractions ``s`` (for plots)."""
-        k = torch.arange(1, self.num_bumps + 1, dtype=s.dtype, device=s.device)
-        binomial = torch.tensor(
-            [math.comb(self.num_bumps, int(j)) for j in k.tolist()], dtype=s.dtype
-        )
-        bumps = binomial * s[:, None] ** k * (1.0 - s[:, None]) ** (self.num_bumps - k)
-        return self.scale(mu) * (1.0 + bumps @ mu)
+        return self.scale(mu) * (1.0 + bernstein_bumps(s, self.num_bumps) @ mu)
 
 
 # --------------------------------------------------------------------- physics
