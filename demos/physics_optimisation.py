@@ -36,8 +36,8 @@ autograd through the solver, the morph and the parametrisation. The demo
   (``ElementVector(ElementTetP1())``, ``linear_elasticity``) on the optimised mesh,
 - verifies the optimum on the full IDW morph (objective below the start, no inverted
   tetrahedron, volume kept), and
-- times one iteration (objective, gradient and Adam step) with POD-ESIDW, full ESIDW
-  and full IDW, and the morph's share of it.
+- times the morph, the objective with its gradient and one iteration (objective,
+  gradient and Adam step) with POD-ESIDW, full ESIDW and full IDW, taking turns.
 
 Beam theory (a slender beam of thickness t, second moment ∝ t³, the same volume) puts
 the material where the bending moment M is large, t ∝ M^(1/2): t ∝ (1 - s)^(1/2) under
@@ -70,7 +70,6 @@ from torch import Tensor, nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the demos' shared helpers
 
-from _common import median_seconds
 from _elasticity import (
     SparseSolve,
     StiffnessPattern,
@@ -386,22 +385,48 @@ def stiffness_against_skfem(problem: Problem, displacement: Tensor) -> float:
 
 
 def timed_costs(
-    problem: Problem, morph: Callable[[Tensor], Tensor], mu: Tensor, repeats: int
-) -> dict[str, float]:
-    """Median seconds at ``mu`` of the morph alone (forward and gradient to μ through
-    the family) and of the whole objective with its gradient."""
-    probe = mu.clone().requires_grad_(True)
+    problem: Problem,
+    morphs: dict[str, Callable[[Tensor], Tensor]],
+    mu: Tensor,
+    *,
+    repeats: int,
+    learning_rate: float,
+) -> dict[str, dict[str, float]]:
+    """Median seconds, for each morph, of the morph alone (forward and gradient to μ
+    through the family) and of the objective with its gradient, both at ``mu``, and of
+    one iteration of the Adam loop run on from ``mu`` (objective, gradient, step).
+
+    The morphs take turns, repeat by repeat, so that a load on a shared machine falls
+    on each alike; one untimed round comes first.
+    """
     weights = torch.ones(problem.mesh.num_nodes, 3, dtype=mu.dtype, device=mu.device)
-
-    def morph_only() -> None:
-        torch.autograd.grad((morph(problem.family(probe)) * weights).sum(), probe)
-
-    def objective() -> None:
-        torch.autograd.grad(problem.objective(morph, probe), probe)
-
+    loops = {}
+    for name in morphs:
+        design = mu.clone().requires_grad_(True)
+        loops[name] = (design, torch.optim.Adam([design], lr=learning_rate))
+    samples: dict[str, dict[str, list[float]]] = {
+        name: {"morph": [], "objective": [], "iteration": []} for name in morphs
+    }
+    for repeat in range(repeats + 1):
+        for name, morph in morphs.items():
+            probe = mu.clone().requires_grad_(True)
+            design, adam = loops[name]
+            start = time.perf_counter()
+            torch.autograd.grad((morph(problem.family(probe)) * weights).sum(), probe)
+            after_morph = time.perf_counter()
+            torch.autograd.grad(problem.objective(morph, probe), probe)
+            after_objective = time.perf_counter()
+            adam.zero_grad()
+            problem.objective(morph, design).backward()
+            adam.step()
+            after_iteration = time.perf_counter()
+            if repeat:
+                samples[name]["morph"].append(after_morph - start)
+                samples[name]["objective"].append(after_objective - after_morph)
+                samples[name]["iteration"].append(after_iteration - after_objective)
     return {
-        "morph": median_seconds(morph_only, repeats),
-        "objective": median_seconds(objective, repeats),
+        name: {key: statistics.median(values) for key, values in costs.items()}
+        for name, costs in samples.items()
     }
 
 
@@ -500,15 +525,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         "--step", type=float, default=1e-3, help="finite-difference step in μ (default %(default)s)"
     )
     parser.add_argument(
-        "--timed-iterations",
-        type=int,
-        default=20,
-        help="iterations of the loop timed with each full morph (default %(default)s)",
-    )
-    parser.add_argument(
         "--repeats",
         type=int,
-        default=5,
+        default=20,
         help="timed repeats of each cost (median; default %(default)s)",
     )
     parser.add_argument(
@@ -678,26 +697,13 @@ def _run(args: argparse.Namespace, start: float) -> dict[str, Any]:
         "ESIDW (full W)": esidw,
         f"IDW ({idw.num_controls} controls)": idw,
     }
-    timings: dict[str, dict[str, float]] = {}
-    for name, morph in morphs.items():
-        costs = timed_costs(problem, morph, mu, args.repeats)
-        if morph is reducer:
-            seconds = history.iteration_seconds
-        else:
-            iterations = args.timed_iterations
-            _, timed = optimise(
-                problem, morph, iterations=iterations, learning_rate=args.lr, record=False
-            )
-            seconds = timed.iteration_seconds
-        costs["iteration"] = statistics.median(seconds)
-        timings[name] = costs
+    timings = timed_costs(problem, morphs, mu, repeats=args.repeats, learning_rate=args.lr)
     result["timings_s"] = timings
     base = timings["POD-ESIDW"]
     say(
-        f"\ncosts at the optimum (median of {args.repeats}): the morph alone and the "
-        f"objective, each with its gradient to μ; an iteration of the loop (objective, "
-        f"gradient, Adam step; median over the run, {args.timed_iterations} iterations for "
-        f"the full morphs); {torch.get_num_threads()} thread(s):"
+        f"\ncosts at the optimum, median of {args.repeats} (the morphs taking turns): the "
+        f"morph alone and the objective, each with its gradient to μ, and an iteration of "
+        f"the loop (objective, gradient, Adam step); {torch.get_num_threads()} thread(s):"
     )
     say(
         f"  {'morph':24s} {'morph':>10s} {'objective':>10s} {'iteration':>10s} {'morph share':>12s}"

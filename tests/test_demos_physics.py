@@ -188,8 +188,6 @@ def test_physics_optimisation_improves_a_valid_wing(demo, tmp_path):
             "--quiet",
             "--repeats",
             "2",
-            "--timed-iterations",
-            "3",
         ]
     )
     # dJ/dμ by autograd through solver, morph and family against central differences
