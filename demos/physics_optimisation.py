@@ -44,8 +44,11 @@ the material where the bending moment M is large, t ∝ M^(1/2): t ∝ (1 - s)^(
 the tip load, t ∝ 1 - s under the lift. The thinning tip is where the barrier ends
 the run: the morph does not carry the boundary's y scaling linearly into the interior,
 so tetrahedra near the surface shrink by more than the thickness does.
-P1 tetrahedra are stiff in bending on a coarse mesh (locking), so C is the discrete
-compliance of this mesh, not the converged one.
+C is the discrete compliance of this mesh, not the converged one: P1 tetrahedra lock in
+bending with a few elements across the thickness, and C(0) under the 1 kN tip load is
+4.7 J on the small mesh and 5.5 J on the paper's, against F²L³/(3EI) = 16.7 J of
+Euler-Bernoulli beam theory (I = 7.09e-5 m⁴ of the NACA0012 section). The optimisation
+is that of the discrete model; quadratic elements would be the next step.
 
 Needs the ``fsi`` extra (scikit-fem, scipy)::
 
