@@ -66,7 +66,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor, nn
@@ -560,7 +560,7 @@ def _run(args: argparse.Namespace, start: float) -> dict[str, Any]:
     say = (lambda *a, **k: None) if args.quiet else print
 
     # ------------------------------------------------------------------ set-up
-    mesh = load_mesh("wing", size=args.size).to(dtype=torch.float64)
+    mesh = cast(TetMesh, load_mesh("wing", size=args.size).to(dtype=torch.float64))
     generator = torch.Generator().manual_seed(args.seed)
     esidw = MeshMorph(mesh, CASES["wing"].plan(), generator=generator)
     idw = MeshMorph(mesh)
