@@ -4,7 +4,12 @@ The finite-element solve of demos/physics_optimisation.py (not part of the libra
 
 - :func:`p1_gradients`: volumes and shape-function gradients of every tetrahedron from
   the (morphed) node coordinates;
-- :func:`element_stiffness`: ``K_e = V_e B_eᵀ C B_e`` (Voigt strains, isotropic C);
+- :func:`shape_gradients`: the same for P2 (straight-sided, mid-edge nodes at the
+  edges' midpoints) at the points of a degree-2 quadrature;
+- :func:`element_stiffness`: ``K_e = |V_e| Σ_q w_q B_qᵀ C B_q`` (Voigt strains,
+  isotropic C), P1 or P2;
+- :class:`LagrangeSpace`: the nodes of P1 or P2 elements (the mesh's nodes, then its
+  edges), the nodes on a clamped set and those that carry a traction;
 - :class:`StiffnessPattern`: the fixed sparsity of the assembled matrix with clamped
   degrees of freedom removed, and the scatter of element entries onto it;
 - :class:`SparseSolve`: ``u = K⁻¹ f`` by a sparse LU factorisation (scipy), with the
@@ -13,8 +18,9 @@ The finite-element solve of demos/physics_optimisation.py (not part of the libra
   pair, no second factorisation).
 
 Degrees of freedom are interleaved, ``3 · node + component``, as scikit-fem numbers
-those of ``ElementVector(ElementTetP1())``; the tests compare the assembled matrix with
-scikit-fem's ``linear_elasticity`` form entry by entry.
+those of ``ElementVector(ElementTetP1())``; the P2 nodes are the corners, then the
+edges (``num_nodes + edge``). The tests compare the assembled matrices with scikit-fem's
+``linear_elasticity`` form (P1 and P2) entry by entry.
 """
 
 from __future__ import annotations
@@ -27,13 +33,16 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "LagrangeSpace",
     "SparseSolve",
     "StiffnessPattern",
     "elasticity_matrix",
     "element_stiffness",
     "lame_parameters",
     "p1_gradients",
+    "quadratic_cells",
     "require_solver",
+    "shape_gradients",
     "strain_selection",
 ]
 
@@ -94,6 +103,66 @@ def p1_gradients(points: Tensor, tets: Tensor) -> tuple[Tensor, Tensor]:
     return volumes, gradients
 
 
+#: The edges of a tetrahedron by its corners, in the order of ``TetMesh.tet_edges``; the
+#: local nodes 4..9 of a quadratic tetrahedron are their midpoints, in this order.
+TET_EDGE_CORNERS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+#: Degree-2 quadrature on a tetrahedron (exact for the P2 stiffness of a straight-sided
+#: one): the barycentric points (a, b, b, b) and their permutations, each of weight 1/4.
+QUADRATURE_A, QUADRATURE_B = 0.5854101966249685, 0.1381966011250105
+
+
+def shape_gradients(points: Tensor, tets: Tensor, *, order: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Gradients of the Lagrange shape functions of degree ``order`` (1 or 2) at the
+    quadrature points of every (straight-sided) tetrahedron.
+
+    Parameters
+    ----------
+    points : Tensor, shape (N, 3)
+        The corners' coordinates (the mid-edge nodes of P2 are the edges' midpoints).
+    tets : Tensor, shape (M, 4)
+    order : {1, 2}
+
+    Returns
+    -------
+    volumes : Tensor, shape (M,)
+    gradients : Tensor, shape (M, Q, n, 3)
+        n = 4 (P1, Q = 1) or 10 (P2, Q = 4): corners first, then the mid-edge nodes in
+        the order of :data:`TET_EDGE_CORNERS`.
+    weights : Tensor, shape (Q,)
+        Quadrature weights, summing to 1 (multiply by the volume).
+
+    Notes
+    -----
+    With the barycentric coordinates λ_i (gradients ``g_i`` from :func:`p1_gradients`),
+    the P2 functions are ``λ_i (2 λ_i − 1)`` at corner i, gradient ``(4 λ_i − 1) g_i``,
+    and ``4 λ_i λ_j`` at edge (i, j), gradient ``4 (λ_i g_j + λ_j g_i)``.
+    """
+    volumes, corner_gradients = p1_gradients(points, tets)
+    if order == 1:
+        weights = corner_gradients.new_ones(1)
+        return volumes, corner_gradients[:, None], weights
+    if order != 2:
+        raise ValueError(f"order must be 1 or 2, got {order!r}")
+    barycentric = torch.full((4, 4), QUADRATURE_B, dtype=points.dtype, device=points.device)
+    barycentric.fill_diagonal_(QUADRATURE_A)  # (Q, 4): point q, coordinate i
+    corner = (4.0 * barycentric - 1.0)[None, :, :, None] * corner_gradients[:, None]
+    first = [i for i, _ in TET_EDGE_CORNERS]
+    second = [j for _, j in TET_EDGE_CORNERS]
+    edge = 4.0 * (
+        barycentric[None, :, first, None] * corner_gradients[:, None, second]
+        + barycentric[None, :, second, None] * corner_gradients[:, None, first]
+    )
+    weights = barycentric.new_full((4,), 0.25)
+    return volumes, torch.cat([corner, edge], 2), weights
+
+
+def quadratic_cells(tets: Tensor, tet_edges: Tensor, num_nodes: int) -> Tensor:
+    """The ten nodes of every P2 tetrahedron, shape (M, 10): the corners, then
+    ``num_nodes + e`` for its edges e (``TetMesh.tet_edges``), in the order of
+    :data:`TET_EDGE_CORNERS`."""
+    return torch.cat([tets, num_nodes + tet_edges], 1)
+
+
 #: Voigt strain rows (ε_xx, ε_yy, ε_zz, 2ε_yz, 2ε_xz, 2ε_xy) as ``Σ S[r, i, k] ∂_k u_i``.
 VOIGT_PAIRS = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
 
@@ -119,32 +188,119 @@ def elasticity_matrix(
     return matrix + torch.diag(diagonal)
 
 
-def element_stiffness(points: Tensor, tets: Tensor, lame: tuple[float, float]) -> Tensor:
-    """Element stiffness matrices of isotropic linear elasticity, P1 tetrahedra.
+def element_stiffness(
+    points: Tensor, tets: Tensor, lame: tuple[float, float], *, order: int = 1
+) -> Tensor:
+    """Element stiffness matrices of isotropic linear elasticity, P1 or P2 tetrahedra.
 
-    ``K_e = |V_e| B_eᵀ C B_e``: the bilinear form ``∫ 2μ ε(u):ε(v) + λ div u div v`` on
-    one tetrahedron, with B_e (6 × 12) the strain of each corner's displacement,
-    ``B_e[r, 3 a + i] = Σ_k S[r, i, k] ∂_k φ_a`` (:func:`strain_selection`), and C of
-    :func:`elasticity_matrix`.
+    ``K_e = |V_e| Σ_q w_q B_qᵀ C B_q``: the bilinear form ``∫ 2μ ε(u):ε(v) + λ div u
+    div v`` on one tetrahedron by the quadrature of :func:`shape_gradients` (exact: one
+    point for P1, four for P2), with B_q (6 × 3n) the strain of each node's
+    displacement, ``B_q[r, 3 a + i] = Σ_k S[r, i, k] ∂_k φ_a`` (:func:`strain_selection`),
+    and C of :func:`elasticity_matrix`.
 
     Parameters
     ----------
     points : Tensor, shape (N, 3)
+        The corners' coordinates.
     tets : Tensor, shape (M, 4)
     lame : (float, float)
         Lamé's λ and μ (:func:`lame_parameters`).
+    order : {1, 2}
+        P1 (4 nodes) or straight-sided P2 (10 nodes, :func:`quadratic_cells`).
 
     Returns
     -------
-    Tensor, shape (M, 12, 12)
-        Rows and columns ``3 a + i`` (corner a, component i); differentiable in
+    Tensor, shape (M, 3n, 3n)
+        Rows and columns ``3 a + i`` (local node a, component i); differentiable in
         ``points``.
     """
-    volumes, gradients = p1_gradients(points, tets)
+    volumes, gradients, weights = shape_gradients(points, tets, order=order)
+    nodes = gradients.shape[2]
     selection = strain_selection(points.dtype, points.device)
-    strain = torch.einsum("rik,mak->mrai", selection, gradients).reshape(-1, 6, 12)
+    strain = torch.einsum("rik,mqak->mqrai", selection, gradients).reshape(
+        *gradients.shape[:2], 6, 3 * nodes
+    )
     material = elasticity_matrix(lame, points.dtype, points.device)
-    return volumes.abs()[:, None, None] * (strain.mT @ (material @ strain))
+    weighted = weights[:, None, None] * (material @ strain)  # (M, Q, 6, 3n)
+    products = (strain.mT @ weighted).sum(1)
+    return volumes.abs()[:, None, None] * products
+
+
+@dataclass(frozen=True)
+class LagrangeSpace:
+    """The nodes of P1 or P2 (straight-sided) vector Lagrange elements on a tetrahedral
+    mesh: the mesh's nodes, then for P2 one node on each edge (``num_vertices + e``).
+
+    Attributes
+    ----------
+    order : int
+        1 or 2.
+    cells : Tensor (M, 4) or (M, 10)
+        The nodes of every element (:func:`quadratic_cells` for P2).
+    num_nodes : int
+        Nodes in all.
+    num_vertices : int
+        The mesh's nodes.
+    edges : Tensor (E, 2)
+        The mesh's edges, ``i < j``, sorted (``TetMesh.edges``).
+    """
+
+    order: int
+    cells: Tensor
+    num_nodes: int
+    num_vertices: int
+    edges: Tensor
+
+    @classmethod
+    def of(cls, mesh: Any, order: int) -> LagrangeSpace:
+        """The space of degree ``order`` on the TetMesh ``mesh``."""
+        if order not in (1, 2):
+            raise ValueError(f"order must be 1 or 2, got {order!r}")
+        vertices = mesh.num_nodes
+        edges = mesh.edges
+        if order == 1:
+            return cls(1, mesh.tets, vertices, vertices, edges)
+        cells = quadratic_cells(mesh.tets, mesh.tet_edges, vertices)
+        return cls(2, cells, vertices + edges.shape[0], vertices, edges)
+
+    def edge_numbers(self, first: Tensor, second: Tensor) -> Tensor:
+        """The numbers in :attr:`edges` of the edges ``(first[k], second[k])``."""
+        low, high = torch.minimum(first, second), torch.maximum(first, second)
+        keys = self.edges[:, 0] * self.num_vertices + self.edges[:, 1]
+        return torch.searchsorted(keys, low * self.num_vertices + high)
+
+    def nodes_within(self, vertices: Tensor) -> Tensor:
+        """The space's nodes on the closure of a vertex set: the vertices and, for P2,
+        the edges whose two ends both lie in it."""
+        if self.order == 1:
+            return vertices
+        member = torch.zeros(self.num_vertices, dtype=torch.bool, device=vertices.device)
+        member[vertices] = True
+        inside = torch.nonzero(member[self.edges].all(1)).flatten()
+        return torch.cat([vertices, self.num_vertices + inside])
+
+    def traction_nodes(self, faces: Tensor) -> Tensor:
+        """The nodes that share a constant traction on each flat triangle ``faces``
+        (F, 3), a third of the force each: its corners (P1) or its mid-edge nodes (P2;
+        the corners' shares of the consistent load are zero), shape (F, 3)."""
+        if self.order == 1:
+            return faces
+        pairs = ((0, 1), (1, 2), (0, 2))
+        numbers = [self.edge_numbers(faces[:, i], faces[:, j]) for i, j in pairs]
+        return self.num_vertices + torch.stack(numbers, 1)
+
+    def skfem_numbering(self, basis: Any) -> np.ndarray:
+        """scikit-fem's number of each of our degrees of freedom ``3 · node + i`` in the
+        ``ElementVector`` basis of the same order on the same mesh, shape (3 n,)."""
+        numbering = [basis.nodal_dofs.T]
+        if self.order == 2:
+            theirs = {
+                tuple(edge): k for k, edge in enumerate(np.sort(basis.mesh.edges.T, 1).tolist())
+            }
+            rows = [theirs[tuple(edge)] for edge in self.edges.tolist()]
+            numbering.append(basis.edge_dofs.T[rows])
+        return np.concatenate(numbering).reshape(-1)
 
 
 @dataclass(frozen=True)
@@ -183,11 +339,13 @@ class StiffnessPattern:
         return int(self.rows.numel())
 
     @classmethod
-    def of(cls, tets: Tensor, num_nodes: int, clamped_nodes: Tensor) -> StiffnessPattern:
-        """Pattern of the tetrahedra ``tets`` (M, 4) with every component of
+    def of(cls, cells: Tensor, num_nodes: int, clamped_nodes: Tensor) -> StiffnessPattern:
+        """Pattern of the elements ``cells`` (M, n): n nodes each, 4 for P1 and 10 for
+        P2 (:func:`quadratic_cells`), ``num_nodes`` in all, with every component of
         ``clamped_nodes`` fixed to zero (their rows and columns removed)."""
-        tets_np = tets.detach().cpu().numpy().astype(np.int64)
-        dofs = (3 * tets_np[:, :, None] + np.arange(3)).reshape(-1, 12)  # (M, 12)
+        cells_np = cells.detach().cpu().numpy().astype(np.int64)
+        width = 3 * cells_np.shape[1]
+        dofs = (3 * cells_np[:, :, None] + np.arange(3)).reshape(-1, width)  # (M, 3n)
         free = np.ones(3 * num_nodes, dtype=bool)
         clamped = clamped_nodes.detach().cpu().numpy().astype(np.int64)
         free[(3 * clamped[:, None] + np.arange(3)).reshape(-1)] = False
@@ -195,14 +353,14 @@ class StiffnessPattern:
         numbering[free] = np.arange(int(free.sum()))
         size = int(free.sum())
         local = numbering[dofs]
-        entry_rows = np.repeat(local, 12, axis=1).reshape(-1)  # entry (m, 12 r + c)
-        entry_columns = np.tile(local, (1, 12)).reshape(-1)
+        entry_rows = np.repeat(local, width, axis=1).reshape(-1)  # entry (m, 3n r + c)
+        entry_columns = np.tile(local, (1, width)).reshape(-1)
         kept = (entry_rows >= 0) & (entry_columns >= 0)
         keys = entry_columns[kept] * size + entry_rows[kept]  # column-major: CSC order
         unique, positions = np.unique(keys, return_inverse=True)
         columns, rows = np.divmod(unique, size)
         pointers = np.searchsorted(columns, np.arange(size + 1))
-        device = tets.device
+        device = cells.device
         return cls(
             free_dofs=torch.from_numpy(np.flatnonzero(free)).to(device),
             row_indices=rows.astype(np.int32),

@@ -14,6 +14,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -57,24 +58,43 @@ def skewed_box(cells: int = 2, seed: int = 0):
     return mesh, mesh.points + moved
 
 
-def test_stiffness_equals_scikit_fem(elasticity):
+@pytest.mark.parametrize("order", [1, 2])
+def test_stiffness_equals_scikit_fem(elasticity, order):
     from skfem.models.elasticity import lame_parameters, linear_elasticity
 
     mesh, points = skewed_box()
     lame = elasticity.lame_parameters(70e9, 0.33)
     assert lame == pytest.approx(lame_parameters(70e9, 0.33), rel=1e-15)
-    pattern = elasticity.StiffnessPattern.of(mesh.tets, mesh.num_nodes, mesh.node_set("z0"))
-    values = pattern.assemble(elasticity.element_stiffness(points, mesh.tets, lame))
+    space = elasticity.LagrangeSpace.of(mesh, order)
+    clamped = space.nodes_within(mesh.node_set("z0"))
+    pattern = elasticity.StiffnessPattern.of(space.cells, space.num_nodes, clamped)
+    matrices = elasticity.element_stiffness(points, mesh.tets, lame, order=order)
+    values = pattern.assemble(matrices)
+    element = skfem.ElementTetP1() if order == 1 else skfem.ElementTetP2()
     basis = skfem.Basis(
         skfem.MeshTet(points.numpy().T.copy(), mesh.tets.numpy().T.copy()),
-        skfem.ElementVector(skfem.ElementTetP1()),
+        skfem.ElementVector(element),
     )
-    reference = skfem.asm(linear_elasticity(*lame), basis).tocsc()
-    free = pattern.free_dofs.numpy()
-    reference = reference[free][:, free].toarray()
+    reference = skfem.asm(linear_elasticity(*lame), basis).toarray()
+    free = space.skfem_numbering(basis)[pattern.free_dofs.numpy()]
+    reference = reference[np.ix_(free, free)]
     ours = pattern.to_scipy(values).toarray()
     assert abs(ours - reference).max() <= 1e-13 * abs(reference).max()
-    assert pattern.size == 3 * (mesh.num_nodes - len(mesh.node_set("z0")))
+    # the clamped face: 9 nodes (P1), and for P2 also its 16 edges
+    assert space.num_nodes - pattern.size // 3 == (9 if order == 1 else 25)
+
+
+def test_p2_traction_nodes_carry_the_force_of_a_face(elasticity):
+    mesh, _ = skewed_box()
+    space = elasticity.LagrangeSpace.of(mesh, 2)
+    faces = mesh.boundary_faces[:5]
+    nodes = space.traction_nodes(faces)
+    edges = space.edges[nodes - space.num_vertices]  # (F, 3, 2): the edges' ends
+    for face, ends in zip(faces.tolist(), edges.tolist(), strict=True):
+        assert sorted(map(tuple, ends)) == sorted(
+            tuple(sorted(pair))
+            for pair in ((face[0], face[1]), (face[1], face[2]), (face[0], face[2]))
+        )
 
 
 def test_sparse_solve_passes_gradcheck(elasticity):
@@ -89,15 +109,18 @@ def test_sparse_solve_passes_gradcheck(elasticity):
     )
 
 
-def test_compliance_gradient_to_the_points_passes_gradcheck(elasticity):
+@pytest.mark.parametrize("order", [1, 2])
+def test_compliance_gradient_to_the_points_passes_gradcheck(elasticity, order):
     mesh, points = skewed_box(1)
-    pattern = elasticity.StiffnessPattern.of(mesh.tets, mesh.num_nodes, mesh.node_set("z0"))
-    load = torch.zeros(mesh.num_nodes, 3, dtype=torch.float64)
-    load[mesh.node_set("z1"), 0] = 1.0
+    space = elasticity.LagrangeSpace.of(mesh, order)
+    clamped = space.nodes_within(mesh.node_set("z0"))
+    pattern = elasticity.StiffnessPattern.of(space.cells, space.num_nodes, clamped)
+    load = torch.zeros(space.num_nodes, 3, dtype=torch.float64)
+    load[space.nodes_within(mesh.node_set("z1")), 0] = 1.0
     load = load.reshape(-1)[pattern.free_dofs]
 
     def compliance(points):
-        matrix = elasticity.element_stiffness(points, mesh.tets, (1.0, 0.5))
+        matrix = elasticity.element_stiffness(points, mesh.tets, (1.0, 0.5), order=order)
         solution = elasticity.SparseSolve.apply(pattern.assemble(matrix), load, pattern)
         return load @ solution
 
@@ -112,6 +135,30 @@ def test_p1_gradients_reproduce_a_linear_field(elasticity):
     recovered = torch.einsum("ma,mak->mk", values[mesh.tets], gradients)
     torch.testing.assert_close(recovered, slope.expand_as(recovered), rtol=0, atol=1e-12)
     torch.testing.assert_close(volumes, signed_volumes(points, mesh.tets), rtol=1e-12, atol=0)
+
+
+def test_p2_gradients_reproduce_a_quadratic_field(elasticity):
+    mesh, points = skewed_box()
+    space = elasticity.LagrangeSpace.of(mesh, 2)
+    midpoints = points[space.edges].mean(1)
+    nodes = torch.cat([points, midpoints])
+
+    def field(x):  # a quadratic, interpolated exactly by P2
+        return x[..., 0] ** 2 - 2.0 * x[..., 1] * x[..., 2] + x[..., 2]
+
+    def gradient(x):
+        return torch.stack([2.0 * x[..., 0], -2.0 * x[..., 2], 1.0 - 2.0 * x[..., 1]], -1)
+
+    _, gradients, weights = elasticity.shape_gradients(points, mesh.tets, order=2)
+    values = field(nodes)[space.cells]  # (M, 10)
+    recovered = torch.einsum("ma,mqak->mqk", values, gradients)
+    a, b = elasticity.QUADRATURE_A, elasticity.QUADRATURE_B
+    barycentric = torch.full((4, 4), b, dtype=torch.float64).fill_diagonal_(a)
+    quadrature_points = torch.einsum("qi,mik->mqk", barycentric, points[mesh.tets])
+    torch.testing.assert_close(recovered, gradient(quadrature_points), rtol=0, atol=1e-12)
+    assert weights.sum() == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="order must be 1 or 2, got 3"):
+        elasticity.shape_gradients(points, mesh.tets, order=3)
 
 
 def test_lame_parameters_name_the_bad_argument(elasticity):
