@@ -1,7 +1,15 @@
 """Selection of control points: Algorithm 1 of the paper (SIDW) in
-:mod:`torchmorph.selection.sidw`, and per-region selection plans with enrichment (ESIDW,
-Algorithm 2 steps (i)–(ii)) in :mod:`torchmorph.selection.plan`."""
+:mod:`torchmorph.selection.sidw`, per-region selection plans with enrichment (ESIDW,
+Algorithm 2 steps (i)–(ii)) in :mod:`torchmorph.selection.plan`, and the error-driven
+selection (the greedy loop of :mod:`torchmorph.selection.greedy` with the IDW error
+of :mod:`torchmorph.selection.adaptive`)."""
 
+from torchmorph.selection.adaptive import (
+    AdaptivePlan,
+    IDWErrorOracle,
+    select_adaptive,
+)
+from torchmorph.selection.greedy import ErrorOracle, GreedySelection, greedy_selection
 from torchmorph.selection.plan import (
     Region,
     RegionOverlapError,
@@ -13,9 +21,15 @@ from torchmorph.selection.sidw import DEFAULT_SEED, STRATEGIES, select_control_p
 __all__ = [
     "DEFAULT_SEED",
     "STRATEGIES",
+    "AdaptivePlan",
+    "ErrorOracle",
+    "GreedySelection",
+    "IDWErrorOracle",
     "Region",
     "RegionOverlapError",
     "SelectionPlan",
     "UncoveredNodesError",
+    "greedy_selection",
+    "select_adaptive",
     "select_control_points",
 ]

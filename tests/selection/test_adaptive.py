@@ -1,0 +1,278 @@
+"""Tests of the error-driven selection (torchmorph.selection.adaptive and .greedy)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchmorph.mesh import TetMesh
+from torchmorph.mesh.tetmesh import box_mesh
+from torchmorph.morph import MeshMorph
+from torchmorph.selection import Region, SelectionPlan
+from torchmorph.selection.adaptive import AdaptivePlan, IDWErrorOracle, select_adaptive
+
+
+def reference_idw(controls, targets, values, power=4.0):
+    """Eq. (2) literally, in NumPy: w_k = |x - c_k|^-p / sum_j |x - c_j|^-p."""
+    controls, targets, values = (
+        np.asarray(a, dtype=np.float64) for a in (controls, targets, values)
+    )
+    distances = np.sqrt(((targets[:, None, :] - controls[None, :, :]) ** 2).sum(-1))
+    weights = distances**-power
+    weights /= weights.sum(1, keepdims=True)
+    return weights @ values
+
+
+def bent_box(cells=6):
+    """A box whose top face bends (δy = 0.2 x² on y = 1), the rest fixed."""
+    mesh = box_mesh(cells)
+    boundary = mesh.boundary_nodes
+    points = mesh.points[boundary]
+    displacement = torch.zeros_like(points)
+    top = points[:, 1] > 1 - 1e-12
+    displacement[top, 1] = 0.2 * points[top, 0] ** 2
+    return mesh, displacement
+
+
+def nodal_error(mesh, boundary_displacement, selected_nodes, weights=None):
+    """Relative weighted nodal error of IDW from ``selected_nodes`` against IDW from every
+    boundary node, over the whole mesh, from the NumPy reference."""
+    boundary = mesh.boundary_nodes.numpy()
+    interior = mesh.interior_nodes.numpy()
+    points = mesh.points.numpy()
+    d = boundary_displacement.numpy()
+    full = reference_idw(points[boundary], points[interior], d)
+    rows = np.searchsorted(boundary, np.asarray(selected_nodes))
+    partial = reference_idw(points[boundary[rows]], points[interior], d[rows])
+    w = np.ones(mesh.num_nodes) if weights is None else np.asarray(weights, dtype=np.float64)
+    error = (w[interior, None] * (partial - full) ** 2).sum()
+    norm = (w[interior, None] * full**2).sum() + (w[boundary, None] * d**2).sum()
+    return np.sqrt(error / norm)
+
+
+@pytest.mark.parametrize("tolerance", [0.05, 0.01])
+def test_tolerance_reached_against_the_literal_formula(tolerance):
+    mesh, displacement = bent_box()
+    plan = AdaptivePlan(tolerance, displacement)
+    morph = MeshMorph(mesh, plan)
+    assert plan.result_.converged and plan.result_.reason == "tolerance"
+    error = nodal_error(mesh, displacement, morph.control_nodes.numpy())
+    assert error <= tolerance
+    assert error == pytest.approx(plan.result_.error, rel=1e-9)  # every target sampled
+    assert morph.num_controls < morph.num_boundary
+
+
+def test_at_least_one_control_when_no_control_is_within_tolerance():
+    mesh, displacement = bent_box(4)
+    plan = AdaptivePlan(0.99, displacement)  # the zero field is within 99 %
+    morph = MeshMorph(mesh, plan)
+    assert morph.num_controls >= 1 and plan.result_.converged
+
+
+def test_budget_respected():
+    mesh, displacement = bent_box()
+    plan = AdaptivePlan(1e-9, displacement, max_controls=7)
+    morph = MeshMorph(mesh, plan)
+    assert morph.num_controls == 7
+    assert plan.result_.reason == "budget" and not plan.result_.converged
+    # the recorded error is the morph's
+    assert nodal_error(mesh, displacement, morph.control_nodes.numpy()) == pytest.approx(
+        plan.result_.error, rel=1e-9
+    )
+
+
+def test_start_set_is_kept():
+    mesh, displacement = bent_box()
+    start = SelectionPlan([Region("y1", 0.5)], uncovered="ignore")
+    chosen = start.select(mesh)
+    morph = MeshMorph(mesh, AdaptivePlan(0.02, displacement, start=start))
+    assert set(chosen.tolist()) <= set(morph.control_nodes.tolist())
+
+
+def test_weights_respected():
+    mesh, displacement = bent_box()
+    x = mesh.points[:, 0]
+    weights = (x > 0.5).to(mesh.dtype)  # only the right half counts
+    tolerance = 0.01
+    plan = AdaptivePlan(tolerance, displacement, weights=weights)
+    morph = MeshMorph(mesh, plan)
+    weighted = nodal_error(mesh, displacement, morph.control_nodes.numpy(), weights.numpy())
+    assert weighted <= tolerance
+    assert weighted == pytest.approx(plan.result_.error, rel=1e-9)
+    # the unweighted error of that selection is not what was driven
+    plain = nodal_error(mesh, displacement, morph.control_nodes.numpy())
+    assert plain != pytest.approx(weighted, rel=1e-3)
+
+
+def test_worst_over_the_family():
+    mesh, bend = bent_box()
+    twist = torch.zeros_like(bend)
+    points = mesh.points[mesh.boundary_nodes]
+    top = points[:, 1] > 1 - 1e-12
+    twist[top, 2] = 0.1 * torch.sin(3 * points[top, 0])
+    family = torch.stack([bend, twist])
+    plan = AdaptivePlan(0.01, family)
+    morph = MeshMorph(mesh, plan)
+    nodes = morph.control_nodes.numpy()
+    errors = [nodal_error(mesh, member, nodes) for member in family]
+    assert max(errors) <= 0.01
+    assert max(errors) == pytest.approx(plan.result_.error, rel=1e-9)
+
+
+def test_scores_are_the_error_decrease_of_each_candidate_alone():
+    mesh, displacement = bent_box(4)
+    boundary = mesh.points[mesh.boundary_nodes]
+    interior = mesh.points[mesh.interior_nodes]
+    oracle = IDWErrorOracle(boundary, interior, displacement)
+    selected = torch.arange(0, boundary.shape[0], 3)
+    errors, scores = oracle.scores(selected)
+    assert (scores[selected] == -float("inf")).all()
+    assert (scores > 0).any()
+    for candidate in (1, 5, 29, 61):
+        after = oracle.errors(torch.cat([selected, torch.tensor([candidate])]))
+        decrease = float(errors.square().sum() - after.square().sum())
+        assert float(scores[candidate]) == pytest.approx(decrease, rel=1e-9, abs=1e-15)
+
+
+def test_from_nothing_the_scores_are_shares_of_the_error():
+    mesh, displacement = bent_box(4)
+    boundary = mesh.points[mesh.boundary_nodes]
+    interior = mesh.points[mesh.interior_nodes]
+    oracle = IDWErrorOracle(boundary, interior, displacement)
+    errors, scores = oracle.scores(torch.zeros(0, dtype=torch.int64))
+    # with no control the error is the whole reference field; the shares add up to it
+    assert float(scores.sum()) == pytest.approx(float(errors.square().sum()), rel=1e-9)
+
+
+def test_sampled_targets_estimate_the_error():
+    mesh, displacement = bent_box(8)
+    boundary = mesh.points[mesh.boundary_nodes]
+    interior = mesh.points[mesh.interior_nodes]
+    full = IDWErrorOracle(boundary, interior, displacement)
+    sampled = IDWErrorOracle(boundary, interior, displacement, num_samples=interior.shape[0] // 3)
+    selected = torch.arange(0, boundary.shape[0], 7)
+    assert len(sampled.sample) == interior.shape[0] // 3
+    assert float(sampled.errors(selected)) == pytest.approx(float(full.errors(selected)), rel=0.3)
+
+
+def test_functional_form_returns_candidate_indices():
+    mesh, displacement = bent_box()
+    boundary = mesh.points[mesh.boundary_nodes]
+    interior = mesh.points[mesh.interior_nodes]
+    result = select_adaptive(boundary, interior, displacement, tolerance=0.02)
+    assert result.indices.dtype == torch.int64
+    assert len(set(result.indices.tolist())) == len(result.indices)
+    assert result.history[-1] == (len(result.indices), result.error)
+
+
+@pytest.mark.parametrize(
+    ("keywords", "message"),
+    [
+        ({"tolerance": 0.0}, "tolerance must be a finite number > 0"),
+        ({"tolerance": -1.0}, "tolerance must be a finite number > 0"),
+        ({"tolerance": float("nan")}, "tolerance must be a finite number > 0"),
+        ({"tolerance": 0.1, "max_controls": 0}, "max_controls must be an integer >= 1"),
+        ({"tolerance": 0.1, "max_controls": 2.5}, "max_controls must be an integer >= 1"),
+    ],
+)
+def test_bad_tolerance_and_budget(keywords, message):
+    mesh, displacement = bent_box(2)
+    with pytest.raises(ValueError, match=message):
+        AdaptivePlan(displacements=displacement, **keywords)
+    boundary = mesh.points[mesh.boundary_nodes]
+    interior = mesh.points[mesh.interior_nodes]
+    with pytest.raises(ValueError, match=message):
+        select_adaptive(boundary, interior, displacement, **keywords)
+
+
+def test_bad_shapes_and_values():
+    mesh, displacement = bent_box(2)
+    boundary = mesh.points[mesh.boundary_nodes]
+    interior = mesh.points[mesh.interior_nodes]
+    n = boundary.shape[0]
+    with pytest.raises(ValueError, match=rf"displacements must have shape \({n}, 3\)"):
+        select_adaptive(boundary, interior, displacement[:-1], tolerance=0.1)
+    broken = displacement.clone()
+    broken[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="displacements holds 1 NaN"):
+        select_adaptive(boundary, interior, broken, tolerance=0.1)
+    bad = interior.clone()
+    bad[0, 1] = float("inf")
+    with pytest.raises(ValueError, match="targets holds"):
+        select_adaptive(boundary, bad, displacement, tolerance=0.1)
+    with pytest.raises(ValueError, match=r"targets must have shape \(N, 3\)"):
+        select_adaptive(boundary, interior[:, :2], displacement, tolerance=0.1)
+    with pytest.raises(ValueError, match=r"weights must have shape"):
+        select_adaptive(boundary, interior, displacement, tolerance=0.1, weights=torch.ones(3))
+    weights = torch.ones(interior.shape[0])
+    weights[0] = -1
+    with pytest.raises(ValueError, match="weights holds negative"):
+        select_adaptive(boundary, interior, displacement, tolerance=0.1, weights=weights)
+    zeros = torch.zeros(interior.shape[0])
+    with pytest.raises(ValueError, match="weights are all zero"):
+        select_adaptive(boundary, interior, displacement, tolerance=0.1, weights=zeros)
+    with pytest.raises(ValueError, match="member 0 of the family has a zero reference"):
+        select_adaptive(boundary, interior, torch.zeros_like(displacement), tolerance=0.1)
+    with pytest.raises(ValueError, match="initial holds indices outside"):
+        select_adaptive(boundary, interior, displacement, tolerance=0.1, initial=torch.tensor([n]))
+    with pytest.raises(ValueError, match=r"max_controls \(1\) is smaller than the 2 initial"):
+        select_adaptive(
+            boundary,
+            interior,
+            displacement,
+            tolerance=0.1,
+            max_controls=1,
+            initial=torch.tensor([0, 1]),
+        )
+    with pytest.raises(ValueError, match=r"weights must have shape \(\d+,\) \(one per node\)"):
+        MeshMorph(mesh, AdaptivePlan(0.1, displacement, weights=torch.ones(3)))
+    with pytest.raises(TypeError, match="displacements must be a Tensor"):
+        AdaptivePlan(0.1, [1.0, 2.0])
+
+
+def test_callable_family_of_the_boundary_points():
+    mesh, displacement = bent_box()
+
+    def bend(points):
+        out = torch.zeros_like(points)
+        top = points[:, 1] > 1 - 1e-12
+        out[top, 1] = 0.2 * points[top, 0] ** 2
+        return out
+
+    by_tensor = MeshMorph(mesh, AdaptivePlan(0.02, displacement))
+    by_callable = MeshMorph(mesh, AdaptivePlan(0.02, bend))
+    assert torch.equal(by_tensor.control_nodes, by_callable.control_nodes)
+
+
+def test_a_morph_of_adaptive_controls_is_differentiable_and_batched():
+    mesh, displacement = bent_box(4)
+    morph = MeshMorph(mesh, AdaptivePlan(0.05, displacement))
+    batch = torch.stack([displacement, 2 * displacement]).requires_grad_()
+    out = morph(batch)
+    torch.testing.assert_close(out[1], 2 * morph(displacement))
+    (grad,) = torch.autograd.grad(out.square().sum(), batch)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
+def test_two_dimensional_mesh():
+    square = box_mesh(6)
+    del square  # the 3-D helper; a planar mesh below
+    xs = torch.linspace(0, 1, 7, dtype=torch.float64)
+    grid = torch.stack(torch.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
+    assert isinstance(TetMesh, type)  # imported for the module's mesh kinds
+    from torchmorph.mesh import Mesh
+
+    cells = []
+    for i in range(6):
+        for j in range(6):
+            a, b, c, d = i * 7 + j, (i + 1) * 7 + j, (i + 1) * 7 + j + 1, i * 7 + j + 1
+            cells += [[a, b, c], [a, c, d]]
+    mesh = Mesh(grid, {"triangle": torch.tensor(cells)})
+    boundary = mesh.points[mesh.boundary_nodes]
+    displacement = torch.zeros_like(boundary)
+    displacement[:, 1] = 0.1 * torch.sin(3 * boundary[:, 0]) * (boundary[:, 1] > 0.99)
+    plan = AdaptivePlan(0.02, displacement)
+    morph = MeshMorph(mesh, plan)
+    assert plan.result_.converged
+    assert nodal_error(mesh, displacement, morph.control_nodes.numpy()) <= 0.02

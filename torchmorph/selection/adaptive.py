@@ -1,0 +1,586 @@
+"""Error-driven selection of IDW control points: the adaptive alternative to SIDW/ESIDW.
+
+Algorithm 1 (SIDW) spreads control points by distance, whatever the displacement does;
+the paper names "an adaptive selection of the control points driven by some quantity of
+interest" as future work (Ballarin et al. 2017, Section 4). Here the error of the
+selective morph against full IDW (every candidate a control) chooses the controls:
+:func:`select_adaptive` runs the greedy loop of :mod:`torchmorph.selection.greedy` with
+:class:`IDWErrorOracle`, and :class:`AdaptivePlan` does it on a mesh for
+:class:`~torchmorph.morph.MeshMorph` (a drop-in for a
+:class:`~torchmorph.selection.SelectionPlan`).
+
+The error
+---------
+For a family of control displacements ``d_f`` (f = 1..F: several parameter values, or
+POD training snapshots), the relative error of member f is
+
+    err_f = sqrt(Σ_i w_i |u_S,f(x_i) - u_f(x_i)|²) / sqrt(Σ_i w_i |u_f(x_i)|² + Σ_c v_c |d_f,c|²)
+
+over the targets ``x_i`` (interior nodes) with weights ``w_i`` and the candidates ``c``
+(boundary nodes, exact in both fields) with weights ``v_c``; ``u_f`` is full IDW and
+``u_S,f`` IDW from the selected candidates ``S`` only. With unit weights this is the
+relative nodal ℓ2 error over the whole mesh (``torchmorph.mesh.norms.relative_nodal_error``),
+the measure of the paper's tables; other weights give a quantity-of-interest variant
+(e.g. weight 1 near a wall and 0 elsewhere). The loop stops when the worst member is
+within the tolerance.
+
+The scores
+----------
+With ``W`` the full IDW weights (rows: targets, columns: candidates), ``σ_i`` the sum
+of row i of ``W`` over the selected candidates ``S`` and ``a_f,i = u_S,f(x_i)``, adding
+one candidate j to ``S`` moves target i by exactly
+
+    Δ_f,ij = t_ij (d_f,j - a_f,i),    t_ij = W_ij / (σ_i + W_ij),
+
+so the decrease of ``Σ_f err_f²`` it brings, ``Σ_f Σ_i w_i (2 e_f,i · Δ_f,ij -
+|Δ_f,ij|²) / n_f²`` (``e = u - u_S``, ``n_f`` the denominator above), is a handful of
+products of ``T = (t_ij)`` and ``T²`` with fields on the targets: every candidate is
+scored exactly, at the cost of one pass over the sampled ``W``. When no candidate
+lowers the error on its own (from one control, a rotation needs controls on both sides
+of its axis), the candidates are ranked by their first-order share of the error
+instead, ``Σ_i w_i e_f,i · W_ij (d_f,j - a_f,i)``, which add up to it: the selective
+field differs from full IDW by exactly ``Σ_{j ∉ S} W_ij (d_f,j - a_f,i)``.
+
+This sees what a distance criterion cannot: thinning a densely sampled moving body
+lowers its total weight in the far field of IDW, and the far field's error is then
+charged to the body's nodes.
+
+Cost
+----
+``W`` is assembled once on a sample of the targets (all of them when the sample fits
+``sample_bytes``) by the fused kernels; a selective field is then ``W[:, S]``
+renormalised (``W_S,ij = W_ij / σ_i``, exact), a product with ``|S|`` columns of the
+sample. A scoring reads the whole sample (``score_samples`` targets of it), so the
+selection costs about one sampled full-IDW evaluation per round, plus the rounds'
+cheap error evaluations; rounds grow with the number of controls the tolerance needs
+(see benchmarks/adaptive.py).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchmorph._checks import as_points, check_float_dtype, check_positive
+from torchmorph.idw.functional import idw_apply, idw_weights
+from torchmorph.selection.greedy import (
+    ErrorOracle,
+    GreedySelection,
+    check_budget,
+    greedy_selection,
+)
+from torchmorph.selection.sidw import DEFAULT_SEED, _check_generator
+
+__all__ = [
+    "DEFAULT_SAMPLE_BYTES",
+    "DEFAULT_SCORE_SAMPLES",
+    "AdaptivePlan",
+    "ErrorOracle",
+    "GreedySelection",
+    "IDWErrorOracle",
+    "greedy_selection",
+    "select_adaptive",
+]
+
+#: Largest size of the sampled full-IDW weights (targets × candidates) an oracle keeps:
+#: the targets are sampled down to fit it (256 MiB: 2,300 targets of case B's 14,126
+#: candidates in float64).
+DEFAULT_SAMPLE_BYTES = 256 * 2**20
+
+#: Targets whose errors score the candidates (the first of the sample; None: all of it).
+#: Fewer make a scoring cheaper but the scores noisier: more rounds and more controls
+#: (case C at 1.26 %: 450 controls with 1,024, 358 with all 3,173).
+DEFAULT_SCORE_SAMPLES = None
+
+# Rows of the sampled weights are scored in blocks of about this many bytes.
+_SCORE_BLOCK_BYTES = 4 * 2**20
+
+
+class IDWErrorOracle:
+    """Error of selective IDW against full IDW on sampled targets, and candidate scores.
+
+    Parameters
+    ----------
+    candidates : Tensor, shape (N_c, D)
+        Points that may become controls (a mesh's boundary nodes). Full IDW uses all.
+    targets : Tensor, shape (N_t, D)
+        Points the error is measured at (a mesh's interior nodes), ``N_t >= 1``.
+    displacements : Tensor, shape (N_c, D) or (F, N_c, D)
+        The family of candidate displacements; the error is the worst over it.
+    weights : Tensor, shape (N_t,), optional
+        Weight ``w_i >= 0`` of each target in the error (default 1); not all zero.
+    candidate_weights : Tensor, shape (N_c,), optional
+        Weight ``v_c >= 0`` of each candidate in the norm of the reference (default 1).
+    power : float, default 4
+        IDW exponent p.
+    num_samples : int, optional
+        Number of targets sampled (uniformly, without replacement); default: as many
+        as fit ``sample_bytes``, all of them when they do.
+    sample_bytes : int, default :data:`DEFAULT_SAMPLE_BYTES`
+        Memory budget of the sampled weights when ``num_samples`` is not given.
+    score_samples : int, optional
+        Score the candidates on the first this many targets of the sample only
+        (default :data:`DEFAULT_SCORE_SAMPLES`: all of them).
+    generator : torch.Generator, optional
+        CPU generator of the sample; default seeded with ``DEFAULT_SEED``.
+
+    Attributes
+    ----------
+    points : Tensor (N_c, D)
+        The candidates.
+    sample : Tensor (N_s,), int64
+        Indices of the sampled targets, in random order.
+
+    Notes
+    -----
+    With a sample, sums over the targets are estimated by the sample's sum times
+    ``N_t / N_s``; the reported errors are then estimates (the final morph's error is
+    measured on every node by the caller). Computations run in the candidates'
+    dtype, without autograd.
+    """
+
+    def __init__(
+        self,
+        candidates: Tensor,
+        targets: Tensor,
+        displacements: Tensor,
+        *,
+        weights: Tensor | None = None,
+        candidate_weights: Tensor | None = None,
+        power: float = 4.0,
+        num_samples: int | None = None,
+        sample_bytes: int = DEFAULT_SAMPLE_BYTES,
+        score_samples: int | None = DEFAULT_SCORE_SAMPLES,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        candidates = as_points(candidates, "candidates", dim=_dim(candidates))
+        dim = candidates.shape[1]
+        targets = as_points(targets, "targets", dim=dim)
+        targets = targets.to(candidates.dtype)
+        family = _family(displacements, candidates.shape[0], dim).to(candidates.dtype)
+        self.power = check_positive(power, "power")
+        n_targets, n_candidates = targets.shape[0], candidates.shape[0]
+        target_weights = _weights(weights, "weights", n_targets, candidates)
+        self.candidate_weights = _weights(
+            candidate_weights, "candidate_weights", n_candidates, candidates
+        )
+        if not bool((target_weights > 0).any()):
+            raise ValueError("weights are all zero: no target counts in the error")
+        if num_samples is None:
+            itemsize = candidates.element_size()
+            if not isinstance(sample_bytes, int) or sample_bytes < 1:
+                raise ValueError(f"sample_bytes must be an integer >= 1, got {sample_bytes!r}")
+            num_samples = max(1, min(n_targets, sample_bytes // (n_candidates * itemsize)))
+        elif isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 1:
+            raise ValueError(f"num_samples must be an integer >= 1, got {num_samples!r}")
+        num_samples = min(num_samples, n_targets)
+        if score_samples is not None and (
+            isinstance(score_samples, bool)
+            or not isinstance(score_samples, int)
+            or score_samples < 1
+        ):
+            raise ValueError(f"score_samples must be an integer >= 1, got {score_samples!r}")
+        # in random order: the first ``score_samples`` of them are a sample too
+        self.sample = torch.randperm(n_targets, generator=_check_generator(generator))
+        self.sample = self.sample[:num_samples]
+        self.score_samples = (
+            num_samples if score_samples is None else min(score_samples, num_samples)
+        )
+        sample = self.sample.to(candidates.device)
+        self.points = candidates.detach()
+        self.scale = n_targets / num_samples
+        with torch.no_grad():
+            self.targets = targets.detach()[sample]
+            self.target_weights = target_weights[sample]
+            self.family = family.detach()  # (F, N_c, D)
+            self.weights_t = self._transposed_weights()  # (N_c, N_s): Wᵀ, rows contiguous
+            self.reference = self._field(self.weights_t.mT @ self._columns(self.family))
+            reference_sq = self._weighted_squares(self.reference) + (
+                self.candidate_weights[None, :, None] * self.family.square()
+            ).sum((1, 2))
+        zero = torch.nonzero(reference_sq <= 0).flatten()
+        if zero.numel():
+            raise ValueError(
+                f"displacements: member {int(zero[0])} of the family has a zero reference "
+                "field (in the weighted norm): its relative error is undefined"
+            )
+        self.reference_sq = reference_sq
+
+    def _transposed_weights(self) -> Tensor:
+        """Full IDW's weights from every candidate to the sampled targets, stored as
+        ``Wᵀ`` (N_c, N_s) so that the rows of any subset of candidates are contiguous;
+        assembled in blocks of targets by the fused kernels."""
+        num_targets = self.targets.shape[0]
+        out = self.points.new_empty(self.points.shape[0], num_targets)
+        rows = max(1, _SCORE_BLOCK_BYTES // (self.points.shape[0] * self.points.element_size()))
+        for begin in range(0, num_targets, rows):
+            block = idw_weights(
+                controls=self.points, targets=self.targets[begin : begin + rows], power=self.power
+            )
+            out[:, begin : begin + rows] = block.mT
+        return out
+
+    @property
+    def num_members(self) -> int:
+        return int(self.family.shape[0])
+
+    def _columns(self, family: Tensor) -> Tensor:
+        """(F, N_c, D) -> (N_c, F·D)."""
+        return family.permute(1, 0, 2).reshape(family.shape[1], -1)
+
+    def _weighted_squares(self, field: Tensor) -> Tensor:
+        """``N_t/N_s Σ_s w_s |field_s|²`` per member, shape (F,)."""
+        return self.scale * (self.target_weights[None, :, None] * field.square()).sum((1, 2))
+
+    def _selective(self, selected: Tensor) -> tuple[Tensor, Tensor]:
+        """IDW from the candidates ``selected`` at the sampled targets, (F, N_s, D), and
+        ``σ_i = Σ_{k∈S} W_ik`` (N_s,): ``W_S = W[:, S] / σ``."""
+        if selected.numel() == 0:
+            return torch.zeros_like(self.reference), self.reference.new_zeros(len(self.sample))
+        selected = selected.to(self.points.device)
+        weights = self.weights_t.index_select(0, selected)  # (|S|, N_s): W's columns of S
+        columns = self._columns(self.family.index_select(1, selected))
+        ones = columns.new_ones(columns.shape[0], 1)
+        both = weights.mT @ torch.cat([columns, ones], dim=1)
+        sums = both[:, -1]
+        tiny = torch.finfo(sums.dtype).tiny / torch.finfo(sums.dtype).eps
+        field = self._field(both[:, :-1] / sums[:, None].clamp_min(tiny))
+        lost = torch.nonzero(sums <= tiny).flatten()
+        if lost.numel():  # a target on an unselected candidate, or weights that underflowed
+            field[:, lost] = idw_apply(
+                controls=self.points[selected],
+                targets=self.targets[lost],
+                displacements=self.family[:, selected],
+                power=self.power,
+            )
+        return field, sums
+
+    def _field(self, flat: Tensor) -> Tensor:
+        num_members, dim = self.family.shape[0], self.family.shape[2]
+        return flat.reshape(flat.shape[0], num_members, dim).permute(1, 0, 2)
+
+    def _flat(self, field: Tensor) -> Tensor:
+        """(F, N_s, K) -> (N_s, F·K)."""
+        return field.permute(1, 0, 2).reshape(field.shape[1], -1)
+
+    def errors(self, selected: Tensor) -> Tensor:
+        """Relative error of each member with ``selected`` as controls, shape (F,)."""
+        with torch.no_grad():
+            error = self.reference - self._selective(selected)[0]
+            return torch.sqrt(self._weighted_squares(error) / self.reference_sq)
+
+    def scores(self, selected: Tensor) -> tuple[Tensor, Tensor]:
+        """``(errors (F,), scores (N_c,))``. A candidate's score is the decrease of
+        ``Σ_f err_f²`` that adding it alone to ``selected`` brings (see the module's
+        notes) or, when no candidate alone lowers it, its first-order share of
+        ``Σ_f err_f²``; ``-inf`` for the selected ones."""
+        with torch.no_grad():
+            approx, sums = self._selective(selected)
+            error = self.reference - approx
+            errors = torch.sqrt(self._weighted_squares(error) / self.reference_sq)
+            count = self.score_samples  # the scores read the first targets of the sample
+            gains = self._gains(error[:, :count], approx[:, :count], sums[:count], selected)
+        return errors, gains
+
+    def _gains(self, error: Tensor, approx: Tensor, sums: Tensor, selected: Tensor) -> Tensor:
+        """``Σ_f (|e_f|² - |e_f - Δ_f,j|²)_w / n_f²`` per candidate j, where adding j moves
+        target i by ``Δ_f,ij = t_ij (d_f,j - a_f,i)``, ``t_ij = W_ij / (σ_i + W_ij)``."""
+        num_members, dim = self.family.shape[0], self.family.shape[2]
+        count = sums.shape[0]
+        weight = self.target_weights[None, :count, None] / self.reference_sq[:, None, None]
+        we = weight * error
+        wa = weight * approx
+        # Σ_i t_ij [...] and Σ_i t_ij² [...] as products of T and T² with these columns
+        linear = torch.cat([self._flat(we), self._flat((we * approx).sum(-1, keepdim=True))], 1)
+        square = torch.cat(
+            [
+                self._flat(weight),
+                self._flat(wa),
+                self._flat((wa * approx).sum(-1, keepdim=True)),
+            ],
+            1,
+        )
+        first = linear.new_empty(self.points.shape[0], linear.shape[1])
+        second = square.new_empty(self.points.shape[0], square.shape[1])
+        tiny = torch.finfo(sums.dtype).tiny
+        weights_t = self.weights_t[:, :count]
+        rows = max(1, _SCORE_BLOCK_BYTES // (count * weights_t.element_size()))
+        for begin in range(0, weights_t.shape[0], rows):
+            block = weights_t[begin : begin + rows]  # candidates' rows of Wᵀ
+            end = begin + block.shape[0]
+            ratio = block / (sums[None, :] + block).clamp_min(tiny)
+            torch.mm(ratio, linear, out=first[begin:end])
+            torch.mm(ratio.square_(), square, out=second[begin:end])
+        family = self.family  # (F, N_c, D)
+        gain = 2.0 * self._linear_term(first)
+        q = second[:, :num_members].mT
+        g2 = second[:, num_members : num_members * (dim + 1)]
+        g2 = g2.reshape(-1, num_members, dim).permute(1, 0, 2)
+        h2 = second[:, num_members * (dim + 1) :].mT
+        gain -= family.square().sum(-1) * q - 2.0 * (family * g2).sum(-1) + h2
+        gain = gain.sum(0)
+        selected = selected.to(gain.device)
+        gain[selected] = -math.inf
+        if selected.numel() and bool((gain > 0).any()):
+            return gain
+        # no candidate alone lowers the error (from one control, a rotation needs
+        # controls on both sides of its axis): rank by the first-order shares instead
+        share = self._linear_term(weights_t @ linear).sum(0)
+        share[selected] = -math.inf
+        return share
+
+    def _linear_term(self, product: Tensor) -> Tensor:
+        """``d_f,j · g_f,j - h_f,j`` (F, N_c) from ``[g | h]`` (N_c, F·D + F)."""
+        num_members, dim = self.family.shape[0], self.family.shape[2]
+        g = product[:, : num_members * dim].reshape(-1, num_members, dim).permute(1, 0, 2)
+        h = product[:, num_members * dim :].mT
+        return (self.family * g).sum(-1) - h
+
+
+def select_adaptive(
+    candidates: Tensor,
+    targets: Tensor,
+    displacements: Tensor,
+    *,
+    tolerance: float,
+    max_controls: int | None = None,
+    initial: Tensor | None = None,
+    weights: Tensor | None = None,
+    candidate_weights: Tensor | None = None,
+    power: float = 4.0,
+    num_samples: int | None = None,
+    sample_bytes: int = DEFAULT_SAMPLE_BYTES,
+    score_samples: int | None = DEFAULT_SCORE_SAMPLES,
+    generator: torch.Generator | None = None,
+    min_batch: int = 8,
+    spacing: float = 0.5,
+) -> GreedySelection:
+    """Error-driven selection of IDW control points among ``candidates``.
+
+    Adds candidates to the controls, in batches, by the decrease of the
+    error of selective IDW against full IDW at (a sample of) ``targets``, until the
+    worst relative error over the family ``displacements`` is at most ``tolerance`` or
+    ``max_controls`` are selected. See the module's notes for the error, the scores and
+    the cost, and :func:`~torchmorph.selection.greedy.greedy_selection` for the loop.
+
+    Parameters
+    ----------
+    candidates, targets, displacements, weights, candidate_weights, power
+        As :class:`IDWErrorOracle`.
+    num_samples, sample_bytes, score_samples, generator
+        As :class:`IDWErrorOracle`.
+    tolerance : float, keyword
+        Relative error to reach, > 0 (e.g. 0.01 for 1 %).
+    max_controls : int, optional
+        At most this many controls (>= 1), ``initial`` included.
+    initial : Tensor of int, optional
+        Candidates that are controls from the start (a coarse SIDW/ESIDW set).
+    min_batch, spacing
+        As :func:`~torchmorph.selection.greedy.greedy_selection`.
+
+    Returns
+    -------
+    GreedySelection
+        ``indices`` into ``candidates`` (initial ones first), the final worst error
+        (estimated on the sample), whether it converged and the history.
+
+    Raises
+    ------
+    ValueError
+        For ``tolerance`` not finite and > 0, ``max_controls`` < 1, points or
+        displacements of the wrong shape or holding NaN/inf, negative or all-zero
+        weights, a family member with a zero reference field, or bad loop parameters.
+    """
+    oracle = IDWErrorOracle(
+        candidates,
+        targets,
+        displacements,
+        weights=weights,
+        candidate_weights=candidate_weights,
+        power=power,
+        num_samples=num_samples,
+        sample_bytes=sample_bytes,
+        score_samples=score_samples,
+        generator=generator,
+    )
+    return greedy_selection(
+        oracle,
+        tolerance=tolerance,
+        max_controls=max_controls,
+        initial=initial,
+        min_batch=min_batch,
+        spacing=spacing,
+    )
+
+
+@dataclass
+class AdaptivePlan:
+    """Error-driven control points of a mesh, for :class:`~torchmorph.morph.MeshMorph`.
+
+    The candidates are the mesh's boundary nodes and the error is measured at its
+    interior nodes against full IDW (every boundary node a control), for a family of
+    boundary displacements: the relative nodal error of the morph, the measure of the
+    paper's tables (weighted by ``weights`` when given). Pass it where a
+    :class:`~torchmorph.selection.SelectionPlan` goes: ``MeshMorph(mesh, plan)``.
+
+    Parameters
+    ----------
+    tolerance : float
+        Relative error to reach, > 0 (the worst over the family).
+    displacements : Tensor or callable
+        The family: a boundary displacement (N_b, D) or several (F, N_b, D), rows
+        ordered as ``mesh.boundary_nodes``; or a callable mapping the boundary points
+        (N_b, D) to one of those (e.g. the POD training set of a parametrised family).
+    max_controls : int, optional
+        At most this many controls (>= 1), the ``start`` set included.
+    start : SelectionPlan, optional
+        A coarse SIDW/ESIDW plan whose selection is kept and grown (e.g. the
+        enrichment sets alone, or a large radius). Default: start from no control.
+    weights : Tensor, shape (N,), optional
+        Node weights of the error (quantity of interest), >= 0, not all zero on the
+        interior nodes; default 1 everywhere (the nodal error).
+    power : float, default 4
+        The IDW exponent; use the morph's.
+    num_samples, sample_bytes, score_samples, min_batch, spacing
+        As :func:`select_adaptive`.
+
+    Attributes
+    ----------
+    result_ : GreedySelection or None
+        The last selection's record (indices into the boundary nodes, error, history).
+
+    Notes
+    -----
+    The selection is a set of boundary nodes like SIDW's, so the morph, its POD
+    reduction and its state are the same as for any plan. The error is estimated on a
+    sample of the interior nodes when they are many (see :class:`IDWErrorOracle`);
+    check the final morph with ``torchmorph.mesh.norms.relative_nodal_error``.
+    """
+
+    tolerance: float
+    displacements: Tensor | Callable[[Tensor], Tensor]
+    max_controls: int | None = None
+    start: Any = None
+    weights: Tensor | None = None
+    power: float = 4.0
+    num_samples: int | None = None
+    sample_bytes: int = DEFAULT_SAMPLE_BYTES
+    score_samples: int | None = DEFAULT_SCORE_SAMPLES
+    min_batch: int = 8
+    spacing: float = 0.5
+    result_: GreedySelection | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.tolerance = check_positive(self.tolerance, "tolerance")
+        if self.max_controls is not None:
+            self.max_controls = check_budget(self.max_controls)
+        if not (isinstance(self.displacements, Tensor) or callable(self.displacements)):
+            raise TypeError(
+                "displacements must be a Tensor (N_b, D) / (F, N_b, D) or a callable of "
+                f"the boundary points, got {type(self.displacements).__name__}"
+            )
+        if self.start is not None and not callable(getattr(self.start, "select", None)):
+            raise TypeError(
+                f"start must be a SelectionPlan (or None), got {type(self.start).__name__}"
+            )
+
+    def select(self, mesh: Any, *, generator: torch.Generator | None = None) -> Tensor:
+        """The control points: sorted unique global node ids, on the mesh's device.
+
+        Parameters
+        ----------
+        mesh : Mesh
+            Needs ``points``, ``boundary_nodes`` and ``interior_nodes``.
+        generator : torch.Generator, optional
+            Randomness of the ``start`` plan and of the target sample.
+        """
+        boundary, interior = mesh.boundary_nodes, mesh.interior_nodes
+        if interior.numel() == 0:
+            raise ValueError("mesh has no interior node: there is no error to drive a selection")
+        points = mesh.points.detach()
+        boundary_points = points[boundary]
+        family = self.displacements
+        if not isinstance(family, Tensor):
+            family = family(boundary_points)
+            if not isinstance(family, Tensor):
+                raise TypeError(
+                    f"displacements(boundary points) must return a Tensor, got "
+                    f"{type(family).__name__}"
+                )
+        weights = candidate_weights = None
+        if self.weights is not None:
+            node_weights = torch.as_tensor(self.weights)
+            if node_weights.shape != (mesh.num_nodes,):
+                raise ValueError(
+                    f"weights must have shape ({mesh.num_nodes},) (one per node), got "
+                    f"{tuple(node_weights.shape)}"
+                )
+            node_weights = node_weights.to(points.device)
+            weights, candidate_weights = node_weights[interior], node_weights[boundary]
+        initial = None
+        generator = _check_generator(generator)
+        if self.start is not None:
+            chosen = torch.as_tensor(self.start.select(mesh, generator=generator)).to(boundary)
+            initial = torch.searchsorted(boundary, chosen.unique()).cpu()
+        sample_generator = torch.Generator().manual_seed(DEFAULT_SEED)
+        self.result_ = result = select_adaptive(
+            boundary_points,
+            points[interior],
+            family,
+            tolerance=self.tolerance,
+            max_controls=self.max_controls,
+            initial=initial,
+            weights=weights,
+            candidate_weights=candidate_weights,
+            power=self.power,
+            num_samples=self.num_samples,
+            sample_bytes=self.sample_bytes,
+            score_samples=self.score_samples,
+            generator=sample_generator,
+            min_batch=self.min_batch,
+            spacing=self.spacing,
+        )
+        return torch.sort(boundary[result.indices.to(boundary.device)]).values
+
+
+def _dim(points: Any) -> int:
+    shape = getattr(points, "shape", None)
+    if shape is not None and len(shape) == 2 and shape[1] >= 1:
+        return int(shape[1])
+    return 3
+
+
+def _family(displacements: Tensor, count: int, dim: int) -> Tensor:
+    if not isinstance(displacements, Tensor):
+        raise TypeError(f"displacements must be a torch.Tensor, got {type(displacements).__name__}")
+    if displacements.ndim not in (2, 3) or displacements.shape[-2:] != (count, dim):
+        raise ValueError(
+            f"displacements must have shape ({count}, {dim}) or (F, {count}, {dim}) for "
+            f"{count} candidates, got {tuple(displacements.shape)}"
+        )
+    check_float_dtype(displacements, "displacements")
+    if not bool(torch.isfinite(displacements).all()):
+        bad = int((~torch.isfinite(displacements)).sum())
+        raise ValueError(f"displacements holds {bad} NaN or infinite value(s)")
+    if displacements.shape[0] == 0:
+        raise ValueError("displacements is an empty family (F = 0)")
+    return displacements if displacements.ndim == 3 else displacements[None]
+
+
+def _weights(value: Tensor | None, name: str, count: int, like: Tensor) -> Tensor:
+    if value is None:
+        return torch.ones(count, dtype=like.dtype, device=like.device)
+    value = torch.as_tensor(value)
+    if value.shape != (count,):
+        raise ValueError(f"{name} must have shape ({count},), got {tuple(value.shape)}")
+    value = value.to(device=like.device, dtype=like.dtype)
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name} holds NaN or infinite value(s)")
+    if bool((value < 0).any()):
+        raise ValueError(f"{name} holds negative value(s); weights must be >= 0")
+    return value
