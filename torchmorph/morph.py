@@ -324,7 +324,14 @@ class MeshMorph(nn.Module):
         )
 
     # ----------------------------------------------------------------- morph
-    def forward(self, boundary_displacement: Tensor, *, points: Tensor | None = None) -> Tensor:
+    def forward(
+        self,
+        boundary_displacement: Tensor,
+        *,
+        points: Tensor | None = None,
+        rotations: str | Tensor | None = None,
+        reach: float | None = None,
+    ) -> Tensor:
         """Morph: displacement of every node of the mesh.
 
         Parameters
@@ -335,6 +342,15 @@ class MeshMorph(nn.Module):
         points : Tensor, shape (N, D), optional
             Moved reference coordinates (shape optimisation): W is rebuilt
             differentiably from them.
+        rotations : None, "fit" or Tensor, optional
+            Rotation-aware IDW for large rotations
+            (:func:`torchmorph.large_motions.rotation_aware`): ``"fit"`` fits each
+            boundary node's rotation to its neighbourhood's motion; a tensor (N_b, r) or
+            (B, N_b, r) gives them (r = 1 angle in 2-D, 3 rotation vector in 3-D).
+            None (default): plain IDW.
+        reach : float, optional
+            With ``rotations``: the distance from the turning part within which the
+            rotation is carried whole (default: that part's size).
 
         Returns
         -------
@@ -342,13 +358,22 @@ class MeshMorph(nn.Module):
             Boundary rows equal ``boundary_displacement`` exactly.
         """
         self._check_boundary(boundary_displacement)
+        if points is not None and (
+            not isinstance(points, Tensor) or points.shape != self.points.shape
+        ):
+            shape = tuple(points.shape) if isinstance(points, Tensor) else type(points)
+            raise ValueError(f"points must have shape {tuple(self.points.shape)}, got {shape}")
+        if rotations is not None:
+            from torchmorph.large_motions import rotation_aware
+
+            interior = rotation_aware(
+                self, boundary_displacement, rotations=rotations, points=points, reach=reach
+            )
+            return self.assemble(boundary_displacement, interior)
         controls = self.controls_from_boundary(boundary_displacement)
         if points is None:
             interior = self.idw(controls)
         else:
-            if not isinstance(points, Tensor) or points.shape != self.points.shape:
-                shape = tuple(points.shape) if isinstance(points, Tensor) else type(points)
-                raise ValueError(f"points must have shape {tuple(self.points.shape)}, got {shape}")
             interior = self.idw(
                 controls, controls=points[self.control_nodes], targets=points[self.interior_nodes]
             )

@@ -16,6 +16,7 @@ import torch
 from torchmorph.idw import IDW, idw_apply
 from torchmorph.idw.rotations import (
     blend_rigid_motions,
+    default_reach,
     fit_rotations,
     rotation_matrices,
     rotation_size,
@@ -137,7 +138,12 @@ def test_blend_reproduces_a_rigid_motion_where_plain_idw_does_not(dim):
     expected = _rigid(targets, vector, centre, 0.3) - targets
     idw = IDW(controls, targets)
     blended = blend_rigid_motions(
-        idw, controls=controls, targets=targets, displacements=displacements, rotations=rotations
+        idw,
+        controls=controls,
+        targets=targets,
+        displacements=displacements,
+        rotations=rotations,
+        reach=10.0,
     )
     torch.testing.assert_close(blended, expected, rtol=0, atol=1e-12)
     assert (idw(displacements) - expected).abs().max() > 1e-2  # plain IDW shears it
@@ -155,6 +161,7 @@ def test_blend_is_exact_at_controls_and_plain_idw_without_rotation(dim):
         targets=controls,
         displacements=displacements,
         rotations=rotations,
+        reach=10.0,
     )
     torch.testing.assert_close(at_controls, displacements, rtol=0, atol=1e-13)
     idw = IDW(controls, targets)
@@ -164,6 +171,7 @@ def test_blend_is_exact_at_controls_and_plain_idw_without_rotation(dim):
         targets=targets,
         displacements=displacements,
         rotations=torch.zeros_like(rotations),
+        reach=10.0,
     )
     torch.testing.assert_close(still, idw(displacements), rtol=0, atol=1e-14)
 
@@ -179,11 +187,16 @@ def test_blend_batches_equal_loops_and_gradcheck():
         return idw_apply(controls=controls, targets=targets, displacements=values)
 
     batch = blend_rigid_motions(
-        apply, controls=controls, targets=targets, displacements=d, rotations=omega
+        apply, controls=controls, targets=targets, displacements=d, rotations=omega, reach=0.3
     )
     for k in range(4):
         single = blend_rigid_motions(
-            apply, controls=controls, targets=targets, displacements=d[k], rotations=omega[k]
+            apply,
+            controls=controls,
+            targets=targets,
+            displacements=d[k],
+            rotations=omega[k],
+            reach=0.3,
         )
         torch.testing.assert_close(batch[k], single, rtol=0, atol=1e-14)
     d1, omega1 = d[0].clone().requires_grad_(True), omega[0].clone().requires_grad_(True)
@@ -195,6 +208,7 @@ def test_blend_batches_equal_loops_and_gradcheck():
             targets=targets,
             displacements=displacements,
             rotations=rotations,
+            reach=0.3,
         )
 
     assert torch.autograd.gradcheck(function, (d1, omega1))
@@ -211,3 +225,42 @@ def test_fitted_rotations_gradcheck(dim):
     )
     neighbours = torch.stack([torch.randperm(8, generator=generator)[:5] for _ in range(8)])
     assert torch.autograd.gradcheck(lambda m: fit_rotations(points, m, neighbours), (moved,))
+
+
+def test_the_turn_falls_off_beyond_the_reach():
+    # one control turning in place by θ among still ones: a target at distance r > ℓ
+    # from it turns about it by (ℓ / r) times the blended angle
+    controls = torch.tensor([[0.0, 0.0], [10.0, 0.0], [-10.0, 0.0]], dtype=F64)
+    targets = torch.tensor([[0.0, 4.0]], dtype=F64)
+    rotations = torch.tensor([[1.0], [0.0], [0.0]], dtype=F64)
+    displacements = torch.zeros(3, 2, dtype=F64)
+    idw = IDW(controls, targets)
+    weight = float(idw.weights[0, 0])
+    for reach, expected_angle in ((8.0, weight), (2.0, weight * 2.0 / 4.0)):
+        moved = blend_rigid_motions(
+            idw,
+            controls=controls,
+            targets=targets,
+            displacements=displacements,
+            rotations=rotations,
+            reach=reach,
+        )
+        c, s = math.cos(expected_angle), math.sin(expected_angle)
+        expected = torch.tensor([[-4.0 * s, 4.0 * c - 4.0]], dtype=F64)
+        torch.testing.assert_close(moved, expected, rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="reach must be a positive length"):
+        blend_rigid_motions(
+            idw,
+            controls=controls,
+            targets=targets,
+            displacements=displacements,
+            rotations=rotations,
+            reach=0.0,
+        )
+
+
+def test_default_reach_is_the_size_of_the_turning_part():
+    points = torch.tensor([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 1.0, 0.0], [9.0, 9.0, 9.0]])
+    rotations = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 0.8], [0.0, 0.6, 0.0], [0.1, 0, 0]])
+    assert default_reach(points, rotations) == pytest.approx(0.5 * math.sqrt(5.0))
+    assert default_reach(points, torch.zeros(4, 3)) == 1.0

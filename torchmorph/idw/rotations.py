@@ -3,24 +3,34 @@
 Plain IDW (the paper's eq. 2) interpolates displacements. A body that turns by θ moves
 its nodes along chords, and every target around it receives a weighted mean of those
 chords: the field shears the cells next to the body and, past some angle, turns them
-over. Here every control point k carries a rigid motion — its displacement d_k and a
-rotation R_k = exp([ω_k]×), estimated from how its neighbours on the surface moved
+over. Here every control point k carries a rigid motion — its displacement d_k and a rotation
+R_k = exp([ω_k]×), estimated from how its neighbours on the surface moved
 (:func:`fit_rotations`) or given by the caller (a rigid part) — and a target x receives
 the blended rigid motion
 
-    x' = R(ω̄(x)) (x − x̄(x)) + x̄(x) + d̄(x),
-    ω̄ = Σ_k w_k(x) ω_k,   x̄ = Σ_k w_k(x) x_k,   d̄ = Σ_k w_k(x) d_k,
+    x' = x + (R(a(x) ω̄(x)) − I) (x − c(x)) + d̄(x),
+    ω̄ = Σ_k w_k ω_k,   d̄ = Σ_k w_k d_k,   c = Σ_k w_k |ω_k|² x_k / Σ_k w_k |ω_k|²,
+    a(x) = min(1, ℓ / |x − c(x)|),
 
 with the IDW weights w_k(x) of eq. (2). Rotations are blended in the Lie algebra (as
 rotation vectors, a log-Euclidean mean), never by averaging matrices, which shrinks
-them. Properties:
+them. The blended rotation turns the target about c, the mean position of the controls
+that rotate (weighted by how much they rotate), so fixed controls far away — a
+tunnel's walls — dilute the angle without dragging the pivot to them. Within the reach
+ℓ of that pivot the turn is the full blended angle; beyond it, the angle falls as
+ℓ / |x − c| so that the turn moves a target by about |ω̄| ℓ at most, as plain IDW would
+move it by the body's chords: a rotation carried undiminished to a distance r would
+move the cells there by |ω̄| r and shear them where the body's weight gives way to the
+walls' — measured on the paper's hull turned by 60°, that sheared cells four to six
+metres from it, where plain IDW had folded cells at the hull's ends. Properties:
 
-- exact at the controls: at x = x_k the weights are δ_k, so x' = x_k + d_k;
-- rigid motions are reproduced: if every control moves by one rotation R about one
-  centre c (d_k = (R − I)(x_k − c), ω_k = log R), every target moves by the same
-  rigid motion, whatever its weights — the property plain IDW lacks;
+- exact at the controls: at x = x_k the weights are δ_k, so c = x_k and x' = x_k + d_k;
+- rigid motions are reproduced within the reach: if every control moves by one
+  rotation R about one centre (d_k = (R − I)(x_k − c₀), ω_k = log R), every target
+  within ℓ of its pivot moves by that rigid motion, whatever its weights — the property
+  plain IDW lacks, which shears the cells next to a turning body;
 - it reduces to plain IDW when every ω_k = 0;
-- the three sums are one IDW product with three value columns per displacement
+- the sums are one IDW product with four value columns per displacement
   (:func:`blend_rigid_motions`), so the fused kernels, batches, dense or matrix-free W
   and gradients carry over unchanged.
 
@@ -35,6 +45,7 @@ Comput. Phys. 231, 2012) carries rotations in the same spirit.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -44,12 +55,13 @@ from torchmorph._checks import check_same_device_dtype
 
 __all__ = [
     "blend_rigid_motions",
+    "default_reach",
     "fit_rotations",
     "rotation_matrices",
     "rotation_size",
 ]
 
-_SMALL = 1e-6  # below this angle (radians) the series of the exponential map are used
+_SMALL = 1e-6  # below this angle (radians) the quaternion logarithm uses its series
 
 
 def rotation_size(dim: int) -> int:
@@ -57,6 +69,46 @@ def rotation_size(dim: int) -> int:
     if dim not in (2, 3):
         raise ValueError(f"rotations exist here for 2-D and 3-D points, got dimension {dim}")
     return 1 if dim == 2 else 3
+
+
+def _coefficients(theta2: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """sin θ / θ, (1 − cos θ) / θ², (θ − sin θ) / θ³ and
+    (1 − θ sin θ / (2 (1 − cos θ))) / θ² from θ², with their Taylor series below a
+    dtype-dependent angle (where the closed forms cancel), so that values and gradients
+    stay finite and accurate at and near θ = 0."""
+    eps = torch.finfo(theta2.dtype).eps
+    small = theta2 < eps ** (1 / 3)  # θ below eps^(1/6): series exact to round-off
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = torch.sqrt(t2)
+    sin, cos = torch.sin(t), torch.cos(t)
+    x2 = theta2
+    a = torch.where(small, 1 - x2 / 6 + x2 * x2 / 120, sin / t)
+    b = torch.where(small, 0.5 - x2 / 24 + x2 * x2 / 720, (1 - cos) / t2)
+    c = torch.where(small, 1 / 6 - x2 / 120 + x2 * x2 / 5040, (t - sin) / (t2 * t))
+    e = torch.where(
+        small,
+        1 / 12 + x2 / 720 + x2 * x2 / 30240,
+        (1 - t * sin / (2 * (1 - cos))) / t2,
+    )
+    return a, b, c, e
+
+
+def _skew(vectors: Tensor) -> Tensor:
+    x, y, z = vectors.unbind(-1)
+    zero = torch.zeros_like(x)
+    return torch.stack(
+        [
+            torch.stack([zero, -z, y], -1),
+            torch.stack([z, zero, -x], -1),
+            torch.stack([-y, x, zero], -1),
+        ],
+        -2,
+    )
+
+
+def _planar(cos: Tensor, sin: Tensor) -> Tensor:
+    """The 2 × 2 matrices cos I + sin J (J the quarter turn)."""
+    return torch.stack([torch.stack([cos, -sin], -1), torch.stack([sin, cos], -1)], -2)
 
 
 def rotation_matrices(rotations: Tensor) -> Tensor:
@@ -67,30 +119,14 @@ def rotation_matrices(rotations: Tensor) -> Tensor:
     """
     if rotations.shape[-1] == 1:
         angle = rotations[..., 0]
-        c, s = torch.cos(angle), torch.sin(angle)
-        return torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
+        return _planar(torch.cos(angle), torch.sin(angle))
     if rotations.shape[-1] != 3:
         raise ValueError(
             f"rotations must have 1 (2-D angle) or 3 (rotation vector) components in the "
             f"last dimension, got shape {tuple(rotations.shape)}"
         )
-    theta2 = (rotations * rotations).sum(-1)
-    small = theta2 < _SMALL**2
-    safe2 = torch.where(small, torch.ones_like(theta2), theta2)
-    safe = torch.sqrt(safe2)
-    # sin θ / θ and (1 − cos θ) / θ², with their series below _SMALL
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(safe) / safe)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(safe)) / safe2)
-    x, y, z = rotations.unbind(-1)
-    zero = torch.zeros_like(x)
-    skew = torch.stack(
-        [
-            torch.stack([zero, -z, y], -1),
-            torch.stack([z, zero, -x], -1),
-            torch.stack([-y, x, zero], -1),
-        ],
-        -2,
-    )
+    a, b, _, _ = _coefficients((rotations * rotations).sum(-1))
+    skew = _skew(rotations)
     eye = torch.eye(3, dtype=rotations.dtype, device=rotations.device)
     return eye + a[..., None, None] * skew + b[..., None, None] * (skew @ skew)
 
@@ -203,6 +239,7 @@ def blend_rigid_motions(
     targets: Tensor,
     displacements: Tensor,
     rotations: Tensor,
+    reach: float,
 ) -> Tensor:
     """Target displacements of the blended rigid motions of the controls (module notes).
 
@@ -211,7 +248,7 @@ def blend_rigid_motions(
     apply : callable
         The IDW product: (B', N_c, D) values at the controls -> (B', N_t, D) at the
         targets (an :class:`~torchmorph.idw.IDW` module, or a closure over
-        :func:`~torchmorph.idw.idw_apply`). Called once, on 2B + 1 columns of vectors.
+        :func:`~torchmorph.idw.idw_apply`). Called once, on 4B columns of vectors.
     controls : Tensor, shape (N_c, D)
         Control positions before the motion.
     targets : Tensor, shape (N_t, D)
@@ -219,6 +256,9 @@ def blend_rigid_motions(
     displacements : Tensor, shape (N_c, D) or (B, N_c, D)
     rotations : Tensor, shape (N_c, r) or (B, N_c, r)
         Each control's rotation: r = 1 (angle, 2-D) or 3 (rotation vector, 3-D).
+    reach : float
+        ℓ > 0: the distance from the pivot within which the blended rotation turns a
+        target fully (see :func:`default_reach`).
 
     Returns
     -------
@@ -227,6 +267,8 @@ def blend_rigid_motions(
     """
     dim = controls.shape[-1]
     size = rotation_size(dim)
+    if not (isinstance(reach, (int, float)) and math.isfinite(reach) and reach > 0):
+        raise ValueError(f"reach must be a positive length, got {reach!r}")
     batched = displacements.ndim == 3
     d = displacements if batched else displacements[None]
     omega = rotations if rotations.ndim == 3 else rotations[None].expand(d.shape[0], -1, -1)
@@ -235,13 +277,36 @@ def blend_rigid_motions(
             f"rotations must have shape ({d.shape[1]}, {size}) or (B, {d.shape[1]}, {size}) "
             f"for these {dim}-D displacements, got {tuple(rotations.shape)}"
         )
+    spin = (omega * omega).sum(-1, keepdim=True)  # |ω_k|²: the pivot's weights
     if size < dim:  # an angle travels in the first column of a D-vector
         omega = torch.cat([omega, omega.new_zeros(*omega.shape[:-1], dim - size)], -1)
-    columns = torch.cat([d, omega, controls[None]], 0)  # (2B + 1, N_c, D)
+    spin_column = torch.cat([spin, spin.new_zeros(*spin.shape[:-1], dim - 1)], -1)
+    columns = torch.cat([d, omega, spin * controls, spin_column], 0)  # (4B, N_c, D)
     blended = apply(columns)
     count = d.shape[0]
-    mean_d, mean_omega, centre = blended[:count], blended[count : 2 * count], blended[-1:]
-    turn = rotation_matrices(mean_omega[..., :size])  # (B, N_t, D, D)
-    arm = (targets - centre)[..., None]  # (1, N_t, D, 1)
-    moved = (turn @ arm)[..., 0] - arm[..., 0] + mean_d
+    mean_d, mean_omega = blended[:count], blended[count : 2 * count, :, :size]
+    moment, total = blended[2 * count : 3 * count], blended[3 * count :, :, :1]
+    tiny = torch.finfo(total.dtype).tiny
+    centre = moment / torch.where(total > tiny, total, torch.ones_like(total))
+    arm = targets - centre  # (B, N_t, D)
+    distance = torch.sqrt((arm * arm).sum(-1, keepdim=True) + tiny)
+    attenuation = torch.clamp(reach / distance, max=1.0)
+    turn = rotation_matrices(attenuation * mean_omega)  # (B, N_t, D, D)
+    moved = (turn @ arm[..., None])[..., 0] - arm + mean_d
     return moved if batched else moved[0]
+
+
+def default_reach(points: Tensor, rotations: Tensor) -> float:
+    """The size of the part that turns: half the diagonal of the bounding box of the
+    points whose rotation is at least half the largest (rotations (N, r) or (B, N, r),
+    the largest over a batch). 1.0 when nothing turns (the reach is then unused)."""
+    size = rotations.detach().norm(dim=-1)
+    if size.ndim == 2:
+        size = size.amax(0)
+    largest = float(size.max()) if size.numel() else 0.0
+    if largest == 0.0:
+        return 1.0
+    turning = points.detach()[size >= 0.5 * largest]
+    extent = turning.amax(0) - turning.amin(0)
+    half_diagonal = 0.5 * float(extent.norm())
+    return half_diagonal if half_diagonal > 0 else 1.0
