@@ -387,7 +387,8 @@ class StiffnessPattern:
 
 
 class SparseSolve(torch.autograd.Function):
-    """``u = K⁻¹ f`` for a sparse K given by its stored values on a pattern.
+    """``u = K⁻¹ f`` for a sparse, symmetric positive definite K given by its stored
+    values on a pattern (the factorisation pivots on the diagonal, without row exchanges).
 
     ``SparseSolve.apply(values, rhs, pattern)``: values (nnz,) in the order of
     ``pattern.rows`` / ``pattern.columns``, rhs (n,); returns u (n,). Forward factorises
