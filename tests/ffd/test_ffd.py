@@ -13,7 +13,7 @@ from _ffd_reference import pygem_ffd, rotation_matrix
 from torch.autograd import gradcheck, gradgradcheck
 
 from torchmorph.ffd import FFD, ffd_apply, ffd_bases, lattice_sum
-from torchmorph.ffd.functional import tensor_product
+from torchmorph.ffd.lattice import tensor_product
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -298,25 +298,48 @@ def test_float32_matches_float64():
 @pytest.mark.parametrize(
     ("basis", "dim"), [("bernstein", 3), ("bspline", 3), ("bernstein", 2), ("bspline", 2)]
 )
-def test_gradcheck_in_the_displacements(basis, dim):
+@pytest.mark.parametrize("factored", [True, False])
+def test_gradcheck_in_the_displacements(basis, dim, factored):
     points = torch.from_numpy(cloud(count=25, dim=dim, low=-0.1, high=1.1))
     shape = (4, 5, 4)[:dim]
-    rows = 4  # points per block of weights: several blocks
-    morph = FFD(
-        points,
-        origin=ORIGIN[:dim],
-        lengths=LENGTHS[:dim],
-        shape=shape,
-        basis=basis,
-        block_bytes=rows * 8 * math.prod(shape),
-    )
+    morph = FFD(points, origin=ORIGIN[:dim], lengths=LENGTHS[:dim], shape=shape, basis=basis)
+    rows = 4  # points per block: several blocks
+    lattice = math.prod(shape)
+    per_row = max(lattice, lattice // shape[-1] * 2 * dim) if factored else lattice
+    block_bytes = rows * 8 * per_row
     assert morph.num_inside > 2 * rows
-    displacements = (
-        torch.from_numpy(random_mu(shape)).expand(2, *shape, dim).clone().requires_grad_(True)
-    )
-    assert gradcheck(morph, (displacements,))
+
+    def morph_with(displacements):
+        return lattice_sum(morph.bases, displacements, block_bytes=block_bytes, factored=factored)
+
+    displacements = torch.from_numpy(random_mu(shape)).expand(2, *shape, dim).clone()
+    assert gradcheck(morph_with, (displacements.requires_grad_(True),))
     single = displacements[0].detach().clone().requires_grad_(True)
-    assert gradgradcheck(morph, (single,), fast_mode=True)
+    assert gradgradcheck(morph_with, (single,), fast_mode=True)
+    # the module's own choice
+    assert gradcheck(morph, (single,))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("batch", [(), (3,), (16,), (2, 5)])
+def test_factored_and_dense_sums_agree(dim, batch):
+    points = torch.from_numpy(cloud(dim=dim, low=-0.1, high=1.1))
+    shape = (6, 4, 5)[:dim]
+    inside, bases = ffd_bases(points, origin=ORIGIN[:dim], lengths=LENGTHS[:dim], shape=shape)
+    generator = torch.Generator().manual_seed(8)
+    displacements = torch.randn(*batch, *shape, dim, generator=generator, dtype=F64)
+    displacements.requires_grad_(True)
+    upstream = torch.randn(*batch, inside.numel(), dim, generator=generator, dtype=F64)
+    results = []
+    for factored in (True, False):
+        for block_bytes in (3000, None):
+            moved = lattice_sum(bases, displacements, block_bytes=block_bytes, factored=factored)
+            (gradient,) = torch.autograd.grad((moved * upstream).sum(), displacements)
+            results.append((moved, gradient))
+    expected = tensor_product(bases) @ displacements.detach().reshape(-1, math.prod(shape), dim)
+    for moved, gradient in results:
+        torch.testing.assert_close(moved, expected.reshape(moved.shape), rtol=0, atol=1e-14)
+        torch.testing.assert_close(gradient, results[0][1], rtol=0, atol=1e-14)
 
 
 def test_backward_keeps_the_bases_only_and_matches_the_weights():

@@ -4,8 +4,8 @@ SU2's ``BEZIER``) or clamped uniform B-splines (SU2's ``BSPLINE_UNIFORM``, pyGeo
 and 3-D.
 
 The one-dimensional bases (:mod:`torchmorph.ffd.basis`), the functional core
-(:mod:`torchmorph.ffd.functional`: :func:`ffd_bases`, :func:`lattice_sum`,
-:func:`ffd_apply`) and the :class:`FFD` module (:mod:`torchmorph.ffd.module`) over it.
+(:mod:`torchmorph.ffd.functional`: :func:`ffd_bases`, :func:`ffd_apply`), the lattice
+sum they share (:mod:`torchmorph.ffd.lattice`) and the :class:`FFD` module (:mod:`torchmorph.ffd.module`) over it.
 """
 
 from torchmorph.ffd.basis import (
@@ -17,15 +17,18 @@ from torchmorph.ffd.basis import (
 from torchmorph.ffd.functional import (
     BASES,
     BOUNDARY_ULPS,
-    DEFAULT_BLOCK_BYTES,
-    DEFAULT_CUDA_BLOCK_BYTES,
     DEFAULT_DEGREE,
     Basis,
     control_coordinates,
     ffd_apply,
     ffd_bases,
-    lattice_sum,
     local_coordinates,
+)
+from torchmorph.ffd.lattice import (
+    DEFAULT_BLOCK_BYTES,
+    DEFAULT_CUDA_BLOCK_BYTES,
+    FACTORED_COLUMNS,
+    lattice_sum,
 )
 from torchmorph.ffd.module import FFD
 
@@ -35,6 +38,7 @@ __all__ = [
     "DEFAULT_BLOCK_BYTES",
     "DEFAULT_CUDA_BLOCK_BYTES",
     "DEFAULT_DEGREE",
+    "FACTORED_COLUMNS",
     "FFD",
     "Basis",
     "bernstein_basis",

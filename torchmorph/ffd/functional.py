@@ -7,14 +7,14 @@ of Sederberg and Parry (1986, eq. 1), written for displacements: ``d_ijk`` is th
 displacement of control point (i, j, k) in physical units and ``d(x)`` the displacement
 of a point x inside the box; a point outside the box does not move.
 
-:func:`ffd_bases` computes what depends on the points only (once), :func:`lattice_sum`
-what depends on the displacements (every call), :func:`ffd_apply` both. The
+:func:`ffd_bases` computes what depends on the points only (once),
+:func:`~torchmorph.ffd.lattice.lattice_sum` what depends on the displacements (every
+call), :func:`ffd_apply` both. The
 :class:`~torchmorph.ffd.FFD` module keeps the bases as buffers.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any, Literal
 
@@ -30,18 +30,16 @@ from torchmorph._checks import (
     check_same_device_dtype,
 )
 from torchmorph.ffd.basis import bernstein_basis, bspline_basis, greville_abscissae
+from torchmorph.ffd.lattice import lattice_sum
 
 __all__ = [
     "BASES",
     "BOUNDARY_ULPS",
-    "DEFAULT_BLOCK_BYTES",
-    "DEFAULT_CUDA_BLOCK_BYTES",
     "DEFAULT_DEGREE",
     "Basis",
     "control_coordinates",
     "ffd_apply",
     "ffd_bases",
-    "lattice_sum",
     "local_coordinates",
 ]
 
@@ -49,10 +47,6 @@ Basis = Literal["bernstein", "bspline"]
 BASES: tuple[Basis, ...] = ("bernstein", "bspline")
 DEFAULT_DEGREE = 3
 """Degree of the B-spline basis when none is given (cubic, as SU2 and pyGeo)."""
-DEFAULT_BLOCK_BYTES = 16 * 2**20
-"""Byte budget of one block of tensor-product weights (rows of points × lattice) on the CPU."""
-DEFAULT_CUDA_BLOCK_BYTES = 256 * 2**20
-"""The same budget on a CUDA device."""
 BOUNDARY_ULPS = 4
 """A point is inside the box when each local coordinate lies in [0, 1] widened by this
 many units of the dtype's rounding (``torch.finfo(dtype).eps``): a point on a face of the
@@ -280,117 +274,8 @@ def ffd_bases(
 
 
 # --------------------------------------------------------------------------- #
-# the lattice sum
+# displacements of the points
 # --------------------------------------------------------------------------- #
-def tensor_product(bases: Sequence[Tensor]) -> Tensor:
-    """Rows of the tensor-product basis: (M, n_1 ⋯ n_D), column (i, j, k) in C order
-    holding ``bases[0][:, i] · bases[1][:, j] · bases[2][:, k]``."""
-    weights = bases[0]
-    for factor in bases[1:]:
-        weights = (weights[:, :, None] * factor[:, None, :]).reshape(weights.shape[0], -1)
-    return weights
-
-
-def block_rows(bases: Sequence[Tensor], block_bytes: int | None) -> int:
-    """Points per block so that one block of tensor-product weights fits ``block_bytes``."""
-    if block_bytes is None:
-        cuda = bases[0].device.type == "cuda"
-        block_bytes = DEFAULT_CUDA_BLOCK_BYTES if cuda else DEFAULT_BLOCK_BYTES
-    lattice = math.prod(factor.shape[1] for factor in bases)
-    return max(1, int(block_bytes) // (lattice * bases[0].element_size()))
-
-
-def _blocked_sum(bases: Sequence[Tensor], values: Tensor, rows: int) -> Tensor:
-    """W @ values, W (M, L) the tensor product of ``bases``, formed ``rows`` rows at a time."""
-    count = bases[0].shape[0]
-    blocks = [
-        tensor_product([factor[start : start + rows] for factor in bases]) @ values
-        for start in range(0, count, rows)
-    ]
-    return torch.cat(blocks) if blocks else values.new_zeros(0, values.shape[1])
-
-
-def _blocked_transpose_sum(bases: Sequence[Tensor], values: Tensor, rows: int) -> Tensor:
-    """Wᵀ @ values, W formed ``rows`` rows at a time and never whole."""
-    count = bases[0].shape[0]
-    lattice = math.prod(factor.shape[1] for factor in bases)
-    total = values.new_zeros(lattice, values.shape[1])
-    for start in range(0, count, rows):
-        block = tensor_product([factor[start : start + rows] for factor in bases])
-        total.addmm_(block.T, values[start : start + rows])
-    return total
-
-
-class _LatticeSum(torch.autograd.Function):
-    """W @ values with W recomputed block by block in the backward pass (Wᵀ @ grad), so
-    that autograd keeps the per-axis bases, not the (M, L) matrix. Differentiable in
-    ``values`` only (the bases are constants here), to any order: the backward of one
-    is the other."""
-
-    @staticmethod
-    def forward(values: Tensor, rows: int, transpose: bool, *bases: Tensor) -> Tensor:
-        if transpose:
-            return _blocked_transpose_sum(bases, values, rows)
-        return _blocked_sum(bases, values, rows)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        _, rows, transpose, *bases = inputs
-        ctx.rows, ctx.transpose = rows, transpose
-        ctx.save_for_backward(*bases)
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):
-        bases = ctx.saved_tensors
-        values_grad = _LatticeSum.apply(grad, ctx.rows, not ctx.transpose, *bases)
-        return (values_grad, None, None, *([None] * len(bases)))
-
-
-def lattice_sum(
-    bases: Sequence[Tensor], displacements: Tensor, *, block_bytes: int | None = None
-) -> Tensor:
-    """``Σ_ijk B_i B_j B_k d_ijk`` at every row of the bases.
-
-    Parameters
-    ----------
-    bases : sequence of D Tensors, shapes (M, n_k)
-        One basis matrix per axis (from :func:`ffd_bases`).
-    displacements : Tensor, shape (..., n_1, …, n_D, D)
-        Control-point displacements, any number of leading batch dimensions.
-    block_bytes : int, optional
-        Byte budget of one block of the (M, n_1 ⋯ n_D) tensor-product weights, which
-        are formed block by block and never whole (default :data:`DEFAULT_BLOCK_BYTES`,
-        :data:`DEFAULT_CUDA_BLOCK_BYTES` on CUDA).
-
-    Returns
-    -------
-    Tensor, shape (..., M, D)
-
-    Notes
-    -----
-    One matrix product per block: the weights of a block of points times the
-    displacements of the whole batch as (n_1 ⋯ n_D, B·D) columns, O(M · n_1 ⋯ n_D · B·D)
-    operations. When no basis requires grad, the backward pass recomputes the blocks
-    instead of keeping them, so memory stays at one block whatever M; bases that require
-    grad (moved points) are differentiated through plain torch operations, which keep
-    every block for the backward pass. The local support of B-splines is not exploited:
-    a B-spline lattice costs what a Bernstein lattice of the same size does.
-    """
-    dim = len(bases)
-    sizes = tuple(factor.shape[1] for factor in bases)
-    lead = displacements.shape[: displacements.ndim - dim - 1]
-    lattice = math.prod(sizes)
-    batch = math.prod(lead)
-    values = displacements.reshape(batch, lattice, dim).permute(1, 0, 2).reshape(lattice, -1)
-    rows = block_rows(bases, block_bytes)
-    if torch.is_grad_enabled() and any(factor.requires_grad for factor in bases):
-        result = _blocked_sum(bases, values, rows)
-    else:
-        result = _LatticeSum.apply(values, rows, False, *bases)
-    count = bases[0].shape[0]
-    return result.reshape(count, batch, dim).permute(1, 0, 2).reshape(*lead, count, dim)
-
-
 def scatter_inside(moved: Tensor, inside: Tensor, count: int) -> Tensor:
     """(..., N_in, D) displacements of the inside points spread to all ``count`` points,
     zero outside (differentiable in ``moved``)."""

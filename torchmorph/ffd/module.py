@@ -20,9 +20,9 @@ from torchmorph.ffd.functional import (
     control_coordinates,
     ffd_apply,
     ffd_bases,
-    lattice_sum,
     scatter_inside,
 )
+from torchmorph.ffd.lattice import lattice_sum
 
 __all__ = ["FFD"]
 
@@ -60,8 +60,8 @@ class FFD(nn.Module):
         ``origin + R · ([0, L_1] × … × [0, L_D])``; PyGeM's ``FFD.rotation_matrix``
         (from ``rot_angle``). None: an axis-aligned box.
     block_bytes : int, optional
-        Byte budget of one block of tensor-product weights in :meth:`forward`
-        (default 16 MiB on the CPU, 256 MiB on CUDA).
+        Byte budget of one block of temporaries in :meth:`forward` (default 4 MiB on the
+        CPU, 256 MiB on CUDA; see :mod:`torchmorph.ffd.lattice`).
 
     Attributes
     ----------
