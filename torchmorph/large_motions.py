@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor
@@ -37,8 +37,32 @@ from torchmorph.idw.rotations import (
 )
 from torchmorph.mesh.quality import inverted_cells
 
-if TYPE_CHECKING:
-    from torchmorph.morph import MeshMorph
+
+class MeshMorph(Protocol):
+    """What these functions use of a :class:`~torchmorph.morph.MeshMorph` (named here
+    by its parts, so that the morph module can import this one)."""
+
+    points: Tensor
+    boundary_nodes: Tensor
+    interior_nodes: Tensor
+    control_nodes: Tensor
+    selected: Tensor
+    idw: Any
+
+    @property
+    def dim(self) -> int: ...
+
+    @property
+    def cells(self) -> Any: ...
+
+    def reference_mesh(self) -> Any: ...
+
+    def controls_from_boundary(self, boundary_displacement: Tensor) -> Tensor: ...
+
+    def _check_boundary(self, boundary_displacement: Tensor) -> None: ...
+
+    def _orientations(self) -> tuple[Tensor, ...]: ...
+
 
 __all__ = ["SteppedMorph", "boundary_neighbours", "morph_in_steps", "rotation_aware"]
 
@@ -68,7 +92,7 @@ def boundary_neighbours(morph: MeshMorph) -> Tensor:
     column = torch.arange(edges.shape[1], device=boundary.device) - start[edges[0]]
     table = torch.full((count, width), -1, dtype=torch.long, device=boundary.device)
     table[edges[0], column] = edges[1]
-    morph._boundary_neighbours = table
+    setattr(morph, "_boundary_neighbours", table)  # noqa: B010  (a cache, not state)
     return table
 
 
