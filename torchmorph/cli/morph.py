@@ -35,6 +35,16 @@ if TYPE_CHECKING:
 __all__: list[str] = []
 
 
+def _positive_int(text: str) -> int:
+    try:
+        number = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if number < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return number
+
+
 def _selection_parameters(text: str) -> tuple[float, float, float]:
     """Parse ``R[,a[,b]]`` and validate it with :class:`~torchmorph.selection.Region`."""
     parts = [part.strip() for part in text.split(",")]
@@ -154,6 +164,21 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
     selection.add_argument(
         "--seed", type=int, default=0, help="seed of the random selection (default 0)"
     )
+    selection.add_argument(
+        "--adaptive",
+        type=_positive_float,
+        metavar="TOL",
+        help="error-driven selection: add boundary nodes to the controls, those that lower "
+        "the error most first, until the morph's relative nodal error against full IDW "
+        "(every boundary node a control) is at most TOL (e.g. 0.01); a --select, --region "
+        "or --enrich selection is where it starts",
+    )
+    selection.add_argument(
+        "--max-controls",
+        type=_positive_int,
+        metavar="N",
+        help="with --adaptive: at most N control points (the starting selection included)",
+    )
     idw = morph.add_argument_group("interpolation")
     idw.add_argument(
         "--power", type=_positive_float, default=4.0, help="IDW exponent p (default 4, the paper's)"
@@ -272,6 +297,33 @@ def _selection_plan(args: argparse.Namespace, mesh: Mesh) -> tuple[Any, Mesh, st
     return plan, selection_mesh, f"{method} ({args.strategy}): {text}"
 
 
+def _adaptive_plan(
+    args: argparse.Namespace, start: Any, rows: np.ndarray, mesh: Mesh, method: str
+) -> tuple[Any, str]:
+    """The error-driven plan of ``--adaptive``, started from the SIDW/ESIDW ``start``
+    (or from ``--enrich`` alone), driven by the boundary displacement ``rows``."""
+    import torch
+
+    from torchmorph.selection.adaptive import AdaptivePlan
+    from torchmorph.selection.plan import SelectionPlan
+
+    enrich = _split_names(args.enrich) or []
+    if start is None and enrich:
+        start = SelectionPlan((), enrich=enrich, uncovered="ignore")
+    family = torch.as_tensor(rows, dtype=mesh.dtype, device=mesh.device)
+    plan = AdaptivePlan(
+        args.adaptive, family, max_controls=args.max_controls, start=start, power=args.power
+    )
+    budget = "" if args.max_controls is None else f", at most {args.max_controls} controls"
+    if start is None:
+        origin = "from no control"
+    elif args.select is None and not args.region:
+        origin = f"from the enrichment sets {', '.join(enrich)}"
+    else:
+        origin = "from " + method
+    return plan, f"adaptive: nodal error <= {args.adaptive:g}{budget}, {origin}"
+
+
 def _uncovered_message(mesh: Mesh, error: UncoveredNodesError) -> str:
     """The library's uncovered-nodes error in command-line terms, with where the nodes lie."""
     missing = np.asarray(error.nodes)
@@ -332,9 +384,11 @@ def run(args: argparse.Namespace) -> int:
             f"argument --output/-o: a {output_format.name} output needs a {output_format.name} "
             "input (torchmorph writes those back moved, it does not write new ones)"
         )
-    if args.enrich and args.select is None and not args.region:
+    if args.max_controls is not None and args.adaptive is None:
+        args.parser.error("argument --max-controls: needs --adaptive")
+    if args.enrich and args.select is None and not args.region and args.adaptive is None:
         args.parser.error(
-            "argument --enrich: needs --select or --region (without a selection "
+            "argument --enrich: needs --select, --region or --adaptive (without a selection "
             "every boundary node is a control point already)"
         )
     try:
@@ -392,6 +446,8 @@ def run(args: argparse.Namespace) -> int:
             )
         mesh = mesh.to(device=device, dtype=dtype)
         plan, selection_mesh, method = _selection_plan(args, mesh)
+        if args.adaptive is not None:
+            plan, method = _adaptive_plan(args, plan, rows, mesh, method)
         generator = torch.Generator().manual_seed(args.seed)
         with stages.step("selecting controls, assembling W"):
             try:
@@ -409,6 +465,10 @@ def run(args: argparse.Namespace) -> int:
                     "(a shared node goes to the first region listing it) or --overlap share "
                     "(each region keeps all its nodes)"
                 ) from error
+            except ValueError as error:
+                if args.adaptive is None or "displacements" not in str(error):
+                    raise
+                raise CommandError(f"--adaptive: {error}") from error
         boundary_displacement = torch.as_tensor(rows, dtype=dtype, device=device)
         with stages.step("morphing"):
             if device.type == "cuda":
@@ -478,6 +538,19 @@ def run(args: argparse.Namespace) -> int:
     )
     _line("method", method)
     _line("controls", f"{morph.num_controls} of {morph.num_boundary} boundary nodes")
+    result = getattr(plan, "result_", None)
+    if result is not None:
+        _line(
+            "nodal error",
+            f"{result.error:.4g} against full IDW ({result.reason}, {result.rounds} scorings; "
+            f"estimated on {plan.sampled_targets_} of {morph.num_interior} interior nodes)",
+        )
+        if not result.converged:
+            _warn(
+                "morph",
+                f"--adaptive {args.adaptive:g} not reached: the error is {result.error:.4g} "
+                f"with {morph.num_controls} controls ({result.reason}); raise --max-controls",
+            )
     _line("selection", _seconds(morph.selection_time))
     storage = (
         "matrix-free: weights recomputed at every morph"

@@ -453,6 +453,8 @@ class AdaptivePlan:
     ----------
     result_ : GreedySelection or None
         The last selection's record (indices into the boundary nodes, error, history).
+    sampled_targets_ : int
+        The number of interior nodes its error was measured at.
 
     Notes
     -----
@@ -474,6 +476,7 @@ class AdaptivePlan:
     min_batch: int = 8
     spacing: float = 0.5
     result_: GreedySelection | None = field(default=None, init=False, repr=False)
+    sampled_targets_: int = field(default=0, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.tolerance = check_positive(self.tolerance, "tolerance")
@@ -527,21 +530,24 @@ class AdaptivePlan:
         if self.start is not None:
             chosen = torch.as_tensor(self.start.select(mesh, generator=generator)).to(boundary)
             initial = torch.searchsorted(boundary, chosen.unique()).cpu()
-        sample_generator = torch.Generator().manual_seed(DEFAULT_SEED)
-        self.result_ = result = select_adaptive(
+        oracle = IDWErrorOracle(
             boundary_points,
             points[interior],
             family,
-            tolerance=self.tolerance,
-            max_controls=self.max_controls,
-            initial=initial,
             weights=weights,
             candidate_weights=candidate_weights,
             power=self.power,
             num_samples=self.num_samples,
             sample_bytes=self.sample_bytes,
             score_samples=self.score_samples,
-            generator=sample_generator,
+            generator=torch.Generator().manual_seed(DEFAULT_SEED),
+        )
+        self.sampled_targets_ = len(oracle.sample)
+        self.result_ = result = greedy_selection(
+            oracle,
+            tolerance=self.tolerance,
+            max_controls=self.max_controls,
+            initial=initial,
             min_batch=self.min_batch,
             spacing=self.spacing,
         )
