@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from _kinds import box, columns, on_box_surface, quadratic
 
 from torchmorph.mesh import Mesh
@@ -128,3 +129,17 @@ def test_quads_sharing_edges_with_boundary_triangles_are_a_legal_boundary():
     points, cells = columns(2)
     beside = Mesh(points, cells)
     assert np.array_equal(beside.boundary_nodes.numpy(), on_box_surface(points))
+
+
+def test_split_quads_are_found_when_facets_are_sorted_column_by_column():
+    """With more nodes than an int64 key of three corners holds, facets are sorted
+    column by column: the check finds the same quads."""
+    from torchmorph.mesh._topology import as_cell_blocks, cell_orientations, match_facets
+
+    points, cells = box(("hexahedron", "wedge"), 2)
+    mesh_points = torch.from_numpy(points)
+    blocks = as_cell_blocks(cells, mesh_points.shape[0], mesh_points.device)
+    orientations = cell_orientations(mesh_points, blocks)
+    for num_nodes in (mesh_points.shape[0], 2**21):  # 2**63 > 2**62: no key fits
+        with pytest.raises(ValueError, match="^cells: 4 quadrilateral face"):
+            match_facets(blocks, orientations, num_nodes)

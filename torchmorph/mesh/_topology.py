@@ -288,8 +288,9 @@ def match_facets(
         seconds.append(owners[second])
         first_corners.append(corner_rows[first])
         second_corners.append(corner_rows[second])
-    if 3 in single_corners and 4 in single_corners:
-        _check_split_quads(single_corners[4], single_corners[3], blocks, num_nodes, argument)
+    quads, triangles = single_corners.get(4), single_corners.get(3)
+    if quads is not None and triangles is not None and quads[0].numel() and triangles[0].numel():
+        _check_split_quads(quads, triangles, blocks, num_nodes, argument)
     return Facets(
         boundary=tuple(CellBlock(k, torch.cat(v)) for k, v in boundary.items()),
         first=torch.cat(firsts) if firsts else torch.empty(0, dtype=torch.long, device=device),
