@@ -24,12 +24,12 @@ steps. The demo prints batches per second of both loops, the morph's share of a 
 and the surrogate's error on held-out μ (relative L2 error of the strain field, and
 the largest error in V / V0).
 
-What it shows, on one CPU thread: the reduced morph of a batch is a few per cent of a
-training step or less (small mesh: about 0.3 ms of 13 ms for 8 meshes; paper-size mesh:
-about 4 ms of 0.4 s for 16), less than computing the cells' volumes of the batch, so
-meshes made on the fly cost about what reading stored ones costs, with fresh μ in every
-batch; the full ESIDW morph (no POD) of the batch would cost about half a step at the
-paper size. Timings on a GPU are not part of the demo's record.
+What it shows, on one CPU thread: the reduced morph of a batch is about 2 % of a
+training step (small mesh, 8 meshes a batch: 0.3 ms of 13 ms; paper-size mesh, 16 a
+batch: 8 ms of 0.6 s), far less than the cells' volumes of the batch, so meshes made on
+the fly cost about what reading stored ones costs (1.01-1.08x the time per batch), with
+fresh μ in every batch; the full ESIDW morph (no POD) of the batch would take about half
+a step at the paper size. Timings on a GPU are not part of this record.
 
     python demos/surrogate_training.py                      # paper-size mesh
     python demos/surrogate_training.py --size small --out out/surrogate
