@@ -59,8 +59,8 @@ def box(kinds_by_layer: tuple[str, ...], cells: int = 2):
     Layers that conform: a wedge layer (a prism layer extruded along z) under a tetra
     layer (their triangles share the diagonal 0-2 of each cube face), hexahedra under
     pyramids (the pyramids' bases are the cube faces), a layer over one of its own kind.
-    A wedge or tetra layer next to a hexahedron layer does not conform (a quad against
-    two triangles).
+    A wedge or tetra layer next to a hexahedron or pyramid layer does not conform (a
+    quad against two triangles): ``Mesh`` rejects it.
 
     Returns points (N, 3), cells [(kind, array)], the number of boundary nodes.
     """
