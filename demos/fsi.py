@@ -215,16 +215,27 @@ class FluidMeshMotion:
             raise RuntimeError("the fluid's wing nodes are not boundary nodes of the morph")
         self.rows = torch.as_tensor(rows, device=device)
         self.num_boundary = len(boundary)
+        # the POD reducer writes straight into the NumPy array the fluid solver reads
+        # (out= on a tensor that shares its memory): no copy on the way out
+        self.buffer: np.ndarray | None = None
+        if isinstance(morph, PODReducer) and torch.device(device).type == "cpu":
+            self.buffer = np.zeros((interface.fluid.num_nodes, 3))
+            self._out = torch.from_numpy(self.buffer)
 
     def boundary(self, wing_displacement: np.ndarray) -> Tensor:
         """(N_b, 3) boundary displacement of the fluid mesh: the wing's, walls fixed."""
         moved = self.interface.to_fluid.interpolate(wing_displacement)
         out = torch.zeros(self.num_boundary, 3, dtype=torch.float64, device=self.device)
-        out[self.rows] = torch.as_tensor(moved, device=self.device)
+        out[self.rows] = torch.as_tensor(moved, device=self.device)  # no copy of `moved`
         return out
 
     def __call__(self, boundary: Tensor) -> np.ndarray:
+        """The fluid nodes' displacement (N, 3): a view of the morph's output on the CPU
+        (``Tensor.numpy`` shares memory), or the reducer's own buffer."""
         with torch.no_grad():
+            if self.buffer is not None:
+                self.morph(boundary, out=self._out)
+                return self.buffer
             displacement = self.morph(boundary)
         synchronise(self.device)
         return displacement.cpu().numpy()
