@@ -17,14 +17,14 @@ Printed (markdown), medians of repeats after a warm-up:
      moved points from torchmorph's;
    * mathLab's PyGeM ``FFD`` (Bernstein only; ``--pygem PATH``, the folder holding the
      ``pygem`` package of a checkout of github.com/mathLab/PyGeM: it is not on PyPI, whose
-     ``pygem`` is another project) on a subsample of ``--pygem-points`` points per call,
-     extrapolated linearly to N (its cost is linear in the points; said so in the table),
-     16 calls for a batch of 16; and the largest difference from torchmorph's moved
-     points (PyGeM's parameters are torchmorph's displacements divided by the lengths,
-     in the box's axes).
+     ``pygem`` is another project): one call on all N points (``--pygem-points`` for
+     fewer, then extrapolated linearly to N and said so in the table), 16 calls for a
+     batch of 16; and the largest difference from torchmorph's moved points (PyGeM's
+     parameters are torchmorph's displacements divided by the lengths, in the box's
+     axes).
 
-Run ``python benchmarks/ffd.py [--pygem PATH] [--quick]`` (about 2 minutes on one core;
-``--quick``: N = 10^4 and 10^5 only).
+Run ``python benchmarks/ffd.py [--pygem PATH] [--quick]`` (about 3 minutes on one core
+with PyGeM; ``--quick``: N = 10^4 and 10^5 only).
 """
 
 from __future__ import annotations
@@ -126,7 +126,7 @@ def pygem_morph(pygem_ffd, points: np.ndarray, mu: np.ndarray) -> np.ndarray:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pygem", help="folder holding mathLab's pygem package")
-    parser.add_argument("--pygem-points", type=int, default=10_000)
+    parser.add_argument("--pygem-points", type=int, help="default: all N points")
     parser.add_argument("--loop-points", type=int, default=200)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true")
@@ -175,7 +175,7 @@ def main(argv=None) -> None:
                 loop_error = np.abs(looped - moved[subsample]).max()
                 pygem_cells = "– | – | –"
                 if pygem_ffd is not None and basis == "bernstein":
-                    part = points[: args.pygem_points]
+                    part = points[: args.pygem_points or count]
                     call = median_time(
                         lambda p=part: pygem_morph(pygem_ffd, p, mu[0]), args.repeats
                     )

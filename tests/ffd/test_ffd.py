@@ -12,7 +12,7 @@ import torch
 from _ffd_reference import pygem_ffd, rotation_matrix
 from torch.autograd import gradcheck, gradgradcheck
 
-from torchmorph.ffd import FFD, ffd_apply, ffd_bases, lattice_sum
+from torchmorph.ffd import FFD, ffd_apply, ffd_bases, functional, lattice_sum
 from torchmorph.ffd.lattice import tensor_product
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -392,3 +392,26 @@ def test_cuda_matches_cpu(basis):
     torch.testing.assert_close(built(displacements.cuda()).cpu(), expected, rtol=0, atol=1e-14)
     for name in ("inside", "basis_x", "basis_y", "basis_z"):
         assert getattr(built, name).is_cuda
+
+
+@pytest.mark.parametrize("basis", ["bernstein", "bspline"])
+def test_bases_evaluated_in_blocks_equal_one_block(basis, monkeypatch):
+    points = torch.from_numpy(cloud())
+    box = dict(origin=ORIGIN, lengths=LENGTHS, shape=(5, 4, 6), basis=basis)
+    inside, whole = ffd_bases(points, **box)
+    monkeypatch.setattr(functional, "BASIS_BLOCK_ROWS", 7)
+    blocked_inside, blocked = ffd_bases(points, **box)
+    assert torch.equal(blocked_inside, inside)
+    for matrix, reference in zip(blocked, whole, strict=True):
+        assert torch.equal(matrix, reference)
+    # with grad: the blocks are concatenated, and the gradient is the one-block one
+    moved = points.clone().requires_grad_(True)
+    (gradient,) = torch.autograd.grad(
+        sum(m.square().sum() for m in ffd_bases(moved, **box)[1]), moved
+    )
+    monkeypatch.setattr(functional, "BASIS_BLOCK_ROWS", 2**15)
+    (expected,) = torch.autograd.grad(
+        sum(m.square().sum() for m in ffd_bases(moved, **box)[1]), moved
+    )
+    assert (gradient != 0).any()
+    torch.testing.assert_close(gradient, expected, rtol=0, atol=1e-15)

@@ -52,6 +52,10 @@ BOUNDARY_ULPS = 4
 many units of the dtype's rounding (``torch.finfo(dtype).eps``): a point on a face of the
 box is inside even when ``(x − origin) / lengths`` rounds to 1 + 1 ulp."""
 
+BASIS_BLOCK_ROWS = 2**15
+"""Points per block of the basis recurrences: their temporaries stay in cache (a million
+points in one block spends most of its time allocating them)."""
+
 AXES = "xyz"
 
 
@@ -210,10 +214,23 @@ def control_coordinates(count: int, basis: Basis, degree: int | None = None) -> 
 
 
 def axis_basis(s: Tensor, count: int, basis: Basis, degree: int | None) -> Tensor:
-    """The (M, count) basis matrix of one axis at local coordinates ``s`` (M,)."""
-    if basis == "bernstein":
-        return bernstein_basis(s, count)
-    return bspline_basis(s, count, degree or DEFAULT_DEGREE)
+    """The (M, count) basis matrix of one axis at local coordinates ``s`` (M,), evaluated
+    :data:`BASIS_BLOCK_ROWS` points at a time."""
+
+    def evaluate(part: Tensor) -> Tensor:
+        if basis == "bernstein":
+            return bernstein_basis(part, count)
+        return bspline_basis(part, count, degree or DEFAULT_DEGREE)
+
+    if s.shape[0] <= BASIS_BLOCK_ROWS:
+        return evaluate(s)
+    starts = range(0, s.shape[0], BASIS_BLOCK_ROWS)
+    if torch.is_grad_enabled() and s.requires_grad:
+        return torch.cat([evaluate(s[start : start + BASIS_BLOCK_ROWS]) for start in starts])
+    values = s.new_empty(s.shape[0], count)
+    for start in starts:
+        values[start : start + BASIS_BLOCK_ROWS] = evaluate(s[start : start + BASIS_BLOCK_ROWS])
+    return values
 
 
 def ffd_bases(
