@@ -415,3 +415,22 @@ def test_bases_evaluated_in_blocks_equal_one_block(basis, monkeypatch):
     )
     assert (gradient != 0).any()
     torch.testing.assert_close(gradient, expected, rtol=0, atol=1e-15)
+
+
+def test_functional_is_differentiable_in_the_box():
+    points = torch.from_numpy(cloud(count=10, low=0.1, high=0.9))
+    displacements = torch.from_numpy(random_mu((3, 4, 3)))
+    origin = torch.from_numpy(ORIGIN).requires_grad_(True)
+    lengths = torch.from_numpy(LENGTHS).requires_grad_(True)
+    rotation = torch.from_numpy(rotation_matrix((5.0, 10.0, -15.0)))
+
+    def morph(origin, lengths):
+        return ffd_apply(
+            points=points,
+            displacements=displacements,
+            origin=origin,
+            lengths=lengths,
+            rotation=rotation,
+        )
+
+    assert gradcheck(morph, (origin, lengths))

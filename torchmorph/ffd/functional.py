@@ -9,8 +9,8 @@ of a point x inside the box; a point outside the box does not move.
 
 :func:`ffd_bases` computes what depends on the points only (once),
 :func:`~torchmorph.ffd.lattice.lattice_sum` what depends on the displacements (every
-call), :func:`ffd_apply` both. The
-:class:`~torchmorph.ffd.FFD` module keeps the bases as buffers.
+call), :func:`ffd_apply` both. The :class:`~torchmorph.ffd.FFD` module keeps the bases
+as buffers.
 """
 
 from __future__ import annotations
