@@ -1,11 +1,12 @@
 """Free-form deformation (Sederberg and Parry 1986): displacements of a control lattice
 in a box to displacements of the points inside it, with Bernstein polynomials (PyGeM,
-SU2's ``BEZIER``) or clamped uniform B-splines (SU2's ``BSPLINE_UNIFORM``, pyGeo), in 2-D
-and 3-D.
+SU2's ``BEZIER``) or clamped uniform B-splines (the knots of SU2's
+``BSPLINE_UNIFORM``), in 2-D and 3-D.
 
 The one-dimensional bases (:mod:`torchmorph.ffd.basis`), the functional core
 (:mod:`torchmorph.ffd.functional`: :func:`ffd_bases`, :func:`ffd_apply`), the lattice
-sum they share (:mod:`torchmorph.ffd.lattice`) and the :class:`FFD` module (:mod:`torchmorph.ffd.module`) over it.
+sum they share (:mod:`torchmorph.ffd.lattice`) and the :class:`FFD` module
+(:mod:`torchmorph.ffd.module`) over them.
 """
 
 from torchmorph.ffd.basis import (

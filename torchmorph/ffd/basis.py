@@ -1,6 +1,6 @@
 """The one-dimensional bases of free-form deformation: Bernstein polynomials (Sederberg
 and Parry 1986, the basis of PyGeM's ``FFD`` and SU2's ``BEZIER`` blending) and clamped
-uniform B-splines (de Boor's recurrence; SU2's ``BSPLINE_UNIFORM``, pyGeo's volumes).
+uniform B-splines (Cox–de Boor's recurrence; the knot vector of SU2's ``BSPLINE_UNIFORM``).
 
 Each basis is evaluated at local coordinates ``s`` in [0, 1] and returns one column per
 control point of the axis; a lattice's basis is the tensor product of one such matrix

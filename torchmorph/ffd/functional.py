@@ -46,7 +46,7 @@ __all__ = [
 Basis = Literal["bernstein", "bspline"]
 BASES: tuple[Basis, ...] = ("bernstein", "bspline")
 DEFAULT_DEGREE = 3
-"""Degree of the B-spline basis when none is given (cubic, as SU2 and pyGeo)."""
+"""Degree of the B-spline basis when none is given (cubic: C² across the knots)."""
 BOUNDARY_ULPS = 4
 """A point is inside the box when each local coordinate lies in [0, 1] widened by this
 many units of the dtype's rounding (``torch.finfo(dtype).eps``): a point on a face of the

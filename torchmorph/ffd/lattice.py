@@ -39,8 +39,8 @@ DEFAULT_CUDA_BLOCK_BYTES = 256 * 2**20
 FACTORED_COLUMNS = 12
 """Up to this many value columns (batch × D) the sum is factorised axis by axis; above,
 blocks of tensor-product weights are multiplied by the displacements (measured on one
-CPU thread: the factorised sum is 2–3× faster for one field, the GEMM 2–5× faster for a
-batch of 16 fields in 3-D)."""
+CPU thread, 10^3 lattice: the factorised sum 2–3× faster for one field in 3-D, the GEMM
+about 2× faster for a batch of 16 fields, and even at 12 columns)."""
 
 
 def tensor_product(bases: Sequence[Tensor]) -> Tensor:
@@ -191,7 +191,8 @@ def lattice_sum(
     block whatever M; bases that require grad (moved points) are differentiated through
     plain torch operations, which keep every block for the backward pass. The local
     support of B-splines is not exploited: a B-spline lattice costs what a Bernstein
-    lattice of the same size does.
+    lattice of the same size does (gathering the (p + 1)^D control points of each point
+    instead was measured 1.5–2× slower than these blocks on the CPU, 10^3 lattice).
     """
     dim = len(bases)
     lead = displacements.shape[: displacements.ndim - dim - 1]

@@ -51,8 +51,8 @@ class FFD(nn.Module):
         for ``"bernstein"`` (degree n_k − 1 on axis k), >= degree + 1 for ``"bspline"``.
     basis : {"bernstein", "bspline"}
         Bernstein polynomials (PyGeM, SU2's ``BEZIER``) or clamped uniform B-splines
-        (SU2's ``BSPLINE_UNIFORM``, pyGeo): knots ``degree + 1`` times at 0 and at 1 and
-        uniform between, so that the lattice corners and faces interpolate.
+        (the knot vector of SU2's ``BSPLINE_UNIFORM``): knots ``degree + 1`` times at 0
+        and at 1 and uniform between, so that the lattice corners and faces interpolate.
     degree : int, optional
         B-spline degree, default 3; must be None for the Bernstein basis.
     rotation : Tensor or array, shape (D, D), optional
@@ -107,6 +107,16 @@ class FFD(nn.Module):
     ``d(x) = A x + b`` sampled there (``d_ijk = A c_ijk + b``) is reproduced exactly at
     every inside point (linear precision of both bases); a uniform ``d_ijk = b``
     translates every inside point by b.
+
+    **Other codes.** The Bernstein map is PyGeM's (the tests compare with its formula;
+    PyGeM itself gives the same points to 1e-15). The B-spline knots are SU2's for
+    ``BSPLINE_UNIFORM`` (``degree + 1`` zeros and ones, uniform between). Local
+    coordinates here are the affine ``Rᵀ (x − origin) / lengths``; SU2 and pyGeo instead
+    find a point's parametric coordinates by inverting the lattice map x(s) = Σ B(s) c.
+    The two agree when the reference control points are at :attr:`control_points`
+    (uniform for Bernstein, Greville for B-splines, where x(s) is affine); a B-spline
+    lattice of uniformly spaced control points in SU2 or pyGeo parametrises the box
+    differently, and its points move differently.
 
     **Gradients.** :meth:`forward` is differentiable in the displacements (its
     backward pass recomputes the tensor-product weights block by block and keeps only
