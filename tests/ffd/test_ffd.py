@@ -434,3 +434,34 @@ def test_functional_is_differentiable_in_the_box():
         )
 
     assert gradcheck(morph, (origin, lengths))
+
+
+@pytest.mark.parametrize("basis", ["bernstein", "bspline"])
+def test_composes_with_torch_func(basis):
+    points = torch.from_numpy(cloud(count=40))
+    morph = FFD(
+        points, origin=ORIGIN, lengths=LENGTHS, shape=(4, 4, 5), basis=basis, block_bytes=4000
+    )
+    family = (
+        torch.from_numpy(random_mu((4, 4, 5)))
+        * torch.linspace(0.5, 2.0, 6, dtype=F64)[:, None, None, None, None]
+    )
+    torch.testing.assert_close(torch.func.vmap(morph)(family), morph(family), rtol=0, atol=1e-15)
+    backward = torch.func.jacrev(morph)(family[0])
+    forward = torch.func.jacfwd(morph)(family[0])
+    assert backward.shape == (40, 3, 4, 4, 5, 3)
+    torch.testing.assert_close(forward, backward, rtol=0, atol=1e-15)
+    # the Jacobian is the weight of each control point, the same on every component
+    weights = torch.zeros(40, 80, dtype=F64)
+    weights[morph.inside] = tensor_product(morph.bases)
+    for component in range(3):
+        torch.testing.assert_close(
+            backward[:, component, ..., component].reshape(40, 80), weights, rtol=0, atol=1e-15
+        )
+    gradient = torch.func.grad(lambda d: morph(d).square().sum())(family[1])
+    torch.testing.assert_close(
+        gradient,
+        torch.func.vmap(torch.func.grad(lambda d: morph(d).square().sum()))(family)[1],
+        rtol=0,
+        atol=1e-15,
+    )

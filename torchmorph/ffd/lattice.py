@@ -123,10 +123,11 @@ def _transpose(bases: Sequence[Tensor], values: Tensor, rows: int, factored: boo
         total = values.new_zeros(lattice, columns)
     for start in range(0, count, rows):
         block = [factor[start : start + rows] for factor in bases]
+        # out of place, so that vmap can batch the accumulation
         if factored:
-            total += _factored_transpose_block(block, values[start : start + rows])
+            total = total + _factored_transpose_block(block, values[start : start + rows])
         else:
-            total.addmm_(tensor_product(block).T, values[start : start + rows])
+            total = torch.addmm(total, tensor_product(block).T, values[start : start + rows])
     return _natural_layout(total, sizes, columns) if factored else total
 
 
@@ -134,7 +135,10 @@ class _LatticeSum(torch.autograd.Function):
     """W @ values (or Wᵀ @ values) with W recomputed block by block in the backward pass,
     so that autograd keeps the per-axis bases, not the (M, L) matrix. Differentiable in
     ``values`` only (the bases are constants here), to any order: the backward of one
-    is the other."""
+    is the other, and forward mode (``jvp``) is the sum itself. ``torch.func.vmap``
+    batches it by running the forward batched."""
+
+    generate_vmap_rule = True
 
     @staticmethod
     def forward(
@@ -149,12 +153,18 @@ class _LatticeSum(torch.autograd.Function):
         _, rows, factored, transpose, *bases = inputs
         ctx.rows, ctx.factored, ctx.transpose = rows, factored, transpose
         ctx.save_for_backward(*bases)
+        ctx.save_for_forward(*bases)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         bases = ctx.saved_tensors
         values_grad = _LatticeSum.apply(grad, ctx.rows, ctx.factored, not ctx.transpose, *bases)
         return (values_grad, None, None, None, *([None] * len(bases)))
+
+    @staticmethod
+    def jvp(ctx, tangent: Tensor, *_) -> Tensor:
+        # linear in the values: the tangent goes through the same sum
+        return _LatticeSum.apply(tangent, ctx.rows, ctx.factored, ctx.transpose, *ctx.saved_tensors)
 
 
 def lattice_sum(

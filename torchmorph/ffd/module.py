@@ -120,7 +120,9 @@ class FFD(nn.Module):
 
     **Gradients.** :meth:`forward` is differentiable in the displacements (its
     backward pass recomputes the tensor-product weights block by block and keeps only
-    the bases); pass moved ``points`` to differentiate in them as well.
+    the bases); pass moved ``points`` to differentiate in them as well. With the stored
+    points, the forward composes with ``torch.func``: ``vmap`` over displacements (a
+    mapped family equals the batched call), ``grad``, ``jacrev`` and ``jacfwd``.
 
     **State.** :meth:`state_dict` holds the buffers and, as extra state, ``basis``,
     ``degree`` and ``shape``. Loading a state saved with another basis, degree or lattice
