@@ -123,7 +123,8 @@ def test_variants_and_their_errors():
     assert get_case("C", "paper") is CASES["hull"]
     assert get_case("wing", "paper") is CASES["wing"]
     with pytest.raises(
-        ValueError, match="variant \\(case 'wing'\\) must be one of 'paper'; got 'uniform'"
+        ValueError,
+        match="variant \\(case 'wing'\\) must be one of 'paper', 'adaptive'; got 'uniform'",
     ):
         get_case("wing", "uniform")
     with pytest.raises(ValueError, match="variant must be None for a CaseSpec"):

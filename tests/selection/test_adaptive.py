@@ -276,3 +276,20 @@ def test_two_dimensional_mesh():
     morph = MeshMorph(mesh, plan)
     assert plan.result_.converged
     assert nodal_error(mesh, displacement, morph.control_nodes.numpy()) <= 0.02
+
+
+def test_members_equal_up_to_a_factor_count_once():
+    mesh, displacement = bent_box(4)
+    boundary = mesh.points[mesh.boundary_nodes]
+    interior = mesh.points[mesh.interior_nodes]
+    family = torch.stack([displacement, -3.0 * displacement, 0.5 * displacement])
+    oracle = IDWErrorOracle(boundary, interior, family)
+    single = IDWErrorOracle(boundary, interior, displacement)
+    selected = torch.arange(0, boundary.shape[0], 4)
+    assert oracle.errors(selected).shape == (1,)
+    torch.testing.assert_close(oracle.errors(selected), single.errors(selected))
+    twisted = displacement.clone()
+    twisted[:, 2] = displacement[:, 1]
+    assert IDWErrorOracle(boundary, interior, torch.stack([displacement, twisted])).errors(
+        selected
+    ).shape == (2,)

@@ -68,6 +68,7 @@ from torchmorph.paper.cases import (
 from torchmorph.paper.experiments import (
     CaseContext,
     SelectionPoint,
+    adaptive_morph,
     factor_sweep,
     pod_parameter_sweep,
     pod_spectra,
@@ -92,6 +93,7 @@ __all__ = [
     "PaperMesh",
     "PaperRow",
     "SelectionPoint",
+    "adaptive_morph",
     "case_key",
     "factor_sweep",
     "get_case",

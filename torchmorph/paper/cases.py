@@ -197,7 +197,7 @@ class CaseSpec:
     variant : str
         ``"paper"`` for the configuration that reproduces the paper's figures
         (the default of every case); other names for documented alternatives
-        (:data:`VARIANTS`).
+        (:data:`VARIANTS`): ``"adaptive"`` adds rows of error-driven controls.
     selection_note : str
         One line saying how the regions' radii were chosen.
     """
@@ -448,14 +448,32 @@ _HULL_UNIFORM = dataclasses.replace(
     ),
 )
 
+
+def _adaptive(spec: CaseSpec) -> CaseSpec:
+    """The case with an "adaptive" row beside ESIDW: error-driven controls
+    (:class:`~torchmorph.selection.AdaptivePlan`) at the paper's ESIDW error."""
+    row = spec.paper_row("ESIDW")
+    assert row is not None and row.error_value is not None
+    return dataclasses.replace(
+        spec,
+        variant="adaptive",
+        selection_note=(
+            f"{spec.selection_note + '; ' if spec.selection_note else ''}the 'adaptive' rows: "
+            "controls chosen by their error (AdaptivePlan) until the nodal error against IDW "
+            f"at μ* and at every training value is at most the paper's ESIDW error, "
+            f"{100 * row.error_value:.2f} %"
+        ),
+    )
+
+
 #: The paper's three test cases, keyed ``"wing"`` (A), ``"fluid-wing"`` (B), ``"hull"`` (C).
 CASES: dict[str, CaseSpec] = {spec.key: spec for spec in (_WING, _FLUID_WING, _HULL)}
 
 #: Documented alternatives to a case's paper configuration, by case and variant name.
 VARIANTS: dict[str, dict[str, CaseSpec]] = {
-    "wing": {"paper": _WING},
-    "fluid-wing": {"paper": _FLUID_WING},
-    "hull": {"paper": _HULL, "uniform": _HULL_UNIFORM},
+    "wing": {"paper": _WING, "adaptive": _adaptive(_WING)},
+    "fluid-wing": {"paper": _FLUID_WING, "adaptive": _adaptive(_FLUID_WING)},
+    "hull": {"paper": _HULL, "uniform": _HULL_UNIFORM, "adaptive": _adaptive(_HULL)},
 }
 
 

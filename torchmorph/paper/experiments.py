@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CaseContext",
     "SelectionPoint",
+    "adaptive_morph",
     "factor_sweep",
     "pod_parameter_sweep",
     "pod_spectra",
@@ -180,6 +181,27 @@ def selective_morph(
     generator = torch.Generator().manual_seed(int(seed))
     with torch.no_grad():
         return MeshMorph(context.mesh, plan, generator=generator, mode=context.mode)
+
+
+def adaptive_morph(
+    context: CaseContext, parameters: Tensor, *, tolerance: float | None = None
+) -> MeshMorph:
+    """The morph of error-driven controls (:class:`~torchmorph.selection.AdaptivePlan`).
+
+    The family that drives the selection is the boundary displacement at μ* and at
+    every training value ``parameters`` (the POD snapshots); the tolerance defaults to
+    the paper's ESIDW error of the case.
+    """
+    from torchmorph.selection.adaptive import AdaptivePlan
+
+    if tolerance is None:
+        row = context.spec.paper_row("ESIDW")
+        assert row is not None and row.error_value is not None
+        tolerance = row.error_value
+    with torch.no_grad():
+        family = torch.cat([context.boundary_star[None], context.family(parameters)])
+        plan: Any = AdaptivePlan(tolerance, family)  # MeshMorph calls any plan's select()
+        return MeshMorph(context.mesh, plan, mode=context.mode)
 
 
 @dataclass

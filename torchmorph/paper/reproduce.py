@@ -19,6 +19,7 @@ from torchmorph.mesh.tetmesh import TetMesh
 from torchmorph.morph import MeshMorph
 from torchmorph.paper.cases import get_case, load_mesh_ticking
 from torchmorph.paper.experiments import (
+    adaptive_morph,
     fit_pod,
     median_seconds,
     mesh_figures,
@@ -81,7 +82,9 @@ def reproduce(
     variant : str, optional
         The selection set-up: ``"paper"`` (default), the one that reproduces the
         paper's figures, or a documented alternative of :data:`VARIANTS` (case C:
-        ``"uniform"``, R = 1.5 m on every wall and on the hull as printed).
+        ``"uniform"``, R = 1.5 m on every wall and on the hull as printed; every case:
+        ``"adaptive"``, rows "adaptive" and "POD-adaptive" of error-driven controls at
+        the paper's ESIDW error, :func:`~torchmorph.paper.experiments.adaptive_morph`).
     mesh : TetMesh, optional
         Use this mesh (with the case's node sets) instead of building or loading
         one; ``size`` and ``mesher`` are then only labels.
@@ -100,6 +103,8 @@ def reproduce(
     spec = get_case(case, variant)
     # mesh, IDW, [SIDW], ESIDW, POD-IDW, POD-ESIDW, [4 fixed-mode PODs], [writing]
     steps = 5 + int(spec.run_sidw) + (4 if spec.key == "hull" else 0) + int(out is not None)
+    adaptive = spec.variant == "adaptive"
+    steps += (4 if spec.key == "hull" else 2) if adaptive else 0
     bar = tqdm(
         total=steps,
         desc=f"case {spec.letter}",
@@ -178,6 +183,11 @@ def reproduce(
     morphs["ESIDW"] = esidw = selective_morph(context, enrich=True, seed=seed)
     add_row("ESIDW", esidw, esidw)
     bar.update()
+    if adaptive:
+        step("adaptive (error-driven controls)")
+        morphs["adaptive"] = adaptive_morph(context, parameters)
+        add_row("adaptive", morphs["adaptive"], morphs["adaptive"])
+        bar.update()
 
     sweep = None
     if spec.key == "hull":  # the paper gives the one-mode errors over a range of angles
@@ -187,7 +197,10 @@ def reproduce(
         with torch.no_grad():
             sweep_boundary = family(sweep)
             sweep_reference = context.idw(sweep_boundary)
-    for name, morph in (("POD-IDW", context.idw), ("POD-ESIDW", esidw)):
+    pods = [("POD-IDW", context.idw), ("POD-ESIDW", esidw)]
+    if adaptive:
+        pods.append(("POD-adaptive", morphs["adaptive"]))
+    for name, morph in pods:
         step(name)
         reducer = fit_pod(morph, family, parameters, online=online)
         spectra[name] = (reducer.singular_values_ / reducer.singular_values_[0])[:10].tolist()

@@ -111,7 +111,8 @@ class IDWErrorOracle:
     targets : Tensor, shape (N_t, D)
         Points the error is measured at (a mesh's interior nodes), ``N_t >= 1``.
     displacements : Tensor, shape (N_c, D) or (F, N_c, D)
-        The family of candidate displacements; the error is the worst over it.
+        The family of candidate displacements; the error is the worst over it. Members
+        that are multiples of one another (same relative errors) count once.
     weights : Tensor, shape (N_t,), optional
         Weight ``w_i >= 0`` of each target in the error (default 1); not all zero.
     candidate_weights : Tensor, shape (N_c,), optional
@@ -209,7 +210,10 @@ class IDWErrorOracle:
                 f"displacements: member {int(zero[0])} of the family has a zero reference "
                 "field (in the weighted norm): its relative error is undefined"
             )
-        self.reference_sq = reference_sq
+        # members equal up to a factor have the same relative error: keep one of each
+        kept = _distinct_up_to_scale(self.family)
+        self.family, self.reference = self.family[kept], self.reference[kept]
+        self.reference_sq = reference_sq[kept]
 
     def _transposed_weights(self) -> Tensor:
         """Full IDW's weights from every candidate to the sampled targets, stored as
@@ -552,6 +556,19 @@ class AdaptivePlan:
             spacing=self.spacing,
         )
         return torch.sort(boundary[result.indices.to(boundary.device)]).values
+
+
+def _distinct_up_to_scale(family: Tensor) -> Tensor:
+    """Indices of the members of ``family`` (F, N, D) that are no multiple of an earlier
+    one (a family linear in one parameter, δ = μ f, collapses to one member)."""
+    flat = family.reshape(family.shape[0], -1)
+    unit = flat / torch.linalg.vector_norm(flat, dim=1, keepdim=True)
+    parallel = (unit @ unit.mT).abs() >= 1 - 64 * torch.finfo(unit.dtype).eps
+    kept = [0]
+    for member in range(1, family.shape[0]):
+        if not bool(parallel[member, kept].any()):
+            kept.append(member)
+    return torch.tensor(kept, dtype=torch.int64, device=family.device)
 
 
 def _dim(points: Any) -> int:
