@@ -19,7 +19,9 @@ Printed (markdown), medians of repeats after a warm-up:
      ``pygem`` package of a checkout of github.com/mathLab/PyGeM: it is not on PyPI, whose
      ``pygem`` is another project): one call on all N points (``--pygem-points`` for
      fewer, then extrapolated linearly to N and said so in the table), 16 calls for a
-     batch of 16; and the largest difference from torchmorph's moved points (PyGeM's
+     batch of 16; the ratios to torchmorph's build and one forward (a PyGeM call
+     evaluates the bases too) and to torchmorph's batch of 16 (the module built once);
+     and the largest difference from torchmorph's moved points (PyGeM's
      parameters are torchmorph's displacements divided by the lengths, in the box's
      axes).
 
@@ -173,7 +175,7 @@ def main(argv=None) -> None:
                 looped = loop_formula(points[subsample], mu[0], basis)
                 loop_time = (time.perf_counter() - start) / args.loop_points * 1000
                 loop_error = np.abs(looped - moved[subsample]).max()
-                pygem_cells = "– | – | –"
+                pygem_cells = "– | – | – | –"
                 if pygem_ffd is not None and basis == "bernstein":
                     part = points[: args.pygem_points or count]
                     call = median_time(
@@ -183,6 +185,7 @@ def main(argv=None) -> None:
                     error = np.abs(pygem_morph(pygem_ffd, part, mu[0]) - moved[: len(part)]).max()
                     pygem_cells = (
                         f"{seconds(per_call)}{'' if len(part) == count else ' (extrapolated)'} | "
+                        f"{per_call / (build_time + single):,.1f}× | "
                         f"{BATCH * per_call / batched:,.0f}× | {error:.1e}"
                     )
                 references.append(
@@ -199,9 +202,9 @@ def main(argv=None) -> None:
     print(f"\n## References (NumPy loop on {args.loop_points} points; PyGeM per call)\n")
     print(
         "| N | lattice | basis | loop per 1,000 points | max |Δ| loop | PyGeM per call | "
-        "PyGeM ×16 / torchmorph B=16 | max |Δ| PyGeM |"
+        "PyGeM / torchmorph build + B=1 | PyGeM ×16 / torchmorph B=16 | max |Δ| PyGeM |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     print("\n".join(references))
 
 
