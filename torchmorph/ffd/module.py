@@ -109,7 +109,7 @@ class FFD(nn.Module):
     translates every inside point by b.
 
     **Other codes.** The Bernstein map is PyGeM's (the tests compare with its formula;
-    PyGeM itself gives the same points to 1e-15). The B-spline knots are SU2's for
+    ``benchmarks/ffd.py`` finds PyGeM's own ``FFD`` within 2e-15 of it). The B-spline knots are SU2's for
     ``BSPLINE_UNIFORM`` (``degree + 1`` zeros and ones, uniform between). Local
     coordinates here are the affine ``Rᵀ (x − origin) / lengths``; SU2 and pyGeo instead
     find a point's parametric coordinates by inverting the lattice map x(s) = Σ B(s) c.
@@ -130,6 +130,16 @@ class FFD(nn.Module):
     taken from the state whatever the number of points. The B-spline basis is dense
     per axis: its local support is not exploited (a 10 × 10 × 10 B-spline lattice costs
     what a Bernstein one does).
+
+    Examples
+    --------
+    A PyGeM box (``pygem_ffd``, its parameters set) ported; ``x`` the points, (N, 3):
+
+    >>> mu = np.stack([pygem_ffd.array_mu_x, pygem_ffd.array_mu_y, pygem_ffd.array_mu_z], -1)
+    >>> ffd = FFD(x, origin=pygem_ffd.box_origin, lengths=pygem_ffd.box_length,
+    ...           shape=tuple(pygem_ffd.n_control_points), rotation=pygem_ffd.rotation_matrix)
+    >>> d = torch.from_numpy((mu * pygem_ffd.box_length) @ pygem_ffd.rotation_matrix.T)
+    >>> moved = x + ffd(d)  # pygem_ffd(x.numpy()), to rounding
     """
 
     points: Tensor
