@@ -55,3 +55,9 @@ def rotation_matrix(angles_degrees) -> np.ndarray:
     ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
     rz = np.array([[math.cos(z), -math.sin(z), 0], [math.sin(z), math.cos(z), 0], [0, 0, 1]])
     return rx @ ry @ rz
+
+
+def rotation_2d(angle_degrees: float) -> np.ndarray:
+    """The counter-clockwise rotation of the plane by ``angle_degrees``."""
+    angle = math.radians(angle_degrees)
+    return np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from _ffd_reference import pygem_ffd, rotation_matrix
+from _ffd_reference import pygem_ffd, rotation_2d, rotation_matrix
 from torch.autograd import gradcheck, gradgradcheck
 
 from torchmorph.ffd import FFD, ffd_apply, ffd_bases, functional, lattice_sum
@@ -80,8 +80,7 @@ def test_two_dimensional_equals_loop_formula(basis):
     points = cloud(dim=2)
     shape = (5, 4)
     mu = random_mu(shape)
-    angle = math.radians(25.0)
-    rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    rotation = rotation_2d(25.0)
     reference = pygem_ffd(points, ORIGIN[:2], LENGTHS[:2], mu, rotation, basis=basis)
     morph = FFD(
         torch.from_numpy(points),
@@ -146,12 +145,10 @@ def test_uniform_lattice_displacement_translates_inside_points(dim, basis, degre
 @pytest.mark.parametrize("angles", [None, (30.0, 0.0, -50.0)])
 def test_affine_lattice_field_is_reproduced(dim, basis, degree, shape, angles):
     points = torch.from_numpy(cloud(dim=dim))
-    rotation = None if angles is None else torch.from_numpy(rotation_matrix(angles)[:dim, :dim])
-    if rotation is not None and dim == 2:
-        angle = math.radians(angles[2])
-        rotation = torch.tensor(
-            [[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]], dtype=F64
-        )
+    rotation = None
+    if angles is not None:  # in 2-D, the rotation about z
+        rotation = rotation_2d(angles[2]) if dim == 2 else rotation_matrix(angles)
+        rotation = torch.from_numpy(rotation)
     morph = FFD(
         points,
         origin=ORIGIN[:dim],
