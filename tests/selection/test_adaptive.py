@@ -293,3 +293,42 @@ def test_members_equal_up_to_a_factor_count_once():
     assert IDWErrorOracle(boundary, interior, torch.stack([displacement, twisted])).errors(
         selected
     ).shape == (2,)
+
+
+class _CoverOracle:
+    """A toy interpolant for the loop alone: the error is the share of ``needed``
+    candidates not selected, each needed candidate scores 1, the others 0."""
+
+    def __init__(self, count, needed):
+        self.points = torch.rand(count, 2, generator=torch.Generator().manual_seed(3))
+        self.needed = set(needed)
+        self.calls = 0
+
+    def errors(self, selected):
+        missing = self.needed - set(selected.tolist())
+        return torch.tensor([len(missing) / len(self.needed)], dtype=torch.float64)
+
+    def scores(self, selected):
+        self.calls += 1
+        values = torch.zeros(len(self.points))
+        values[sorted(self.needed - set(selected.tolist()))] = 1.0
+        return self.errors(selected), values
+
+
+def test_the_loop_takes_any_oracle():
+    from torchmorph.selection import ErrorOracle, greedy_selection
+
+    oracle = _CoverOracle(200, range(0, 200, 5))
+    assert isinstance(oracle, ErrorOracle)
+    result = greedy_selection(oracle, tolerance=0.05, spacing=0.0)
+    # 40 needed, 5 % may stay missing: 38 of them, nothing else, found by bisection
+    assert set(result.indices.tolist()) <= oracle.needed
+    assert len(result.indices) == 38 and result.converged
+    capped = greedy_selection(_CoverOracle(200, range(0, 200, 5)), tolerance=0.05, max_controls=10)
+    assert len(capped.indices) == 10 and capped.reason == "budget"
+    with pytest.raises(ValueError, match="min_batch must be an integer >= 1"):
+        greedy_selection(oracle, tolerance=0.1, min_batch=0)
+    with pytest.raises(ValueError, match="spacing must be a finite number >= 0"):
+        greedy_selection(oracle, tolerance=0.1, spacing=-1.0)
+    with pytest.raises(ValueError, match="initial holds repeated indices"):
+        greedy_selection(oracle, tolerance=0.1, initial=torch.tensor([1, 1]))

@@ -504,7 +504,8 @@ class AdaptivePlan:
         mesh : Mesh
             Needs ``points``, ``boundary_nodes`` and ``interior_nodes``.
         generator : torch.Generator, optional
-            Randomness of the ``start`` plan and of the target sample.
+            Randomness of the ``start`` plan (the target sample is seeded with
+            ``DEFAULT_SEED``: the same mesh and family give the same selection).
         """
         boundary, interior = mesh.boundary_nodes, mesh.interior_nodes
         if interior.numel() == 0:
