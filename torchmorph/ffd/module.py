@@ -289,7 +289,8 @@ class FFD(nn.Module):
         Returns
         -------
         Tensor, shape (..., N, D)
-            Zero for the points outside the box.
+            Zero for the points outside the box. A batched result is a view of a
+            (N, batch, D) buffer (not contiguous: ``.contiguous()`` copies it).
         """
         check_displacements(displacements, self.shape)
         check_same_device_dtype(self.points, "the module's points", displacements, "displacements")
