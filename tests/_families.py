@@ -62,6 +62,7 @@ def build(kind: str, *, idw_seed: int, num_controls: int, num_targets: int):
             cube,
             SelectionPlan(dict.fromkeys(FACES, 0.5)),
             generator=torch.Generator().manual_seed(0),
+            mode="dense",
         )
     else:
         morph = MeshMorph(cube, mode="matrix_free" if kind == "morph-matrix-free" else "dense")

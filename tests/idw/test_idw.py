@@ -12,6 +12,7 @@ from torch.autograd import gradcheck
 
 from torchmorph import IDW, idw_apply, idw_weights
 from torchmorph.idw import fused_available
+from torchmorph.idw.module import auto_mode
 
 F64 = torch.float64
 
@@ -166,11 +167,18 @@ def test_float32_matches_float64_on_graded_cloud():
         assert relative < 1e-5, (mode, float(relative))
 
 
-def test_auto_mode_picks_dense_within_budget():
+def test_auto_mode_picks_by_device_dtype_and_budget():
     targets, controls, _ = cloud()
-    assert IDW(controls, targets).mode == "dense"
-    small_budget = IDW(controls, targets, dense_bytes=100)
+    # the torch implementation (or a GPU) in float64: W stored when it fits
+    assert IDW(controls, targets, implementation="torch").mode == "dense"
+    small_budget = IDW(controls, targets, dense_bytes=100, implementation="torch")
     assert small_budget.mode == "matrix_free" and small_budget.weights is None
+    # float32: never a float32 W, whose BLAS sums are less accurate than the kernels'
+    assert IDW(controls.float(), targets.float(), implementation="torch").mode == "matrix_free"
+    # the fused CPU kernels: one pass costs about a dense product, so no W
+    expected = "matrix_free" if fused_available("cpu") else "dense"
+    assert IDW(controls, targets).mode == expected
+    assert auto_mode(40, 25, dtype=F64, device=torch.device("cpu"), dense_bytes=10**9) == expected
     with pytest.raises(ValueError, match="mode must be"):
         IDW(controls, targets, mode="sparse")
 
@@ -247,11 +255,11 @@ def test_forward_with_moved_geometry_against_finite_differences(mode):
 # --------------------------------------------------------------------------- #
 def test_state_dict_round_trip():
     targets, controls, generator = cloud()
-    morph = IDW(controls, targets)
+    morph = IDW(controls, targets, mode="dense")
     state = morph.state_dict()
     assert set(state) == {"controls", "targets", "weights", "_extra_state"}
     assert state["_extra_state"] == {"power": 4.0, "coincidence_tolerance": 1e-10, "mode": "dense"}
-    shifted = IDW(controls + 1.0, targets)
+    shifted = IDW(controls + 1.0, targets, mode="dense")
     shifted.load_state_dict(state)
     displacements = torch.randn(controls.shape[0], 3, generator=generator, dtype=F64)
     torch.testing.assert_close(shifted(displacements), morph(displacements), rtol=0, atol=0)
@@ -295,7 +303,7 @@ def test_module_copies_its_inputs():
 
 def test_to_dtype_moves_buffers():
     targets, controls, generator = cloud()
-    morph = IDW(controls, targets).to(torch.float32)
+    morph = IDW(controls, targets, mode="dense").to(torch.float32)
     assert morph.weights.dtype == morph.controls.dtype == torch.float32
     displacements = torch.randn(controls.shape[0], 3, generator=generator)
     torch.testing.assert_close(
@@ -433,9 +441,10 @@ def test_dense_that_cannot_fit_fails_before_allocating(monkeypatch):
         r"the 0.0 GiB free on cpu; use mode='matrix_free'",
     ):
         IDW(controls, targets, mode="dense")
-    assert IDW(controls, targets).mode == "matrix_free"  # auto: half of what is free
+    torch_only = {"implementation": "torch"}  # where auto stores W that fits
+    assert IDW(controls, targets, **torch_only).mode == "matrix_free"  # half of what is free
     monkeypatch.setattr(idw_module, "free_memory", lambda device: 2 * 40 * 25 * 8)
-    assert IDW(controls, targets).mode == "dense"
+    assert IDW(controls, targets, **torch_only).mode == "dense"
 
 
 def test_implementation_is_checked_and_forced_fused_explains_why_not():
@@ -568,3 +577,22 @@ def test_float32_clouds_too_far_apart_to_resolve_are_refused():
         rtol=1e-12,
         atol=1e-14,
     )
+
+
+def test_matrix_free_first_call_streams_and_later_calls_reuse_the_nearest_distances():
+    pytest.importorskip("numba")
+    generator = torch.Generator().manual_seed(11)
+    controls = torch.rand(700, 3, generator=generator, dtype=torch.float64)
+    targets = torch.rand(900, 3, generator=generator, dtype=torch.float64)
+    d = torch.randn(700, 3, generator=generator, dtype=torch.float64)
+    free = IDW(controls, targets, mode="matrix_free", implementation="fused")
+    dense = IDW(controls, targets, mode="dense", implementation="torch")
+    first = free(d)
+    assert free._fused_cache is not None and free._fused_cache[-1] is not None
+    torch.testing.assert_close(first, dense(d), rtol=0, atol=1e-12)
+    torch.testing.assert_close(free(2 * d), 2 * first, rtol=0, atol=1e-12)
+    # with a graph to the displacements the first call is differentiable as before
+    other = IDW(controls, targets, mode="matrix_free", implementation="fused")
+    d.requires_grad_(True)
+    other(d).sum().backward()
+    torch.testing.assert_close(d.grad, dense.weights.sum(0)[:, None].expand(700, 3))

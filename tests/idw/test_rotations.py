@@ -234,7 +234,7 @@ def test_the_turn_falls_off_beyond_the_reach():
     targets = torch.tensor([[0.0, 4.0]], dtype=F64)
     rotations = torch.tensor([[1.0], [0.0], [0.0]], dtype=F64)
     displacements = torch.zeros(3, 2, dtype=F64)
-    idw = IDW(controls, targets)
+    idw = IDW(controls, targets, mode="dense")
     weight = float(idw.weights[0, 0])
     for reach, expected_angle in ((8.0, weight), (2.0, weight * 2.0 / 4.0)):
         moved = blend_rigid_motions(

@@ -108,12 +108,18 @@ class FusedApply(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, targets, controls, values, backend, power, radius2, nearest2):
-        if nearest2 is None and backend.needs_nearest(values.shape[1]):
-            nearest2 = backend.nearest(targets.detach(), controls.detach())
         values = values.contiguous()
-        out, sums = backend.apply(
-            targets.detach(), controls.detach(), values.detach(), power, radius2, nearest2
-        )
+        streaming = getattr(backend, "apply_streaming", None)
+        if nearest2 is None and backend.needs_nearest(values.shape[1]) and streaming:
+            out, sums, nearest2 = streaming(
+                targets.detach(), controls.detach(), values.detach(), power, radius2
+            )
+        else:
+            if nearest2 is None and backend.needs_nearest(values.shape[1]):
+                nearest2 = backend.nearest(targets.detach(), controls.detach())
+            out, sums = backend.apply(
+                targets.detach(), controls.detach(), values.detach(), power, radius2, nearest2
+            )
         ctx.save_for_backward(
             targets.detach(), controls.detach(), values.detach(), out, nearest2, sums
         )
@@ -184,6 +190,9 @@ def _apply(backend, targets, controls, values, power, radius2, nearest2) -> Tens
     if needs_graph:
         return FusedApply.apply(targets, controls, values, backend, power, radius2, nearest2)
     if nearest2 is None and backend.needs_nearest(values.shape[1]):
+        streaming = getattr(backend, "apply_streaming", None)
+        if streaming:  # one pass: the nearest distance found on the way
+            return streaming(targets, controls, values.contiguous(), power, radius2)[0]
         nearest2 = backend.nearest(targets, controls)
     return backend.apply(targets, controls, values.contiguous(), power, radius2, nearest2)[0]
 

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from torchmorph._timing import median_time
 from torchmorph.idw import Mode
+from torchmorph.idw.module import auto_mode
 from torchmorph.mesh.norms import relative_l2_error
 from torchmorph.mesh.quality import edge_ratio, inverted, quality_summary
 from torchmorph.mesh.tetmesh import TetMesh, box_mesh
@@ -132,13 +133,23 @@ def prepare_case(
     mesh : TetMesh, optional
         Use this mesh instead of building one (its node sets must be the case's).
     mode : {"auto", "dense", "matrix_free"}
-        IDW storage mode of every morph made from this context.
+        IDW storage mode of every morph made from this context; "auto" stores W where
+        it fits in float64, as Algorithm 2 does (:func:`torchmorph.idw.module.auto_mode`
+        with the torch implementation).
     verbose : bool
         Print data_gen's progress.
     """
     spec = get_case(case)
     if mesh is None:
         mesh = load_mesh(spec, size=size, mesher=mesher, verbose=verbose)
+    if mode == "auto":  # Algorithm 2 stores W in its selection phase: so do we, where it fits
+        mode = auto_mode(
+            len(mesh.interior_nodes),
+            len(mesh.boundary_nodes),
+            dtype=mesh.dtype,
+            device=mesh.device,
+            implementation="torch",
+        )
     with torch.no_grad():
         # a small morph first loads the kernels (numba's compiled cache) once, so that the
         # assembly times reported below are the assembly's alone

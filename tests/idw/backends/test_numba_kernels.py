@@ -232,6 +232,43 @@ def test_coincident_duplicates_take_the_mean(dtype, power):
     torch.testing.assert_close(shuffled[3].double(), mean, **tolerance(dtype))
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("power", POWERS)
+@pytest.mark.parametrize("dim", [2, 3])
+def test_streaming_apply_matches_brute_force_in_one_pass(dtype, power, dim):
+    # several chunks of controls, ordered far to near so that the nearest distance falls
+    # chunk after chunk and the partial sums are rescaled each time
+    targets, controls = cloud(kernels.ROWS * 2 + 3, 3 * kernels.CHUNK + 17, dim, dtype)
+    order = torch.argsort((controls.double() - 0.5).square().sum(1), descending=True)
+    controls = controls[order].contiguous()
+    values = random_values(controls.shape[0], 4, dtype)
+    out, sums, nearest2 = kernels.apply_streaming(targets, controls, values, power, RADIUS2)
+    r, nearest = reference_unnormalised(targets, controls, power, RADIUS2)
+    exact = (r / r.sum(1, keepdim=True)) @ values.double()
+    torch.testing.assert_close(out.double(), exact, **tolerance(dtype))
+    torch.testing.assert_close(
+        sums.double(), r.sum(1), rtol=4e-6 if dtype == torch.float32 else 1e-12, atol=0
+    )
+    torch.testing.assert_close(
+        nearest2.double(), nearest, rtol=4e-7 if dtype == torch.float32 else 1e-14, atol=0
+    )
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_streaming_apply_restarts_a_row_at_its_first_coincident_control(dtype):
+    targets, controls = cloud(6, 3 * kernels.CHUNK, 3, dtype)
+    last = 3 * kernels.CHUNK - 1
+    controls[last - 300] = controls[last]  # duplicates in two later chunks
+    targets[2] = controls[last]  # met only in the last chunks, after regular sums
+    targets[4] = controls[0]  # met in the first chunk
+    values = random_values(controls.shape[0], 2, dtype)
+    out, sums, _ = kernels.apply_streaming(targets, controls, values, 4.0, RADIUS2)
+    mean = values[[last - 300, last]].double().mean(0)
+    torch.testing.assert_close(out[2].double(), mean, **tolerance(dtype))
+    assert sums[2] == 2 and sums[4] == 1
+    assert torch.equal(out[4], values[0])
+
+
 def test_controls_within_the_radius_count_equally():
     # a target within the radius of two distinct controls weighs both by 1/2
     targets = torch.tensor([[0.5, 0.5], [0.1, 0.9]], dtype=torch.float64)

@@ -53,6 +53,15 @@ class NumbaBackend:
         return nearest2.clamp_min(torch.finfo(targets.dtype).tiny)
 
     @staticmethod
+    def apply_streaming(targets, controls, values, power, radius2):
+        """(W @ values, the row sums, nearest2) in one pass over the controls, for a call
+        without ``nearest2`` (a one-shot apply, a module's first call): the nearest
+        distance is found on the way (:func:`kernels.apply_streaming`). Measured on one
+        thread at 20,000 × 50,000: 1.05-1.09x the time of :meth:`apply` given nearest2,
+        where the nearest pass first and the apply after took 1.4-1.5x."""
+        return kernels.apply_streaming(targets, controls, values, power, radius2)
+
+    @staticmethod
     def needs_nearest(columns: int) -> bool:
         return columns <= GEMM_COLUMNS  # the blocks of W find it themselves
 

@@ -176,6 +176,71 @@ def _apply_kernel(targets, controls_t, values_t, nearest2, params, mode, out, su
 
 
 @njit(parallel=True, **_OPTIONS)
+def _apply_streaming_kernel(
+    targets, controls_t, values_t, params, mode, largest, out, sums, nearest_out
+):
+    """One pass instead of two: the ratio weights against the smallest distance m seen
+    so far; when a chunk holds a nearer control, the row's partial sums are rescaled by
+    (m_new / m_old)^(p/2), so that the result is :func:`_apply_kernel`'s with the final
+    m (the streaming form of a normalised sum, as in an online softmax). A row meeting
+    its first coincident control restarts its sums: coincident rows weigh only the
+    controls within the radius. Also writes m (floored at ``tiny``) to ``nearest_out``."""
+    tiny, radius2, half_power, zero = params[0], params[1], params[2], params[3]
+    n_targets, n_controls = targets.shape[0], controls_t.shape[1]
+    columns = values_t.shape[0]
+    blocks = (n_targets + ROWS - 1) // ROWS
+    for block in prange(blocks):
+        first = block * ROWS
+        last = min(first + ROWS, n_targets)
+        bits = np.empty(CHUNK, largest.dtype)
+        buffer = bits.view(targets.dtype)
+        scalar = np.empty(1, largest.dtype)
+        as_float = scalar.view(targets.dtype)
+        accumulated = np.zeros((ROWS, columns), np.float64)
+        total = np.zeros(ROWS, np.float64)
+        best = np.full(ROWS, np.inf, targets.dtype)
+        for start in range(0, n_controls, CHUNK):
+            stop = min(start + CHUNK, n_controls)
+            width = stop - start
+            chunk = buffer[:width]
+            for row in range(first, last):
+                local = row - first
+                _squared_distances(targets[row], controls_t, start, stop, buffer)
+                scalar[0] = _smallest(bits[:width], largest[0])
+                nearest = max(as_float[0], tiny)
+                previous = best[local]
+                if nearest < previous:
+                    if previous <= radius2:
+                        pass  # already coincident: weights are 1 within the radius
+                    elif nearest <= radius2 or previous == np.inf:
+                        total[local] = 0.0
+                        for column in range(columns):
+                            accumulated[local, column] = 0.0
+                    else:
+                        ratio = np.float64(nearest) / np.float64(previous)
+                        if mode == 4:
+                            scale = ratio * ratio
+                        elif mode == 2:
+                            scale = ratio
+                        else:
+                            scale = ratio ** np.float64(half_power)
+                        total[local] *= scale
+                        for column in range(columns):
+                            accumulated[local, column] *= scale
+                    best[local] = nearest
+                _ratio_powers(best[local], buffer, width, mode, params)
+                total[local] += _sum(chunk, zero)
+                for column in range(columns):
+                    accumulated[local, column] += _dot(chunk, values_t[column, start:stop], zero)
+        for row in range(first, last):
+            local = row - first
+            sums[row] = total[local]
+            nearest_out[row] = best[local]
+            for column in range(columns):
+                out[row, column] = accumulated[local, column] / total[local]
+
+
+@njit(parallel=True, **_OPTIONS)
 def _transposed_kernel(controls, targets_t, scaled_t, nearest2, params, mode, out):
     """Wᵀ @ grad, parallel over controls: scaled_t[j, i] = grad[i, j] / s_i."""
     tiny, radius2, half_power, zero, one = params[0], params[1], params[2], params[3], params[4]

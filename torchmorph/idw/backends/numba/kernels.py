@@ -90,6 +90,7 @@ __all__ = [
     "ROWS",
     "WEIGHT_ROWS",
     "apply",
+    "apply_streaming",
     "apply_transposed",
     "available",
     "dense_apply",
@@ -103,6 +104,7 @@ from torchmorph.idw.backends.numba._jit import (
     ROWS,
     WEIGHT_ROWS,
     _apply_kernel,
+    _apply_streaming_kernel,
     _dense_apply_kernel,
     _nearest_kernel,
     _transposed_kernel,
@@ -303,6 +305,47 @@ def apply(
                 sums.numpy(),
             )
     return out, sums
+
+
+def apply_streaming(
+    targets: Tensor,
+    controls: Tensor,
+    values: Tensor,
+    power: float,
+    radius2: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`apply` in one pass over the controls, without ``nearest2``: the smallest
+    distance is found on the way and the partial sums rescaled when it falls.
+
+    Returns
+    -------
+    out, sums : as :func:`apply`
+    nearest2 : Tensor, shape (N_t,)
+        ``min_k d²_ik`` floored at the dtype's smallest normal, as :func:`apply` takes it
+        (for :func:`apply_transposed` and later calls).
+    """
+    target_array, control_array = _points(targets, controls)
+    value_array = _matrix(values, "values", control_array.shape[0], "control", targets.dtype)
+    mode = _power_mode(power)
+    params = _params(target_array.dtype, power, radius2)
+    out = torch.empty(target_array.shape[0], value_array.shape[1], dtype=targets.dtype)
+    sums = torch.empty(target_array.shape[0], dtype=targets.dtype)
+    nearest2 = torch.empty(target_array.shape[0], dtype=targets.dtype)
+    if target_array.shape[0]:
+        _require_numba()
+        with _threads():
+            _apply_streaming_kernel(
+                target_array,
+                np.ascontiguousarray(control_array.T),
+                np.ascontiguousarray(value_array.T),
+                params,
+                mode,
+                _largest_integer(target_array.dtype),
+                out.numpy(),
+                sums.numpy(),
+                nearest2.numpy(),
+            )
+    return out, sums, nearest2
 
 
 def apply_transposed(
