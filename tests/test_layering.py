@@ -16,8 +16,10 @@ LIBRARY = ROOT / "torchmorph"
 #: The morphing core: the method of the paper and the meshes it works on.
 CORE = (
     "torchmorph.idw",
+    "torchmorph.ffd",
     "torchmorph.selection",
     "torchmorph.morph",
+    "torchmorph.large_motions",
     "torchmorph.pod",
     "torchmorph.mesh",
 )
@@ -145,6 +147,12 @@ def test_idw_stays_inside_idw():
     for module in [m for m in modules() if inside(m, "torchmorph.idw")]:
         for other in imports_of(module):
             assert inside(other, "torchmorph.idw") or other in SHARED, (module, other)
+
+
+def test_ffd_stays_inside_ffd():
+    for module in [m for m in modules() if inside(m, "torchmorph.ffd")]:
+        for other in imports_of(module):
+            assert inside(other, "torchmorph.ffd") or other in SHARED, (module, other)
 
 
 def test_one_tet_edge_table():

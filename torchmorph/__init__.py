@@ -6,6 +6,7 @@ as PyTorch modules.
 """
 
 from torchmorph import _moved  # noqa: F401  (0.1.0's module names, deprecated)
+from torchmorph.ffd import FFD
 from torchmorph.idw import IDW, idw_apply, idw_weights
 from torchmorph.mesh import (
     Mesh,
@@ -30,6 +31,7 @@ from torchmorph.pod import PODReducer
 from torchmorph.selection import Region, SelectionPlan, select_control_points
 
 __all__ = [
+    "FFD",
     "IDW",
     "Mesh",
     "MeshMorph",
