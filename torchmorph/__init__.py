@@ -58,4 +58,4 @@ __all__ = [
     "write_morphed",
 ]
 
-__version__ = "0.2.0"
+__version__ = "0.3.0.dev0"
