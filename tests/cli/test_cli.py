@@ -446,7 +446,7 @@ def test_selection_errors_are_typed_and_carry_their_data():
 def test_usage_errors(tmp_path, cube_file, capsys):
     code, _ = _morph(tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--enrich", "z0")
     assert code == EXIT_USAGE
-    assert "--enrich: needs --select or --region" in _error(capsys)
+    assert "--enrich: needs --select, --region or --adaptive" in _error(capsys)
     code, _ = _morph(
         tmp_path, cube_file, np.zeros(3), "--moving", "x1", "--select", "0.5", "--region", "x1=0.5"
     )

@@ -48,6 +48,16 @@ def _positive_float(text: str) -> float:
     return number
 
 
+def _positive_int(text: str) -> int:
+    try:
+        number = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if number < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return number
+
+
 def _float_list(*counts: int):
     """A parser of comma-separated numbers, as many as one of ``counts``."""
 

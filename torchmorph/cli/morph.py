@@ -21,6 +21,7 @@ from torchmorph.cli._common import (
     _line,
     _load_displacement,
     _positive_float,
+    _positive_int,
     _progress_option,
     _read,
     _seconds,
@@ -33,16 +34,6 @@ if TYPE_CHECKING:
     from torchmorph.selection.plan import UncoveredNodesError
 
 __all__: list[str] = []
-
-
-def _positive_int(text: str) -> int:
-    try:
-        number = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if number < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return number
 
 
 def _selection_parameters(text: str) -> tuple[float, float, float]:
@@ -139,7 +130,8 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         nargs="+",
         action="extend",
         metavar="SET",
-        help="node sets whose nodes are always control points (ESIDW); needs --select or --region",
+        help="node sets whose nodes are always control points (ESIDW); needs --select, "
+        "--region or --adaptive",
     )
     selection.add_argument(
         "--strategy",
@@ -188,6 +180,20 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         choices=("auto", "dense", "matrix_free"),
         default="auto",
         help="store W (dense), recompute it in tiles (matrix_free), or choose by size (auto)",
+    )
+    idw.add_argument(
+        "--rotations",
+        action="store_true",
+        help="rotation-aware IDW for bodies that turn far: each control carries the rotation "
+        "of its neighbourhood on the boundary as well as its displacement",
+    )
+    idw.add_argument(
+        "--steps",
+        type=_positive_int,
+        default=1,
+        metavar="K",
+        help="apply the displacement in K equal increments, each from the previous mesh "
+        "(default 1); the first step that inverts a cell is reported",
     )
     idw.add_argument(
         "--batch-index",
@@ -354,6 +360,7 @@ def _uncovered_message(mesh: Mesh, error: UncoveredNodesError) -> str:
 def run(args: argparse.Namespace) -> int:
     import torch
 
+    from torchmorph.large_motions import morph_in_steps
     from torchmorph.mesh.io import FORMATS, format_of, write_mesh, write_morphed
     from torchmorph.mesh.quality import cell_edge_ratio, inverted, quality_summary
     from torchmorph.morph import MeshMorph
@@ -474,8 +481,16 @@ def run(args: argparse.Namespace) -> int:
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             start = time.perf_counter()
+            rotations = "fit" if args.rotations else None
+            first_inverted = None
             with torch.no_grad():
-                field = morph(boundary_displacement)
+                if args.steps > 1:
+                    stepped = morph_in_steps(
+                        morph, boundary_displacement, args.steps, rotations=rotations
+                    )
+                    field, first_inverted = stepped.displacement, stepped.first_inverted
+                else:
+                    field = morph(boundary_displacement, rotations=rotations)
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             morph_time = time.perf_counter() - start
@@ -563,7 +578,17 @@ def run(args: argparse.Namespace) -> int:
         f"{morph.num_controls}, {storage}; p={args.power:g}, "
         f"{args.dtype} on {device})",
     )
-    _line("morph", _seconds(morph_time))
+    how = ["rotation-aware"] if args.rotations else []
+    if args.steps > 1:
+        how.append(f"in {args.steps} steps")
+    _line("morph", _seconds(morph_time) + (f" ({', '.join(how)})" if how else ""))
+    if first_inverted is not None:
+        step = round(first_inverted * args.steps)
+        _warn(
+            "morph",
+            f"--steps {args.steps}: a cell first inverted at step {step} of {args.steps} "
+            f"({100 * first_inverted:.0f} % of the displacement)",
+        )
     _line(
         "quality Q",
         f"max {before['max_edge_ratio']:.4g} -> {after['max_edge_ratio']:.4g}, "
