@@ -1,0 +1,27 @@
+"""Radial basis function morphing: scipy's :class:`~scipy.interpolate.RBFInterpolator`
+kernels and Wendland's compactly supported ones, with a polynomial tail.
+
+The kernels and the matrices built from them (:mod:`torchmorph.rbf.kernels`), the
+factorised interpolation system (:mod:`torchmorph.rbf.system`), the functional core
+(:mod:`torchmorph.rbf.functional`: :func:`rbf_interpolate`) and the :class:`RBF` module
+(:mod:`torchmorph.rbf.module`) over them.
+"""
+
+from torchmorph.rbf.functional import (
+    DEFAULT_BLOCK_BYTES,
+    DEFAULT_CUDA_BLOCK_BYTES,
+    rbf_interpolate,
+)
+from torchmorph.rbf.kernels import KERNELS, MIN_DEGREE, SCALE_INVARIANT, WENDLAND
+from torchmorph.rbf.module import RBF
+
+__all__ = [
+    "DEFAULT_BLOCK_BYTES",
+    "DEFAULT_CUDA_BLOCK_BYTES",
+    "KERNELS",
+    "MIN_DEGREE",
+    "RBF",
+    "SCALE_INVARIANT",
+    "WENDLAND",
+    "rbf_interpolate",
+]

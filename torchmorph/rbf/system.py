@@ -1,0 +1,136 @@
+"""The RBF interpolation system: its factorisation (once per geometry) and its solves
+(once per set of control values).
+
+The interpolant is ``s(x) = Σ_k λ_k φ(|x − x_k|) + p(x)·β`` with, at the N controls,
+
+    [Φ  P] [λ]   [d]
+    [Pᵀ 0] [β] = [0]
+
+(Φ the N × N kernel matrix, P the N × M monomials). Two factorisations:
+
+``"cholesky"`` (the null-space method, when the polynomial degree is at least the kernel's
+order, :data:`~torchmorph.rbf.kernels.MIN_DEGREE`): P = Q R (Householder), Z the last
+N − M columns of Q; λ = Z γ with (Zᵀ Φ Z) γ = Zᵀ d, a symmetric positive definite
+system (Wendland, *Scattered Data Approximation*, Thm. 8.21) factorised by Cholesky in
+about half the time of an LU of the saddle matrix; then R β = Q₁ᵀ (d − Φ λ), with
+``Q₁ᵀ Φ λ`` read from the stored block ``(Qᵀ Φ Q)[:M, M:] γ``.
+
+``"lu"`` otherwise (or when Cholesky finds the projected matrix not positive definite
+in floating point): an LU of the whole saddle matrix, as scipy's ``dgesv``.
+
+Both are computed in float64 whatever the points' dtype.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchmorph.rbf.kernels import MIN_DEGREE, kernel_matrix, polynomial_matrix
+
+__all__ = ["FACTOR_NAMES", "factorise", "saddle_matrix", "solve"]
+
+#: The buffers a factorisation is stored in (empty where its kind does not use them).
+FACTOR_NAMES = ("qr", "tau", "factor", "coupling", "pivots")
+
+
+def saddle_matrix(
+    controls: Tensor, kernel: str, scale: float, powers, shift: Tensor, poly_scale: Tensor
+) -> Tensor:
+    """The (N + M) × (N + M) matrix [[Φ, P], [Pᵀ, 0]] (differentiable in ``controls``)."""
+    phi = kernel_matrix(controls, controls, kernel, scale)
+    poly = polynomial_matrix(controls, powers, shift, poly_scale)
+    count = poly.shape[1]
+    lower = torch.cat([poly.T, poly.new_zeros(count, count)], dim=1)
+    return torch.cat([torch.cat([phi, poly], dim=1), lower], dim=0)
+
+
+def check_polynomial_rank(poly: Tensor, degree: int) -> tuple[Tensor, Tensor]:
+    """Householder QR of the monomial matrix; ``ValueError`` naming ``controls`` when it
+    does not have full column rank (the controls lie on a line or plane that the
+    polynomial cannot be fitted on)."""
+    qr, tau = torch.geqrf(poly)
+    diagonal = torch.diagonal(qr[: poly.shape[1]]).abs()
+    size = poly.shape[1]
+    tolerance = max(poly.shape) * torch.finfo(poly.dtype).eps * float(diagonal.max())
+    rank = int((diagonal > tolerance).sum())
+    if rank < size:
+        raise ValueError(
+            f"controls: the monomials of degree={degree} at the controls have rank {rank} of "
+            f"{size} (the controls lie on a lower-dimensional set); the system is singular, "
+            "use a lower degree or controls that span the space"
+        )
+    return qr, tau
+
+
+def factorise(
+    controls: Tensor,
+    kernel: str,
+    scale: float,
+    degree: int,
+    powers,
+    shift: Tensor,
+    poly_scale: Tensor,
+) -> tuple[str, dict[str, Tensor]]:
+    """Factorise the system of ``controls`` (float64, no gradient): the kind and its
+    factors by :data:`FACTOR_NAMES`. ``ValueError`` naming ``controls`` if singular."""
+    count = len(powers)
+    size = controls.shape[0]
+    empty = controls.new_zeros(0)
+    factors = dict.fromkeys(FACTOR_NAMES, empty)
+    factors["pivots"] = torch.zeros(0, dtype=torch.int32, device=controls.device)
+    poly = polynomial_matrix(controls, powers, shift, poly_scale)
+    qr = tau = None
+    if count:
+        qr, tau = check_polynomial_rank(poly, degree)
+    if degree >= MIN_DEGREE.get(kernel, -1):
+        projected = kernel_matrix(controls, controls, kernel, scale)
+        if count:
+            assert qr is not None and tau is not None
+            projected = torch.ormqr(qr, tau, projected, left=True, transpose=True)
+            projected = torch.ormqr(qr, tau, projected, left=False, transpose=False)
+        factor, info = torch.linalg.cholesky_ex(projected[count:, count:])
+        if int(info) == 0:
+            factors["factor"] = factor
+            if count:
+                assert qr is not None and tau is not None
+                factors["qr"], factors["tau"] = qr, tau
+                factors["coupling"] = projected[:count, count:].contiguous()
+            return "cholesky", factors
+        del projected, factor
+    matrix = saddle_matrix(controls, kernel, scale, powers, shift, poly_scale)
+    lu, pivots, info = torch.linalg.lu_factor_ex(matrix)
+    pivot_size = torch.diagonal(lu).abs()
+    if int(info) != 0 or float(pivot_size.min()) <= size * torch.finfo(lu.dtype).eps * float(
+        pivot_size.max()
+    ):
+        raise ValueError(
+            "controls: the interpolation system is singular to working precision (nearly "
+            "coincident controls, or a kernel too flat for them: a larger epsilon)"
+        )
+    factors["factor"], factors["pivots"] = lu, pivots
+    return "lu", factors
+
+
+def solve(kind: str, factors: dict[str, Tensor], values: Tensor) -> tuple[Tensor, Tensor]:
+    """Coefficients (λ (N, S), β (M, S)) for control values (N, S), float64; differentiable
+    in ``values``."""
+    size = values.shape[0]
+    factor = factors["factor"]
+    if kind == "lu":
+        count = factor.shape[0] - size
+        padded = torch.cat([values, values.new_zeros(count, values.shape[1])], dim=0)
+        solution = torch.linalg.lu_solve(factor, factors["pivots"], padded)
+        return solution[:size], solution[size:]
+    qr, tau = factors["qr"], factors["tau"]
+    count = tau.shape[0]
+    if not count:
+        return torch.cholesky_solve(values, factor), values.new_zeros(0, values.shape[1])
+    rotated = torch.ormqr(qr, tau, values, left=True, transpose=True)
+    gamma = torch.cholesky_solve(rotated[count:], factor)
+    weights = torch.ormqr(
+        qr, tau, torch.cat([values.new_zeros(count, values.shape[1]), gamma]), left=True
+    )
+    upper = torch.triu(qr[:count, :count])
+    rest = rotated[:count] - factors["coupling"] @ gamma
+    return weights, torch.linalg.solve_triangular(upper, rest, upper=True)
