@@ -1,0 +1,176 @@
+"""Tree-approximated IDW (:mod:`torchmorph.idw.tree`) against exact float64 sums."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchmorph.idw import idw_apply, idw_weights
+from torchmorph.idw.backends.numba.kernels import available
+from torchmorph.idw.tree import TreeIDW, idw_tree_apply
+
+pytestmark = pytest.mark.skipif(not available(), reason="the tree kernels need numba")
+
+
+def brute_force(controls, targets, displacements, power):
+    """eq. (2) in float64, literally: Σ w d / Σ w with w = |x - x_k|^-p."""
+    distances = torch.cdist(targets.double(), controls.double())
+    weights = distances ** (-power)
+    return (weights @ displacements.double()) / weights.sum(1, keepdim=True)
+
+
+def sphere(count, generator):
+    points = torch.randn(count, 3, generator=generator, dtype=torch.float64)
+    return points / points.norm(dim=1, keepdim=True)
+
+
+def cloud(kind, generator):
+    """(controls, targets) of 400 controls and 1,500 targets."""
+    if kind == "uniform":
+        controls = torch.rand(400, 3, generator=generator, dtype=torch.float64)
+        targets = torch.rand(1500, 3, generator=generator, dtype=torch.float64)
+        return controls, targets
+    controls = sphere(400, generator)
+    directions = sphere(1500, generator)
+    if kind == "surface":  # targets filling the ball
+        radius = torch.rand(1500, 1, generator=generator, dtype=torch.float64) * 0.97
+    else:  # graded by 10^4: distances to the surface from 1e-4 to 1
+        exponent = torch.rand(1500, 1, generator=generator, dtype=torch.float64) * 4
+        radius = 1 - 10 ** (-exponent)
+    return controls, directions * radius
+
+
+def field(controls):
+    x, y, z = controls.unbind(1)
+    return torch.stack([x * x - 0.3, torch.sin(3 * y), z * x + 0.2], 1)
+
+
+def relative_error(result, exact):
+    return float((result.double() - exact).norm() / exact.norm())
+
+
+@pytest.mark.parametrize("tolerance", [1e-2, 1e-4, 1e-6])
+@pytest.mark.parametrize("kind", ["uniform", "surface", "graded"])
+def test_tolerance_holds_against_exact_float64(kind, tolerance):
+    generator = torch.Generator().manual_seed(3)
+    controls, targets = cloud(kind, generator)
+    displacements = field(controls)
+    exact = brute_force(controls, targets, displacements, 4.0)
+    module = TreeIDW(controls, targets, tolerance=tolerance)
+    result = module(displacements)
+    assert relative_error(result, exact) <= tolerance
+    assert max(module.last_bound_) <= tolerance  # the certified bound
+    assert relative_error(result, exact) <= max(module.last_bound_) + 1e-13
+
+
+@pytest.mark.parametrize("power", [2.0, 3.0, 4.0, 7.5])
+def test_powers(power):
+    generator = torch.Generator().manual_seed(4)
+    controls, targets = cloud("graded", generator)
+    displacements = field(controls)
+    exact = brute_force(controls, targets, displacements, power)
+    result = idw_tree_apply(
+        controls=controls, targets=targets, displacements=displacements, power=power,
+        tolerance=1e-3,
+    )  # fmt: skip
+    assert relative_error(result, exact) <= 1e-3
+
+
+def test_far_field_is_used_and_error_is_below_bound():
+    """At a loose tolerance the far field replaces exact sums (the result differs from
+    the exact one) and the measured error stays below the certified bound."""
+    generator = torch.Generator().manual_seed(5)
+    controls = sphere(3000, generator)
+    targets = sphere(2000, generator) * 0.5
+    displacements = field(controls)
+    exact = brute_force(controls, targets, displacements, 4.0)
+    module = TreeIDW(controls, targets, tolerance=1e-1)
+    result = module(displacements)
+    error = relative_error(result, exact)
+    assert 0 < error <= max(module.last_bound_) <= 1e-1
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_dtypes_and_exact_at_coincident_targets(dtype):
+    generator = torch.Generator().manual_seed(6)
+    controls, targets = cloud("surface", generator)
+    targets = torch.cat([targets, controls[:50]])
+    displacements = field(controls)
+    result = idw_tree_apply(
+        controls=controls.to(dtype), targets=targets.to(dtype),
+        displacements=displacements.to(dtype), tolerance=1e-4,
+    )  # fmt: skip
+    assert result.dtype == dtype
+    torch.testing.assert_close(result[-50:], displacements[:50].to(dtype), rtol=0, atol=0)
+    exact = idw_apply(controls=controls, targets=targets, displacements=displacements)
+    assert relative_error(result, exact) <= 1e-4
+
+
+def test_duplicated_controls_give_their_mean():
+    controls = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]).double()
+    displacements = torch.tensor([[1.0, 0, 0], [3.0, 0, 0], [5.0, 0, 0]]).double()
+    targets = torch.tensor([[0.0, 0.0, 0.0]]).double()
+    result = idw_tree_apply(controls=controls, targets=targets, displacements=displacements)
+    torch.testing.assert_close(result, torch.tensor([[2.0, 0.0, 0.0]]).double())
+
+
+def test_batch_equals_loop():
+    generator = torch.Generator().manual_seed(7)
+    controls, targets = cloud("graded", generator)
+    fields = torch.stack([field(controls), field(controls).flip(1), -2 * field(controls)])
+    module = TreeIDW(controls, targets, tolerance=1e-3)
+    batched = module(fields)
+    for index in range(3):
+        exact = brute_force(controls, targets, fields[index], 4.0)
+        single = TreeIDW(controls, targets, tolerance=1e-3)(fields[index])
+        assert relative_error(batched[index], exact) <= 1e-3
+        assert relative_error(single, exact) <= 1e-3
+    assert batched.shape == (3, targets.shape[0], 3)
+
+
+def test_gradient_is_the_transpose():
+    """<A d, g> = <d, Aᵀ g> for the operator a call used, at a tolerance where the far
+    field is active, close to the exact Wᵀ g (controls under coincident targets included)."""
+    generator = torch.Generator().manual_seed(8)
+    controls = sphere(3000, generator)
+    targets = torch.cat([sphere(1000, generator) * 0.5, controls[:5]])
+    displacements = field(controls).requires_grad_(True)
+    module = TreeIDW(controls, targets, tolerance=1e-1)
+    result = module(displacements)
+    probe = torch.randn(result.shape, generator=generator, dtype=torch.float64)
+    (gradient,) = torch.autograd.grad(result, displacements, probe)
+    lhs = float((result.detach() * probe).sum())
+    rhs = float((displacements.detach() * gradient).sum())
+    assert math.isclose(lhs, rhs, rel_tol=1e-10)
+    exact = idw_weights(controls=controls, targets=targets).mT @ probe
+    assert float((gradient - exact).norm() / exact.norm()) < 1e-1
+    torch.testing.assert_close(gradient[:5], exact[:5], rtol=1e-1, atol=1e-2)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"tolerance": 0.0}, "tolerance must lie in"),
+        ({"tolerance": 1.0}, "tolerance must lie in"),
+        ({"tolerance": -1e-3}, "tolerance must lie in"),
+        ({"power": 0.0}, "power must be finite and > 0"),
+        ({"leaf_size": 0}, "leaf_size must be a positive integer"),
+    ],
+)
+def test_bad_arguments_are_named(arguments, message):
+    controls = torch.rand(10, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=message):
+        TreeIDW(controls, controls + 0.5, **arguments)
+
+
+def test_bad_inputs_are_named():
+    controls = torch.rand(10, 3, dtype=torch.float64)
+    module = TreeIDW(controls, controls + 0.5)
+    with pytest.raises(ValueError, match="displacements must have shape"):
+        module(torch.zeros(9, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="controls requires grad"):
+        TreeIDW(controls.clone().requires_grad_(True), controls)
+    with pytest.raises(ValueError, match="displacements"):
+        module(torch.full((10, 3), math.nan, dtype=torch.float64))

@@ -1,0 +1,327 @@
+"""The numba kernels of the tree-approximated IDW (:mod:`torchmorph.idw.tree`): the
+moments of the controls' displacements per tree node, and one traversal per block of
+targets that sums near leaves exactly and accepted far nodes by a second-order
+(quadrupole) expansion of ``|x - y|^-p`` about the node's centroid, with a rigorous
+bound on each accepted node's error. The same traversal, run with ``transpose=True``,
+applies the transpose of the operator it built (the backward pass to the displacements).
+
+Notation (all arithmetic in float64): a node holds ``n`` controls ``y_k`` about their
+centroid ``c`` within the radius ``rho``; for a target ``x`` put ``r = x - c``,
+``R = |r|``, ``s_k = y_k - c``, ``theta = rho / R``. For ``theta < 1`` the Gegenbauer
+expansion ``|x - y|^-p = R^-p Σ_m C_m^(p/2)(cos γ) (|s|/R)^m`` holds, its degree-m
+term is a homogeneous polynomial of degree m in ``s``, and ``|C_m^(p/2)(t)| <= C_m^(p/2)(1)``
+with ``Σ_m C_m^(p/2)(1) θ^m = (1 - θ)^-p``. Keeping the terms of degree <= 2,
+
+    P(s) = R^-p [1 + p (r̂·s)/R - (p/2)|s|²/R² + (p(p+2)/2)(r̂·s)²/R²],
+
+every control's weight is approximated with the error bound
+``δ = R^-p T2(θ)``, ``T2(θ) = (1 - θ)^-p - 1 - pθ - p(p+1)θ²/2``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import numba
+    from numba import njit, prange
+else:
+    try:
+        import numba
+        from numba import njit, prange
+    except ImportError:  # pragma: no cover - exercised where numba is absent
+        numba = None
+        prange = range
+
+        def njit(*args, **kwargs):
+            return lambda function: function
+
+
+from torchmorph.idw.backends.numba._jit import _OPTIONS  # cached, vectorised sums
+
+STACK = 256
+"""Depth of a traversal's stack of nodes (a kd-tree of median splits is ~log2(N) deep,
+and a visit pushes at most two nodes)."""
+
+
+def numba_threads() -> int:
+    """The threads numba's parallel loops run on now (1 without numba)."""
+    return 1 if numba is None else int(numba.get_num_threads())
+
+
+@njit(**_OPTIONS)
+def remainder(theta, power):
+    """T2(θ) = (1-θ)^-p - 1 - pθ - p(p+1)θ²/2 >= 0, the bound on Σ_{m>=3} C_m^(p/2)(1) θ^m
+    (``expm1``/``log1p`` keep it accurate for small θ); infinite for θ >= 1."""
+    if theta >= 1.0:
+        return np.inf
+    whole = math.expm1(-power * math.log1p(-theta))
+    value = whole - power * theta - 0.5 * power * (power + 1.0) * theta * theta
+    return max(value, 0.0) * (1.0 + 1e-12) + 1e-300
+
+
+@njit(**_OPTIONS)
+def node_geometry(points, starts, stops, centroids, radii, second):
+    """Per node: the centroid, the radius about it and Σ s sᵀ over its controls."""
+    dim = points.shape[1]
+    for node in prange(starts.shape[0]):
+        start, stop = starts[node], stops[node]
+        for axis in range(dim):
+            centroids[node, axis] = points[start:stop, axis].mean()
+        largest = 0.0
+        for k in range(start, stop):
+            squared = 0.0
+            for a in range(dim):
+                sa = points[k, a] - centroids[node, a]
+                squared += sa * sa
+                for b in range(dim):
+                    second[node, a, b] += sa * (points[k, b] - centroids[node, b])
+            largest = max(largest, squared)
+        radii[node] = math.sqrt(largest)
+
+
+@njit(**_OPTIONS)
+def node_moments(points, values, starts, stops, centroids, zeroth, first, second):
+    """Per node and value column: Σ d, Σ d s and Σ d s sᵀ over its controls."""
+    dim, columns = points.shape[1], values.shape[1]
+    for node in prange(starts.shape[0]):
+        for k in range(starts[node], stops[node]):
+            for column in range(columns):
+                value = values[k, column]
+                zeroth[node, column] += value
+                for a in range(dim):
+                    sa = points[k, a] - centroids[node, a]
+                    first[node, column, a] += value * sa
+                    for b in range(dim):
+                        sb = points[k, b] - centroids[node, b]
+                        second[node, column, a, b] += value * sa * sb
+
+
+@njit(**_OPTIONS)
+def push_down(points, starts, stops, centroids, zeroth, first, second, out):
+    """out[k] += C0 + C1·s_k + s_kᵀ C2 s_k for every control k of every node (the
+    transposed far field: coefficients gathered per node, spread to its controls)."""
+    dim, columns = points.shape[1], out.shape[1]
+    for node in range(starts.shape[0]):
+        for k in range(starts[node], stops[node]):
+            for column in range(columns):
+                total = zeroth[node, column]
+                for a in range(dim):
+                    sa = points[k, a] - centroids[node, a]
+                    total += first[node, column, a] * sa
+                    for b in range(dim):
+                        total += (
+                            second[node, column, a, b] * sa * (points[k, b] - centroids[node, b])
+                        )
+                out[k, column] += total
+
+
+@njit(**_OPTIONS)
+def _squared(point, points_t, start, stop, out):
+    """out[k] = |point - points_t[:, start + k]|² (direct coordinate differences)."""
+    width = stop - start
+    column = points_t[0, start:stop]
+    for k in range(width):
+        diff = point[0] - column[k]
+        out[k] = diff * diff
+    for axis in range(1, points_t.shape[0]):
+        column = points_t[axis, start:stop]
+        for k in range(width):
+            diff = point[axis] - column[k]
+            out[k] += diff * diff
+
+
+@njit(**_OPTIONS)
+def _weights(chunk, width, ref2, half_power, mode):
+    """chunk[k] <- (ref² / d²_k)^(p/2) in place (0 where d² is infinite)."""
+    if mode == 4:
+        for k in range(width):
+            ratio = ref2 / chunk[k]
+            chunk[k] = ratio * ratio
+    elif mode == 2:
+        for k in range(width):
+            chunk[k] = ref2 / chunk[k]
+    else:
+        for k in range(width):
+            chunk[k] = (ref2 / chunk[k]) ** half_power
+
+
+@njit(**_OPTIONS)
+def _visit_block(
+    first_target, last_target, targets, reference, controls_t, values_t, scaled, children,
+    starts, stops, centroids, radii, second_geometry, zeroth, first, second, power, mode,
+    budget, radius2, transpose, sums, numerator, bounds, coincident, coincident_sum,
+    node_zeroth, node_first, node_second, out, max_leaf,
+):  # fmt: skip
+    """One block of targets against the tree (see :func:`traverse`)."""
+    dim, columns = controls_t.shape[0], values_t.shape[0]
+    rows = last_target - first_target
+    half_power = 0.5 * power
+    ref2 = reference * reference
+    lower = np.zeros(rows)  # Σ of lower bounds of the weights met so far (<= the true S)
+    distance = np.empty(rows)
+    unit = np.empty(dim)
+    buffer = np.empty(max_leaf)
+    stack = np.empty(STACK, np.int64)
+    stack[0] = 0
+    depth = 1
+    while depth > 0:
+        depth -= 1
+        node = stack[depth]
+        rho = radii[node]
+        nearest = np.inf
+        smallest_lower = np.inf
+        for t in range(rows):
+            squared = 0.0
+            for a in range(dim):
+                diff = targets[first_target + t, a] - centroids[node, a]
+                squared += diff * diff
+            distance[t] = math.sqrt(squared)
+            nearest = min(nearest, distance[t])
+            smallest_lower = min(smallest_lower, lower[t])
+        accepted = False
+        worst = 0.0
+        count = stops[node] - starts[node]
+        if rho < nearest:
+            worst = (reference / nearest) ** power * remainder(rho / nearest, power)
+            accepted = worst <= budget * smallest_lower
+        if accepted:
+            coefficient = 0.5 * power * (power + 2.0)
+            for t in range(rows):
+                target = first_target + t
+                big_r = distance[t]
+                inverse = 1.0 / big_r
+                weight = (reference * inverse) ** power
+                lower[t] += count * (reference / (big_r + rho)) ** power
+                for a in range(dim):
+                    unit[a] = (targets[target, a] - centroids[node, a]) * inverse
+                if not transpose:
+                    bounds[target] += count * worst
+                    quad = 0.0
+                    trace = 0.0
+                    for a in range(dim):
+                        trace += second_geometry[node, a, a]
+                        for b in range(dim):
+                            quad += unit[a] * unit[b] * second_geometry[node, a, b]
+                    sums[target] += weight * (
+                        count + (coefficient * quad - half_power * trace) * inverse * inverse
+                    )
+                    for column in range(columns):
+                        linear = 0.0
+                        quad = 0.0
+                        trace = 0.0
+                        for a in range(dim):
+                            linear += first[node, column, a] * unit[a]
+                            trace += second[node, column, a, a]
+                            for b in range(dim):
+                                quad += unit[a] * unit[b] * second[node, column, a, b]
+                        numerator[target, column] += weight * (
+                            zeroth[node, column]
+                            + power * linear * inverse
+                            + (coefficient * quad - half_power * trace) * inverse * inverse
+                        )
+                elif coincident[target] == 0:
+                    for column in range(columns):
+                        g = scaled[target, column] * weight
+                        if g == 0.0:
+                            continue
+                        node_zeroth[node, column] += g
+                        for a in range(dim):
+                            node_first[node, column, a] += g * power * unit[a] * inverse
+                            for b in range(dim):
+                                term = coefficient * unit[a] * unit[b]
+                                if a == b:
+                                    term -= half_power
+                                node_second[node, column, a, b] += g * term * inverse * inverse
+        elif children[node, 0] < 0:  # a leaf, summed exactly
+            start, stop = starts[node], stops[node]
+            width = stop - start
+            for t in range(rows):
+                target = first_target + t
+                chunk = buffer[:width]
+                _squared(targets[target], controls_t, start, stop, chunk)
+                closest = np.inf
+                for k in range(width):
+                    closest = min(closest, chunk[k])
+                if closest <= radius2:  # coincident controls: counted, never weighted
+                    for k in range(width):
+                        if chunk[k] <= radius2:
+                            if transpose:
+                                if coincident[target] > 0:
+                                    for column in range(columns):
+                                        out[start + k, column] += scaled[target, column]
+                            else:
+                                coincident[target] += 1
+                                for column in range(columns):
+                                    coincident_sum[target, column] += values_t[column, start + k]
+                            chunk[k] = np.inf
+                _weights(chunk, width, ref2, half_power, mode)
+                total = 0.0
+                for k in range(width):
+                    total += chunk[k]
+                lower[t] += total
+                if transpose:
+                    if coincident[target] == 0:
+                        for column in range(columns):
+                            g = scaled[target, column]
+                            for k in range(width):
+                                out[start + k, column] += chunk[k] * g
+                else:
+                    sums[target] += total
+                    for column in range(columns):
+                        dot = 0.0
+                        row = values_t[column, start:stop]
+                        for k in range(width):
+                            dot += chunk[k] * row[k]
+                        numerator[target, column] += dot
+        else:  # open the node: the nearer child is visited first
+            near, far = children[node, 0], children[node, 1]
+            near_distance = 0.0
+            far_distance = 0.0
+            for a in range(dim):
+                centre = 0.0
+                for t in range(rows):
+                    centre += targets[first_target + t, a]
+                centre /= rows
+                near_distance += (centre - centroids[near, a]) ** 2
+                far_distance += (centre - centroids[far, a]) ** 2
+            if near_distance > far_distance:
+                near, far = far, near
+            stack[depth] = far
+            stack[depth + 1] = near
+            depth += 2
+
+
+@njit(parallel=True, **_OPTIONS)
+def traverse(
+    targets, block_starts, references, controls_t, values_t, scaled, children, starts, stops,
+    centroids, radii, second_geometry, zeroth, first, second, power, mode, budget, radius2,
+    transpose, groups, sums, numerator, bounds, coincident, coincident_sum, node_zeroth,
+    node_first, node_second, out, max_leaf,
+):  # fmt: skip
+    """Every block of targets against the tree, in parallel over ``groups`` groups of
+    blocks (each with its own transposed accumulators ``node_*[group]``, ``out[group]``).
+
+    A node is accepted for a block when its expansion's bound, at the block's nearest
+    target, satisfies ``n δ <= budget · n · L`` with ``L`` the smallest, over the block, of
+    the weights summed so far (lower bounds of every target's S): summed over accepted
+    nodes this keeps ``Σ n δ <= budget · N_c · S`` for every target (``budget`` is the
+    tolerance on the weight sums divided by N_c). Leaves not accepted are summed exactly;
+    a target within ``radius2`` of a control is coincident (counted, its values summed).
+    Forward (``transpose=False``): ``sums``, ``numerator``, ``bounds`` (Σ n δ) and the
+    coincident counts and sums. Transposed: ``out[group] += Aᵀ scaled`` by leaves and by
+    per-node coefficients (spread by :func:`push_down`), ``scaled`` holding grad / S'."""
+    blocks = block_starts.shape[0] - 1
+    for group in prange(groups):
+        for block in range(group, blocks, groups):
+            _visit_block(
+                block_starts[block], block_starts[block + 1], targets, references[block],
+                controls_t, values_t, scaled, children, starts, stops, centroids, radii,
+                second_geometry, zeroth, first, second, power, mode, budget, radius2,
+                transpose, sums, numerator, bounds, coincident, coincident_sum,
+                node_zeroth[group], node_first[group], node_second[group], out[group],
+                max_leaf,
+            )  # fmt: skip
