@@ -114,7 +114,43 @@ MIN_DEGREE = {
 }
 
 
-def kernel_matrix(points: Tensor, centres: Tensor, kernel: str, scale: float) -> Tensor:
+def _thin_plate_spline_(s: Tensor, scratch: Tensor) -> None:
+    torch.log(s.clamp_min_(torch.finfo(s.dtype).tiny), out=scratch)
+    s.mul_(scratch).mul_(0.5)  # at s = 0: tiny · log(tiny) / 2, about -4e-306 (float64)
+
+
+def _wendland_(s: Tensor, scratch: Tensor, kernel: str) -> None:
+    s.sqrt_()  # r
+    torch.sub(1.0, s, out=scratch).clamp_min_(0.0)  # (1 − r)₊
+    if kernel == "wendland_c0":
+        torch.square(scratch, out=s)
+    elif kernel == "wendland_c2":
+        s.mul_(4.0).add_(1.0).mul_(scratch.square_().square_())
+    else:
+        polynomial = (s * 35.0).add_(18.0).mul_(s).add_(3.0).div_(3.0)
+        torch.mul(polynomial, scratch.pow_(6), out=s)
+
+
+#: In-place forms of the kernels, for blocks that need no gradient: φ(s) written over s.
+_IN_PLACE: dict[str, Callable[[Tensor, Tensor], object]] = {
+    "thin_plate_spline": _thin_plate_spline_,
+    "linear": lambda s, _: s.sqrt_().neg_(),
+    "cubic": lambda s, scratch: s.mul_(torch.sqrt(s, out=scratch)),
+    "quintic": lambda s, scratch: torch.neg(torch.sqrt(s, out=scratch).mul_(s).mul_(s), out=s),
+    "multiquadric": lambda s, _: s.add_(1.0).sqrt_().neg_(),
+    "inverse_multiquadric": lambda s, _: s.add_(1.0).rsqrt_(),
+    "inverse_quadratic": lambda s, _: s.add_(1.0).reciprocal_(),
+    "gaussian": lambda s, _: s.neg_().exp_(),
+    **{name: (lambda s, scratch, name=name: _wendland_(s, scratch, name)) for name in WENDLAND},
+}
+
+#: Entries of one in-place block of :func:`kernel_matrix` (256 KiB of float64: L2-sized).
+IN_PLACE_BLOCK = 32768
+
+
+def kernel_matrix(
+    points: Tensor, centres: Tensor, kernel: str, scale: float, *, out: Tensor | None = None
+) -> Tensor:
     """φ(scale · |points_i − centres_j|), shape (N, M), from direct coordinate differences.
 
     Parameters
@@ -125,7 +161,19 @@ def kernel_matrix(points: Tensor, centres: Tensor, kernel: str, scale: float) ->
         A key of :data:`KERNELS`.
     scale : float
         ``epsilon`` for scipy's kernels, ``1 / support_radius`` for Wendland's.
+    out : Tensor, shape (N, M), optional
+        Where to write (a contiguous tensor of the points' dtype), when no gradient is
+        needed.
+
+    Notes
+    -----
+    Without gradients, blocks of rows of :data:`IN_PLACE_BLOCK` entries are computed in
+    place (differences, squares and the kernel written over one cache-sized block);
+    with gradients, the masked functions of :data:`KERNELS`.
     """
+    needs_grad = torch.is_grad_enabled() and (points.requires_grad or centres.requires_grad)
+    if not needs_grad:
+        return _kernel_matrix_in_place(points, centres, kernel, scale, out)
     function, at_zero = KERNELS[kernel]
     squared = torch.zeros(
         points.shape[0], centres.shape[0], dtype=points.dtype, device=points.device
@@ -138,6 +186,39 @@ def kernel_matrix(points: Tensor, centres: Tensor, kernel: str, scale: float) ->
     positive = squared > 0
     values = function(torch.where(positive, squared, torch.ones_like(squared)))
     return torch.where(positive, values, torch.full_like(values, at_zero))
+
+
+def _kernel_matrix_in_place(
+    points: Tensor, centres: Tensor, kernel: str, scale: float, out: Tensor | None
+) -> Tensor:
+    points, centres = points.detach(), centres.detach()
+    rows_total, columns = points.shape[0], centres.shape[0]
+    if out is None:
+        out = torch.empty(rows_total, columns, dtype=points.dtype, device=points.device)
+    if not rows_total or not columns:
+        return out
+    rows = max(1, IN_PLACE_BLOCK // columns)
+    if points.device.type == "cuda":
+        rows = max(rows, (64 << 20) // (points.element_size() * columns))
+    point_axes = [points[:, axis, None].contiguous() for axis in range(points.shape[1])]
+    centre_axes = [centres[None, :, axis].contiguous() for axis in range(points.shape[1])]
+    scratch_all = torch.empty(
+        min(rows, rows_total), columns, dtype=points.dtype, device=points.device
+    )
+    in_place = _IN_PLACE[kernel]
+    factor = scale * scale
+    for start in range(0, rows_total, rows):
+        stop = min(start + rows, rows_total)
+        block, scratch = out[start:stop], scratch_all[: stop - start]
+        torch.sub(point_axes[0][start:stop], centre_axes[0], out=block)
+        block.square_()
+        for axis in range(1, len(point_axes)):
+            torch.sub(point_axes[axis][start:stop], centre_axes[axis], out=scratch)
+            block.addcmul_(scratch, scratch)
+        if factor != 1.0:
+            block.mul_(factor)
+        in_place(block, scratch)
+    return out
 
 
 def monomial_powers(dim: int, degree: int) -> list[tuple[int, ...]]:
