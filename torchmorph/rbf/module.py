@@ -226,16 +226,19 @@ class RBF(nn.Module):
                 dtype=controls.dtype,
                 device=controls.device,
             )
-            rows = max(1, (self.block_bytes or (64 << 20)) // (8 * (self.num_controls + 1)))
-            for begin in range(0, self.num_targets, rows):
-                block = targets[begin : begin + rows].double()
-                matrix[begin : begin + rows, : self.num_controls] = kernel_matrix(
-                    block, work, self.kernel, self.scale
-                )
-                if count:
-                    matrix[begin : begin + rows, self.num_controls :] = polynomial_matrix(
-                        block, self.powers, self.shift, self.poly_scale
+            kernel_part = matrix[:, : self.num_controls]
+            if matrix.dtype == torch.float64:  # written in place, block by block
+                kernel_matrix(targets, work, self.kernel, self.scale, out=kernel_part)
+            else:  # float64 blocks, stored in the points' dtype
+                rows = max(1, (self.block_bytes or (64 << 20)) // (8 * (self.num_controls + 1)))
+                for begin in range(0, self.num_targets, rows):
+                    kernel_part[begin : begin + rows] = kernel_matrix(
+                        targets[begin : begin + rows].double(), work, self.kernel, self.scale
                     )
+            if count:
+                matrix[:, self.num_controls :] = polynomial_matrix(
+                    targets.double(), self.powers, self.shift, self.poly_scale
+                )
         self.evaluation_time = time.perf_counter() - start
         return matrix
 

@@ -63,6 +63,33 @@ def check_polynomial_rank(poly: Tensor, degree: int) -> tuple[Tensor, Tensor]:
     return qr, tau
 
 
+def block_reflector(qr: Tensor, tau: Tensor) -> tuple[Tensor, Tensor]:
+    """``Q = H_1 … H_k = I − V T Vᵀ`` (LAPACK's ``dlarft``, forward and columnwise):
+    V (N, k) unit lower trapezoidal from ``torch.geqrf``'s result, T (k, k) upper."""
+    count = tau.shape[0]
+    vectors = torch.tril(qr[:, :count], diagonal=-1)
+    vectors.diagonal().fill_(1.0)
+    triangle = qr.new_zeros(count, count)
+    for column in range(count):
+        triangle[column, column] = tau[column]
+        if column:
+            overlap = vectors[:, :column].T @ vectors[:, column]
+            triangle[:column, column] = -tau[column] * (triangle[:column, :column] @ overlap)
+    return vectors, triangle
+
+
+def project_symmetric(matrix: Tensor, qr: Tensor, tau: Tensor) -> None:
+    """Overwrite the symmetric ``matrix`` (N, N) with ``Qᵀ matrix Q``, Q from
+    :func:`block_reflector`: a symmetric rank-2k update ``A − V Yᵀ − Y Vᵀ`` with
+    ``W = A V``, ``S = Tᵀ Vᵀ W T`` and ``Y = W T − V S / 2`` (two passes over A instead
+    of LAPACK ``ormqr``'s four)."""
+    vectors, triangle = block_reflector(qr, tau)
+    product = matrix @ vectors
+    inner = triangle.T @ (vectors.T @ product) @ triangle
+    update = product @ triangle - 0.5 * (vectors @ inner)
+    matrix.addmm_(vectors, update.T, alpha=-1.0).addmm_(update, vectors.T, alpha=-1.0)
+
+
 def factorise(
     controls: Tensor,
     kernel: str,
@@ -87,8 +114,7 @@ def factorise(
         projected = kernel_matrix(controls, controls, kernel, scale)
         if count:
             assert qr is not None and tau is not None
-            projected = torch.ormqr(qr, tau, projected, left=True, transpose=True)
-            projected = torch.ormqr(qr, tau, projected, left=False, transpose=False)
+            project_symmetric(projected, qr, tau)
         factor, info = torch.linalg.cholesky_ex(projected[count:, count:])
         if int(info) == 0:
             factors["factor"] = factor

@@ -1,0 +1,122 @@
+"""RBF morphing (:class:`torchmorph.rbf.RBF`) against scipy's ``RBFInterpolator``.
+
+One thread (torch and BLAS), float64; thin-plate spline with the linear polynomial
+(``degree=1``, scipy's default for it). Controls: N_c points on the unit sphere (a
+Fibonacci lattice, the surface of a body); targets: N_t points uniform in the shell
+1.05 <= |x| <= 3 around it (the volume mesh); displacements a smooth field on the sphere.
+Default N_c = 5,000 and N_t = 50,000 (the issue's counts).
+
+Printed (markdown), each step timed once (a fit takes seconds) except the later morphs
+(median of ``--repeats``):
+
+* scipy: ``RBFInterpolator(controls, d)`` (fit) and one evaluation at the targets;
+* torchmorph, dense and matrix-free: building the module (the factorisation; in dense
+  mode also the evaluation matrix ``[Φ_tc P_t]``), the first morph, fit plus first
+  morph, later morphs (the factorisation reused: one solve and one product in dense
+  mode, a solve and the kernel sum in blocks matrix-free), and the ratios of scipy's
+  fit plus evaluation to ours;
+* the largest difference of the morphed targets from scipy's.
+
+Run ``python benchmarks/rbf.py [--controls N] [--targets N] [--repeats R]`` (about 30 s
+at the default counts on one core).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_variable] = "1"  # before numpy and scipy load their BLAS
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
+import torch  # noqa: E402
+from _timing import median_time, seconds  # noqa: E402
+from scipy.interpolate import RBFInterpolator  # noqa: E402
+
+from torchmorph.rbf import RBF  # noqa: E402
+
+
+def sphere(count: int) -> np.ndarray:
+    """A Fibonacci lattice of ``count`` points on the unit sphere."""
+    index = np.arange(count) + 0.5
+    polar = np.arccos(1 - 2 * index / count)
+    azimuth = math.pi * (1 + 5**0.5) * index
+    return np.stack(
+        [np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], 1
+    )
+
+
+def shell(count: int, seed: int = 0) -> np.ndarray:
+    """``count`` points uniform in the shell 1.05 <= |x| <= 3."""
+    rng = np.random.default_rng(seed)
+    direction = rng.normal(size=(count, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    radius = (rng.uniform(1.05**3, 3.0**3, size=(count, 1))) ** (1 / 3)
+    return direction * radius
+
+
+def field(points: np.ndarray) -> np.ndarray:
+    """A smooth displacement of the sphere: a bulge, a shear and a twist."""
+    x, y, z = points.T
+    return 0.05 * np.stack([np.sin(3 * x) + z * y, np.cos(2 * y) * x, z**2 - 0.3 * x], 1)
+
+
+def timed(function):
+    start = time.perf_counter()
+    result = function()
+    return result, time.perf_counter() - start
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--controls", type=int, default=5000)
+    parser.add_argument("--targets", type=int, default=50000)
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    controls, targets = sphere(args.controls), shell(args.targets)
+    values = field(controls)
+    print(
+        f"{platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"scipy {scipy.__version__}, 1 thread, float64, thin_plate_spline, degree=1, "
+        f"{args.controls:,} controls x {args.targets:,} targets\n"
+    )
+    interpolant, scipy_fit = timed(lambda: RBFInterpolator(controls, values))
+    reference, scipy_eval = timed(lambda: interpolant(targets))
+    scipy_total = scipy_fit + scipy_eval
+    rows = []
+    tensors = [torch.from_numpy(array) for array in (controls, targets, values)]
+    for mode in ("dense", "matrix_free"):
+        morph, build = timed(lambda mode=mode: RBF(tensors[0], tensors[1], mode=mode))
+        moved, first = timed(lambda morph=morph: morph(tensors[2]))
+        later = median_time(lambda morph=morph: morph(tensors[2]), args.repeats, warmup=0)
+        difference = float(np.abs(moved.numpy() - reference).max())
+        rows.append((mode, morph, build, first, later, difference))
+        del morph
+    print("| | fit | first morph | fit + first morph | later morph | max diff. from scipy |")
+    print("|---|---:|---:|---:|---:|---:|")
+    print(
+        f"| scipy `RBFInterpolator` | {seconds(scipy_fit)} | {seconds(scipy_eval)} | "
+        f"{seconds(scipy_total)} | {seconds(scipy_eval)} | — |"
+    )
+    for mode, morph, build, first, later, difference in rows:
+        fit = f"{seconds(build)} ({seconds(morph.fit_time)} factorising)"
+        print(
+            f"| torchmorph `RBF`, {mode} ({morph.solver}) | {fit} | {seconds(first)} | "
+            f"{seconds(build + first)} (**{scipy_total / (build + first):.2f}x**) | "
+            f"{seconds(later)} (**{scipy_eval / later:.1f}x**) | {difference:.1e} |"
+        )
+    print(
+        "\nRatios: scipy's fit + evaluation over ours (fit + first morph), scipy's "
+        "evaluation over one later morph."
+    )
+
+
+if __name__ == "__main__":
+    main()
