@@ -9,8 +9,13 @@ import torch
 from torchmorph.mesh import TetMesh
 from torchmorph.mesh.tetmesh import box_mesh
 from torchmorph.morph import MeshMorph
-from torchmorph.selection import Region, SelectionPlan
-from torchmorph.selection.adaptive import AdaptivePlan, IDWErrorOracle, select_adaptive
+from torchmorph.selection import (
+    AdaptivePlan,
+    IDWErrorOracle,
+    Region,
+    SelectionPlan,
+    select_adaptive,
+)
 
 
 def reference_idw(controls, targets, values, power=4.0):
@@ -332,3 +337,14 @@ def test_the_loop_takes_any_oracle():
         greedy_selection(oracle, tolerance=0.1, spacing=-1.0)
     with pytest.raises(ValueError, match="initial holds repeated indices"):
         greedy_selection(oracle, tolerance=0.1, initial=torch.tensor([1, 1]))
+
+
+def test_a_sampled_selection_is_checked_on_every_target():
+    mesh, displacement = bent_box(8)
+    tolerance = 0.01
+    plan = AdaptivePlan(tolerance, displacement, num_samples=40)
+    morph = MeshMorph(mesh, plan)
+    assert plan.sampled_targets_ == morph.num_interior  # the final error is every node's
+    error = nodal_error(mesh, displacement, morph.control_nodes.numpy())
+    assert error == pytest.approx(plan.result_.error, rel=1e-9)
+    assert error <= tolerance and plan.result_.converged

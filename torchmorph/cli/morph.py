@@ -310,8 +310,7 @@ def _adaptive_plan(
     (or from ``--enrich`` alone), driven by the boundary displacement ``rows``."""
     import torch
 
-    from torchmorph.selection.adaptive import AdaptivePlan
-    from torchmorph.selection.plan import SelectionPlan
+    from torchmorph.selection.plan import AdaptivePlan, SelectionPlan
 
     enrich = _split_names(args.enrich) or []
     if start is None and enrich:

@@ -203,7 +203,7 @@ def adaptive_morph(
     every training value ``parameters`` (the POD snapshots); the tolerance defaults to
     the paper's ESIDW error of the case.
     """
-    from torchmorph.selection.adaptive import AdaptivePlan
+    from torchmorph.selection.plan import AdaptivePlan
 
     if tolerance is None:
         row = context.spec.paper_row("ESIDW")

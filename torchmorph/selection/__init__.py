@@ -4,13 +4,10 @@ Algorithm 2 steps (i)–(ii)) in :mod:`torchmorph.selection.plan`, and the error
 selection (the greedy loop of :mod:`torchmorph.selection.greedy` with the IDW error
 of :mod:`torchmorph.selection.adaptive`)."""
 
-from torchmorph.selection.adaptive import (
-    AdaptivePlan,
-    IDWErrorOracle,
-    select_adaptive,
-)
+from torchmorph.selection.adaptive import IDWErrorOracle, select_adaptive
 from torchmorph.selection.greedy import ErrorOracle, GreedySelection, greedy_selection
 from torchmorph.selection.plan import (
+    AdaptivePlan,
     Region,
     RegionOverlapError,
     SelectionPlan,

@@ -5,8 +5,8 @@ the paper names "an adaptive selection of the control points driven by some quan
 interest" as future work (Ballarin et al. 2017, Section 4). Here the error of the
 selective morph against full IDW (every candidate a control) chooses the controls:
 :func:`select_adaptive` runs the greedy loop of :mod:`torchmorph.selection.greedy` with
-:class:`IDWErrorOracle`, and :class:`AdaptivePlan` does it on a mesh for
-:class:`~torchmorph.morph.MeshMorph` (a drop-in for a
+:class:`IDWErrorOracle`, and :class:`~torchmorph.selection.plan.AdaptivePlan` does it
+on a mesh for :class:`~torchmorph.morph.MeshMorph` (a drop-in for a
 :class:`~torchmorph.selection.SelectionPlan`).
 
 The error
@@ -59,8 +59,6 @@ cheap error evaluations; rounds grow with the number of controls the tolerance n
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -71,7 +69,6 @@ from torchmorph.idw.functional import idw_apply, idw_weights
 from torchmorph.selection.greedy import (
     ErrorOracle,
     GreedySelection,
-    check_budget,
     greedy_selection,
 )
 from torchmorph.selection.sidw import DEFAULT_SEED, _check_generator
@@ -79,7 +76,6 @@ from torchmorph.selection.sidw import DEFAULT_SEED, _check_generator
 __all__ = [
     "DEFAULT_SAMPLE_BYTES",
     "DEFAULT_SCORE_SAMPLES",
-    "AdaptivePlan",
     "ErrorOracle",
     "GreedySelection",
     "IDWErrorOracle",
@@ -96,6 +92,9 @@ DEFAULT_SAMPLE_BYTES = 256 * 2**20
 #: Fewer make a scoring cheaper but the scores noisier: more rounds and more controls
 #: (case C at 1.26 %: 450 controls with 1,024, 358 with all 3,173).
 DEFAULT_SCORE_SAMPLES = None
+
+# Checks of a sampled selection on every target, each followed by a new sample.
+_CHECKS = 8
 
 # Rows of the sampled weights are scored in blocks of about this many bytes.
 _SCORE_BLOCK_BYTES = 4 * 2**20
@@ -158,6 +157,8 @@ class IDWErrorOracle:
         sample_bytes: int = DEFAULT_SAMPLE_BYTES,
         score_samples: int | None = DEFAULT_SCORE_SAMPLES,
         generator: torch.Generator | None = None,
+        sample: Tensor | None = None,
+        sample_scale: Tensor | None = None,
     ) -> None:
         candidates = as_points(candidates, "candidates", dim=_dim(candidates))
         dim = candidates.shape[1]
@@ -179,25 +180,28 @@ class IDWErrorOracle:
             num_samples = max(1, min(n_targets, sample_bytes // (n_candidates * itemsize)))
         elif isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 1:
             raise ValueError(f"num_samples must be an integer >= 1, got {num_samples!r}")
-        num_samples = min(num_samples, n_targets)
+        num_samples = min(num_samples, n_targets) if sample is None else len(sample)
         if score_samples is not None and (
             isinstance(score_samples, bool)
             or not isinstance(score_samples, int)
             or score_samples < 1
         ):
             raise ValueError(f"score_samples must be an integer >= 1, got {score_samples!r}")
-        # in random order: the first ``score_samples`` of them are a sample too
-        self.sample = torch.randperm(n_targets, generator=_check_generator(generator))
-        self.sample = self.sample[:num_samples]
+        if sample is None:  # in random order: the first ``score_samples`` are a sample too
+            sample = torch.randperm(n_targets, generator=_check_generator(generator))
+            sample = sample[:num_samples]
+            sample_scale = torch.full((num_samples,), n_targets / num_samples)
+        self.sample = sample
         self.score_samples = (
             num_samples if score_samples is None else min(score_samples, num_samples)
         )
         sample = self.sample.to(candidates.device)
         self.points = candidates.detach()
-        self.scale = n_targets / num_samples
+        scale = torch.as_tensor(sample_scale, dtype=candidates.dtype, device=candidates.device)
         with torch.no_grad():
             self.targets = targets.detach()[sample]
-            self.target_weights = target_weights[sample]
+            # w_i times how many targets the sampled one stands for
+            self.target_weights = target_weights[sample] * scale
             self.family = family.detach()  # (F, N_c, D)
             self.weights_t = self._transposed_weights()  # (N_c, N_s): Wᵀ, rows contiguous
             self.reference = self._field(self.weights_t.mT @ self._columns(self.family))
@@ -238,8 +242,9 @@ class IDWErrorOracle:
         return family.permute(1, 0, 2).reshape(family.shape[1], -1)
 
     def _weighted_squares(self, field: Tensor) -> Tensor:
-        """``N_t/N_s Σ_s w_s |field_s|²`` per member, shape (F,)."""
-        return self.scale * (self.target_weights[None, :, None] * field.square()).sum((1, 2))
+        """``Σ_s w_s c_s |field_s|²`` per member, shape (F,): ``c_s`` the number of
+        targets sampled target s stands for."""
+        return (self.target_weights[None, :, None] * field.square()).sum((1, 2))
 
     def _selective(self, selected: Tensor) -> tuple[Tensor, Tensor]:
         """IDW from the candidates ``selected`` at the sampled targets, (F, N_s, D), and
@@ -400,10 +405,13 @@ def select_adaptive(
         displacements of the wrong shape or holding NaN/inf, negative or all-zero
         weights, a family member with a zero reference field, or bad loop parameters.
     """
-    oracle = IDWErrorOracle(
+    return _checked_selection(
         candidates,
         targets,
         displacements,
+        tolerance=tolerance,
+        max_controls=max_controls,
+        initial=initial,
         weights=weights,
         candidate_weights=candidate_weights,
         power=power,
@@ -411,152 +419,79 @@ def select_adaptive(
         sample_bytes=sample_bytes,
         score_samples=score_samples,
         generator=generator,
-    )
-    return greedy_selection(
-        oracle,
-        tolerance=tolerance,
-        max_controls=max_controls,
-        initial=initial,
         min_batch=min_batch,
         spacing=spacing,
-    )
+    )[0]
 
 
-@dataclass
-class AdaptivePlan:
-    """Error-driven control points of a mesh, for :class:`~torchmorph.morph.MeshMorph`.
+def _checked_selection(
+    candidates, targets, displacements, *, tolerance, max_controls, initial, **options
+) -> tuple[GreedySelection, int]:
+    """:func:`select_adaptive`, and the number of targets its error was measured at.
 
-    The candidates are the mesh's boundary nodes and the error is measured at its
-    interior nodes against full IDW (every boundary node a control), for a family of
-    boundary displacements: the relative nodal error of the morph, the measure of the
-    paper's tables (weighted by ``weights`` when given). Pass it where a
-    :class:`~torchmorph.selection.SelectionPlan` goes: ``MeshMorph(mesh, plan)``.
-
-    Parameters
-    ----------
-    tolerance : float
-        Relative error to reach, > 0 (the worst over the family).
-    displacements : Tensor or callable
-        The family: a boundary displacement (N_b, D) or several (F, N_b, D), rows
-        ordered as ``mesh.boundary_nodes``; or a callable mapping the boundary points
-        (N_b, D) to one of those (e.g. the POD training set of a parametrised family).
-    max_controls : int, optional
-        At most this many controls (>= 1), the ``start`` set included.
-    start : SelectionPlan, optional
-        A coarse SIDW/ESIDW plan whose selection is kept and grown (e.g. the
-        enrichment sets alone, or a large radius). Default: start from no control.
-    weights : Tensor, shape (N,), optional
-        Node weights of the error (quantity of interest), >= 0, not all zero on the
-        interior nodes; default 1 everywhere (the nodal error).
-    power : float, default 4
-        The IDW exponent; use the morph's.
-    num_samples, sample_bytes, score_samples, min_batch, spacing
-        As :func:`select_adaptive`.
-
-    Attributes
-    ----------
-    result_ : GreedySelection or None
-        The last selection's record (indices into the boundary nodes, error, history).
-    sampled_targets_ : int
-        The number of interior nodes its error was measured at.
-
-    Notes
-    -----
-    The selection is a set of boundary nodes like SIDW's, so the morph, its POD
-    reduction and its state are the same as for any plan. The error is estimated on a
-    sample of the interior nodes when they are many (see :class:`IDWErrorOracle`);
-    check the final morph with ``torchmorph.mesh.norms.relative_nodal_error``.
+    When the targets are sampled, the selection's error is checked on every target
+    (one full IDW evaluation for the reference, one of the selection per check); while
+    it is above the tolerance (at most ``_CHECKS`` times) the targets of largest error,
+    half a sample's worth, join those of the earlier checks in the sample, half a sample
+    more is drawn at random among the others (each standing for its share of them), and
+    the selection goes on from where it is.
     """
-
-    tolerance: float
-    displacements: Tensor | Callable[[Tensor], Tensor]
-    max_controls: int | None = None
-    start: Any = None
-    weights: Tensor | None = None
-    power: float = 4.0
-    num_samples: int | None = None
-    sample_bytes: int = DEFAULT_SAMPLE_BYTES
-    score_samples: int | None = DEFAULT_SCORE_SAMPLES
-    min_batch: int = 8
-    spacing: float = 0.5
-    result_: GreedySelection | None = field(default=None, init=False, repr=False)
-    sampled_targets_: int = field(default=0, init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        self.tolerance = check_positive(self.tolerance, "tolerance")
-        if self.max_controls is not None:
-            self.max_controls = check_budget(self.max_controls)
-        if not (isinstance(self.displacements, Tensor) or callable(self.displacements)):
-            raise TypeError(
-                "displacements must be a Tensor (N_b, D) / (F, N_b, D) or a callable of "
-                f"the boundary points, got {type(self.displacements).__name__}"
-            )
-        if self.start is not None and not callable(getattr(self.start, "select", None)):
-            raise TypeError(
-                f"start must be a SelectionPlan (or None), got {type(self.start).__name__}"
-            )
-
-    def select(self, mesh: Any, *, generator: torch.Generator | None = None) -> Tensor:
-        """The control points: sorted unique global node ids, on the mesh's device.
-
-        Parameters
-        ----------
-        mesh : Mesh
-            Needs ``points``, ``boundary_nodes`` and ``interior_nodes``.
-        generator : torch.Generator, optional
-            Randomness of the ``start`` plan (the target sample is seeded with
-            ``DEFAULT_SEED``: the same mesh and family give the same selection).
-        """
-        boundary, interior = mesh.boundary_nodes, mesh.interior_nodes
-        if interior.numel() == 0:
-            raise ValueError("mesh has no interior node: there is no error to drive a selection")
-        points = mesh.points.detach()
-        boundary_points = points[boundary]
-        family = self.displacements
-        if not isinstance(family, Tensor):
-            family = family(boundary_points)
-            if not isinstance(family, Tensor):
-                raise TypeError(
-                    f"displacements(boundary points) must return a Tensor, got "
-                    f"{type(family).__name__}"
-                )
-        weights = candidate_weights = None
-        if self.weights is not None:
-            node_weights = torch.as_tensor(self.weights)
-            if node_weights.shape != (mesh.num_nodes,):
-                raise ValueError(
-                    f"weights must have shape ({mesh.num_nodes},) (one per node), got "
-                    f"{tuple(node_weights.shape)}"
-                )
-            node_weights = node_weights.to(points.device)
-            weights, candidate_weights = node_weights[interior], node_weights[boundary]
-        initial = None
-        generator = _check_generator(generator)
-        if self.start is not None:
-            chosen = torch.as_tensor(self.start.select(mesh, generator=generator)).to(boundary)
-            initial = torch.searchsorted(boundary, chosen.unique()).cpu()
-        oracle = IDWErrorOracle(
-            boundary_points,
-            points[interior],
-            family,
-            weights=weights,
-            candidate_weights=candidate_weights,
-            power=self.power,
-            num_samples=self.num_samples,
-            sample_bytes=self.sample_bytes,
-            score_samples=self.score_samples,
-            generator=torch.Generator().manual_seed(DEFAULT_SEED),
+    loop = {key: options.pop(key) for key in ("min_batch", "spacing")}
+    oracle = IDWErrorOracle(candidates, targets, displacements, **options)
+    result = greedy_selection(
+        oracle, tolerance=tolerance, max_controls=max_controls, initial=initial, **loop
+    )
+    num_targets = targets.shape[0]
+    if len(oracle.sample) == num_targets:
+        return result, num_targets
+    points, family = oracle.points, oracle.family  # the family's distinct members
+    weights = _weights(options.get("weights"), "weights", num_targets, points)
+    targets = targets.to(points)
+    with torch.no_grad():
+        reference = idw_apply(
+            controls=points, targets=targets, displacements=family, power=oracle.power
         )
-        self.sampled_targets_ = len(oracle.sample)
-        self.result_ = result = greedy_selection(
+        norm = (weights[None, :, None] * reference.square()).sum((1, 2))
+        norm += (oracle.candidate_weights[None, :, None] * family.square()).sum((1, 2))
+    generator = torch.Generator().manual_seed(DEFAULT_SEED + 1)
+    certain = torch.zeros(num_targets, dtype=torch.bool)  # sampled for sure
+    size = len(oracle.sample)
+    for check in range(_CHECKS + 1):
+        selected = result.indices.to(points.device)
+        with torch.no_grad():
+            field = idw_apply(
+                controls=points[selected],
+                targets=targets,
+                displacements=family[:, selected],
+                power=oracle.power,
+            )
+            shares = weights[None, :, None] * (field - reference).square() / norm[:, None, None]
+            errors = torch.sqrt(shares.sum((1, 2)))
+        result.error = float(errors.max())
+        result.converged = result.error <= tolerance
+        result.history.append((len(selected), result.error))
+        if result.converged or result.reason != "tolerance" or check == _CHECKS:
+            break
+        # the targets of largest error join those of the earlier checks; as many again
+        # are drawn at random among the others, each standing for its share of them
+        order = torch.argsort(shares.sum((0, 2)).cpu(), descending=True)
+        fresh = order[~certain[order]][: max(1, size // 2)]
+        certain[fresh] = True
+        worst = torch.nonzero(certain).flatten()
+        rest = torch.nonzero(~certain).flatten()
+        rest = rest[torch.randperm(len(rest), generator=generator)[: max(size // 2, 1)]]
+        stands_for = (num_targets - len(worst)) / max(1, len(rest))
+        scale = torch.cat([torch.ones(len(worst)), torch.full((len(rest),), stands_for)])
+        options.update(sample=torch.cat([worst, rest]), sample_scale=scale)
+        oracle = IDWErrorOracle(candidates, targets, displacements, **options)
+        result = greedy_selection(
             oracle,
-            tolerance=self.tolerance,
-            max_controls=self.max_controls,
-            initial=initial,
-            min_batch=self.min_batch,
-            spacing=self.spacing,
+            tolerance=tolerance,
+            max_controls=max_controls,
+            initial=result.indices,
+            **loop,
         )
-        return torch.sort(boundary[result.indices.to(boundary.device)]).values
+    return result, num_targets
 
 
 def _distinct_up_to_scale(family: Tensor) -> Tensor:

@@ -1,10 +1,12 @@
-"""Selection of control points: Algorithm 1 (SIDW) and per-region selection plans.
+"""Selection of control points: Algorithm 1 (SIDW), per-region selection plans and the
+error-driven plan.
 
 :func:`select_control_points` implements Algorithm 1 of the paper (Ballarin et al. 2017,
 Section 2.2) on a cloud of candidate points of any dimension; :class:`SelectionPlan` runs it on named node sets
 of a :class:`~torchmorph.mesh.TetMesh`, each with its own radius ``R`` and factors
 ``a``, ``b``, takes the union and adds enrichment node sets (ESIDW: Algorithm 2,
-step (ii), Section 2.2.1).
+step (ii), Section 2.2.1). :class:`AdaptivePlan` chooses the controls by the morph's
+error instead (:mod:`torchmorph.selection.adaptive`).
 
 Definitions used throughout (the paper's Section 2.2): ``B(c; r)`` is the open ball
 ``|x - c| < r`` and ``B(c; r_i, r_e)`` the shell ``r_i <= |x - c| < r_e``, so that a
@@ -16,8 +18,8 @@ apart.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -25,6 +27,13 @@ import torch
 from torch import Tensor
 
 from torchmorph._checks import as_index, check_choice, check_positive
+from torchmorph.selection.adaptive import (
+    DEFAULT_SAMPLE_BYTES,
+    DEFAULT_SCORE_SAMPLES,
+    GreedySelection,
+    _checked_selection,
+)
+from torchmorph.selection.greedy import check_budget
 from torchmorph.selection.sidw import (
     DEFAULT_SEED,
     STRATEGIES,
@@ -37,6 +46,7 @@ from torchmorph.selection.sidw import (
 __all__ = [
     "DEFAULT_SEED",
     "STRATEGIES",
+    "AdaptivePlan",
     "Region",
     "RegionOverlapError",
     "SelectionPlan",
@@ -373,3 +383,137 @@ def _id_array(ids: Any) -> np.ndarray:
     if isinstance(ids, Tensor):
         ids = ids.detach().cpu().numpy()
     return np.asarray(ids, dtype=np.int64).reshape(-1)
+
+
+@dataclass
+class AdaptivePlan:
+    """Error-driven control points of a mesh, for :class:`~torchmorph.morph.MeshMorph`.
+
+    The candidates are the mesh's boundary nodes and the error is measured at its
+    interior nodes against full IDW (every boundary node a control), for a family of
+    boundary displacements: the relative nodal error of the morph, the measure of the
+    paper's tables (weighted by ``weights`` when given). Pass it where a
+    :class:`~torchmorph.selection.SelectionPlan` goes: ``MeshMorph(mesh, plan)``.
+
+    Parameters
+    ----------
+    tolerance : float
+        Relative error to reach, > 0 (the worst over the family).
+    displacements : Tensor or callable
+        The family: a boundary displacement (N_b, D) or several (F, N_b, D), rows
+        ordered as ``mesh.boundary_nodes``; or a callable mapping the boundary points
+        (N_b, D) to one of those (e.g. the POD training set of a parametrised family).
+    max_controls : int, optional
+        At most this many controls (>= 1), the ``start`` set included.
+    start : SelectionPlan, optional
+        A coarse SIDW/ESIDW plan whose selection is kept and grown (e.g. the
+        enrichment sets alone, or a large radius). Default: start from no control.
+    weights : Tensor, shape (N,), optional
+        Node weights of the error (quantity of interest), >= 0, not all zero on the
+        interior nodes; default 1 everywhere (the nodal error).
+    power : float, default 4
+        The IDW exponent; use the morph's.
+    num_samples, sample_bytes, score_samples, min_batch, spacing
+        As :func:`select_adaptive`.
+
+    Attributes
+    ----------
+    result_ : GreedySelection or None
+        The last selection's record (indices into the boundary nodes, error, history).
+    sampled_targets_ : int
+        The number of interior nodes its error was measured at.
+
+    Notes
+    -----
+    The selection is a set of boundary nodes like SIDW's, so the morph, its POD
+    reduction and its state are the same as for any plan. The error is estimated on a
+    sample of the interior nodes when they are many (see :class:`IDWErrorOracle`);
+    check the final morph with ``torchmorph.mesh.norms.relative_nodal_error``.
+    """
+
+    tolerance: float
+    displacements: Tensor | Callable[[Tensor], Tensor]
+    max_controls: int | None = None
+    start: Any = None
+    weights: Tensor | None = None
+    power: float = 4.0
+    num_samples: int | None = None
+    sample_bytes: int = DEFAULT_SAMPLE_BYTES
+    score_samples: int | None = DEFAULT_SCORE_SAMPLES
+    min_batch: int = 8
+    spacing: float = 0.5
+    result_: GreedySelection | None = field(default=None, init=False, repr=False)
+    sampled_targets_: int = field(default=0, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.tolerance = check_positive(self.tolerance, "tolerance")
+        if self.max_controls is not None:
+            self.max_controls = check_budget(self.max_controls)
+        if not (isinstance(self.displacements, Tensor) or callable(self.displacements)):
+            raise TypeError(
+                "displacements must be a Tensor (N_b, D) / (F, N_b, D) or a callable of "
+                f"the boundary points, got {type(self.displacements).__name__}"
+            )
+        if self.start is not None and not callable(getattr(self.start, "select", None)):
+            raise TypeError(
+                f"start must be a SelectionPlan (or None), got {type(self.start).__name__}"
+            )
+
+    def select(self, mesh: Any, *, generator: torch.Generator | None = None) -> Tensor:
+        """The control points: sorted unique global node ids, on the mesh's device.
+
+        Parameters
+        ----------
+        mesh : Mesh
+            Needs ``points``, ``boundary_nodes`` and ``interior_nodes``.
+        generator : torch.Generator, optional
+            Randomness of the ``start`` plan (the target sample is seeded with
+            ``DEFAULT_SEED``: the same mesh and family give the same selection).
+        """
+        boundary, interior = mesh.boundary_nodes, mesh.interior_nodes
+        if interior.numel() == 0:
+            raise ValueError("mesh has no interior node: there is no error to drive a selection")
+        points = mesh.points.detach()
+        boundary_points = points[boundary]
+        family = self.displacements
+        if not isinstance(family, Tensor):
+            family = family(boundary_points)
+            if not isinstance(family, Tensor):
+                raise TypeError(
+                    f"displacements(boundary points) must return a Tensor, got "
+                    f"{type(family).__name__}"
+                )
+        weights = candidate_weights = None
+        if self.weights is not None:
+            node_weights = torch.as_tensor(self.weights)
+            if node_weights.shape != (mesh.num_nodes,):
+                raise ValueError(
+                    f"weights must have shape ({mesh.num_nodes},) (one per node), got "
+                    f"{tuple(node_weights.shape)}"
+                )
+            node_weights = node_weights.to(points.device)
+            weights, candidate_weights = node_weights[interior], node_weights[boundary]
+        initial = None
+        generator = _check_generator(generator)
+        if self.start is not None:
+            chosen = torch.as_tensor(self.start.select(mesh, generator=generator)).to(boundary)
+            initial = torch.searchsorted(boundary, chosen.unique()).cpu()
+        result, measured = _checked_selection(
+            boundary_points,
+            points[interior],
+            family,
+            tolerance=self.tolerance,
+            max_controls=self.max_controls,
+            initial=initial,
+            weights=weights,
+            candidate_weights=candidate_weights,
+            power=self.power,
+            num_samples=self.num_samples,
+            sample_bytes=self.sample_bytes,
+            score_samples=self.score_samples,
+            generator=torch.Generator().manual_seed(DEFAULT_SEED),
+            min_batch=self.min_batch,
+            spacing=self.spacing,
+        )
+        self.result_, self.sampled_targets_ = result, measured
+        return torch.sort(boundary[result.indices.to(boundary.device)]).values
