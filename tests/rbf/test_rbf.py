@@ -230,3 +230,33 @@ def test_in_place_blocks_equal_the_masked_kernels(kernel):
     torch.testing.assert_close(fast, expected, rtol=1e-13, atol=1e-14)
     slow = kernel_matrix(points.clone().requires_grad_(), centres, kernel, 1.7)
     torch.testing.assert_close(slow.detach(), fast, rtol=1e-13, atol=1e-14)
+
+
+def test_the_projection_equals_lapack_ormqr():
+    from torchmorph.rbf.system import project_symmetric
+
+    generator = torch.Generator().manual_seed(0)
+    poly = torch.randn(50, 10, dtype=F64, generator=generator)
+    matrix = torch.randn(50, 50, dtype=F64, generator=generator)
+    matrix = matrix + matrix.T
+    qr, tau = torch.geqrf(poly)
+    left = torch.ormqr(qr, tau, matrix, left=True, transpose=True)
+    expected = torch.ormqr(qr, tau, left, left=False, transpose=False)
+    project_symmetric(matrix, qr, tau)
+    torch.testing.assert_close(matrix, expected, rtol=0, atol=1e-12)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("mode", ["dense", "matrix_free"])
+def test_cuda_matches_cpu(mode):
+    controls, targets = torch.from_numpy(cloud(80)), torch.from_numpy(cloud(300, seed=1))
+    values = torch.from_numpy(np.random.default_rng(3).normal(size=(2, 80, 3)))
+    morph = RBF(controls, targets, mode=mode)
+    expected = morph(values)
+    on_gpu = morph.to("cuda")
+    torch.testing.assert_close(on_gpu(values.cuda()).cpu(), expected, rtol=0, atol=1e-11)
+    built = RBF(controls.cuda(), targets.cuda(), mode=mode)
+    torch.testing.assert_close(built(values.cuda()).cpu(), expected, rtol=0, atol=1e-11)
+    moved = controls.cuda().requires_grad_()
+    built(values.cuda(), controls=moved).sum().backward()
+    assert moved.grad is not None and torch.isfinite(moved.grad).all()

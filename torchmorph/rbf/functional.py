@@ -24,10 +24,12 @@ from torchmorph._checks import (
     check_same_device_dtype,
     check_vectors,
 )
+from torchmorph.rbf import _numba
 from torchmorph.rbf.kernels import (
     KERNELS,
     SCALE_INVARIANT,
     WENDLAND,
+    fused,
     kernel_matrix,
     monomial_powers,
     polynomial_matrix,
@@ -152,6 +154,15 @@ def evaluate(
     -------
     Tensor, shape (N_t, S)
     """
+    plain = not (
+        torch.is_grad_enabled()
+        and any(t.requires_grad for t in (targets, controls, weights, poly_coefficients))
+    )
+    if plain and fused(kernel, controls) and targets.shape[0]:
+        value = _numba.tps_apply(targets, controls, scale, weights)
+        if powers:
+            value += polynomial_matrix(targets, powers, shift, poly_scale) @ poly_coefficients
+        return value
     rows = block_rows(controls.shape[0], block_bytes, targets.device)
     parts = []
     for start in range(0, targets.shape[0], rows):

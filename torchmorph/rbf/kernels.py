@@ -12,18 +12,20 @@ the origin through a mask, so that gradients stay finite where a target meets a 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from itertools import combinations_with_replacement
 
 import torch
 from torch import Tensor
 
+from torchmorph.rbf import _numba
+
 __all__ = [
     "KERNELS",
     "MIN_DEGREE",
     "SCALE_INVARIANT",
     "WENDLAND",
+    "fused",
     "kernel_matrix",
     "monomial_powers",
     "polynomial_matrix",
@@ -190,6 +192,18 @@ def kernel_matrix(
     return torch.where(positive, values, torch.full_like(values, at_zero))
 
 
+def fused(kernel: str, points: Tensor) -> bool:
+    """Whether the fused numba kernels of :mod:`torchmorph.rbf._numba` compute this
+    kernel's blocks: the thin-plate spline, float64, on the CPU, numba installed (the
+    other kernels and cases run the torch blocks)."""
+    return (
+        kernel == "thin_plate_spline"
+        and points.device.type == "cpu"
+        and points.dtype == torch.float64
+        and _numba.available()
+    )
+
+
 def _kernel_matrix_in_place(
     points: Tensor, centres: Tensor, kernel: str, scale: float, out: Tensor | None
 ) -> Tensor:
@@ -199,6 +213,8 @@ def _kernel_matrix_in_place(
         out = torch.empty(rows_total, columns, dtype=points.dtype, device=points.device)
     if not rows_total or not columns:
         return out
+    if fused(kernel, points):
+        return _numba.tps_rows(points, centres, scale, out)
     rows = max(1, IN_PLACE_BLOCK // columns)
     if points.device.type == "cuda":
         rows = max(rows, (64 << 20) // (points.element_size() * columns))
@@ -261,8 +277,3 @@ def polynomial_matrix(
     if not columns:
         return local.new_zeros(points.shape[0], 0)
     return torch.stack(columns, dim=1)
-
-
-def binomial_count(dim: int, degree: int) -> int:
-    """How many monomials :func:`monomial_powers` gives (0 for degree -1)."""
-    return math.comb(degree + dim, dim) if degree >= 0 else 0
