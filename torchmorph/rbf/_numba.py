@@ -24,7 +24,7 @@ from torch import Tensor
 try:  # numba is optional: without it the torch blocks run
     from numba import njit
 except ImportError:  # pragma: no cover - exercised where numba is missing
-    njit = None
+    njit = None  # type: ignore[assignment]
 
 __all__ = ["available", "tps_apply", "tps_rows"]
 
@@ -116,19 +116,21 @@ if njit is not None:
     _apply = _compile(_apply)
 
 
-def _axes(points: Tensor) -> list[np.ndarray]:
+def _axes(points: Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The coordinate columns, contiguous (zeros as the third in 2-D)."""
     array = points.detach().numpy()
     axes = [np.ascontiguousarray(array[:, axis]) for axis in range(array.shape[1])]
     while len(axes) < 3:
         axes.append(np.zeros(array.shape[0]))
-    return axes
+    return axes[0], axes[1], axes[2]
 
 
 def tps_rows(points: Tensor, centres: Tensor, scale: float, out: Tensor) -> Tensor:
     """Write φ(scale · |points_i − centres_j|) into ``out`` (N, M), a float64 CPU tensor
     (a view of a wider matrix allowed)."""
-    _rows(*_axes(points), *_axes(centres), scale * scale, out.numpy())
+    tx, ty, tz = _axes(points)
+    cx, cy, cz = _axes(centres)
+    _rows(tx, ty, tz, cx, cy, cz, scale * scale, out.numpy())
     return out
 
 
@@ -136,5 +138,7 @@ def tps_apply(points: Tensor, centres: Tensor, scale: float, weights: Tensor) ->
     """``Σ_j φ(scale · |points_i − centres_j|) weights_j``, shape (N, S), float64 CPU."""
     out = torch.empty(points.shape[0], weights.shape[1], dtype=torch.float64)
     weights_t = np.ascontiguousarray(weights.detach().numpy().T)
-    _apply(*_axes(points), *_axes(centres), scale * scale, weights_t, out.numpy())
+    tx, ty, tz = _axes(points)
+    cx, cy, cz = _axes(centres)
+    _apply(tx, ty, tz, cx, cy, cz, scale * scale, weights_t, out.numpy())
     return out
