@@ -161,3 +161,18 @@ def test_bad_displacements_are_named():
 def test_repr_names_the_options():
     text = repr(RBF(cloud(10), cloud(4, seed=1), kernel="gaussian", epsilon=3.0, mode="dense"))
     assert "kernel='gaussian'" in text and "epsilon=3" in text and "mode='dense'" in text
+
+
+@pytest.mark.parametrize("mode", ["dense", "matrix_free"])
+def test_no_targets_and_the_fewest_controls(mode):
+    controls = cloud(4)  # as many as the affine tail's monomials: the affine map itself
+    empty = RBF(controls, torch.zeros(0, 3, dtype=F64), mode=mode)
+    assert empty(values(4)).shape == (0, 3)
+    assert empty(values(4)[None].repeat(2, 1, 1)).shape == (2, 0, 3)
+    at_controls = RBF(controls, controls, mode=mode)(values(4))
+    torch.testing.assert_close(at_controls, values(4), rtol=0, atol=1e-13)
+
+
+def test_four_dimensional_points_are_refused():
+    with pytest.raises(ValueError, match=r"^controls must have shape \(N, 3\), got \(5, 4\)"):
+        RBF(torch.zeros(5, 4, dtype=F64), torch.zeros(2, 4, dtype=F64))

@@ -3,8 +3,10 @@ kernels and Wendland's compactly supported ones, with a polynomial tail.
 
 The kernels and the matrices built from them (:mod:`torchmorph.rbf.kernels`), the
 factorised interpolation system (:mod:`torchmorph.rbf.system`), the functional core
-(:mod:`torchmorph.rbf.functional`: :func:`rbf_interpolate`) and the :class:`RBF` module
-(:mod:`torchmorph.rbf.module`) over them.
+(:mod:`torchmorph.rbf.functional`: :func:`rbf_interpolate`), the :class:`RBF` module
+(:mod:`torchmorph.rbf.module`) over them, and greedy reduction
+(:mod:`torchmorph.rbf.greedy`: :class:`RBFErrorOracle`, the oracle of
+:func:`torchmorph.selection.greedy.greedy_selection` for RBF interpolation).
 """
 
 from torchmorph.rbf.functional import (
@@ -12,6 +14,7 @@ from torchmorph.rbf.functional import (
     DEFAULT_CUDA_BLOCK_BYTES,
     rbf_interpolate,
 )
+from torchmorph.rbf.greedy import RBFErrorOracle
 from torchmorph.rbf.kernels import KERNELS, MIN_DEGREE, SCALE_INVARIANT, WENDLAND
 from torchmorph.rbf.module import RBF
 
@@ -23,5 +26,6 @@ __all__ = [
     "RBF",
     "SCALE_INVARIANT",
     "WENDLAND",
+    "RBFErrorOracle",
     "rbf_interpolate",
 ]

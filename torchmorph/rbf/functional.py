@@ -42,6 +42,7 @@ __all__ = [
     "DEFAULT_CUDA_BLOCK_BYTES",
     "check_distinct",
     "check_options",
+    "dim_of",
     "evaluate",
     "rbf_interpolate",
 ]
@@ -119,6 +120,15 @@ def check_distinct(controls: Tensor) -> None:
     )
 
 
+def dim_of(points) -> int:
+    """The dimension a point array claims (its last axis) when it is 2 or 3, else 3, so
+    that :func:`~torchmorph._checks.as_points` reports a bad shape against (N, 3)."""
+    shape = getattr(points, "shape", None)
+    if shape is not None and len(shape) == 2 and shape[1] in (2, 3):
+        return int(shape[1])
+    return 3
+
+
 def block_rows(num_controls: int, block_bytes: int | None, device: torch.device) -> int:
     """Targets per block so that one (rows × controls) float64 temporary fits the budget."""
     if block_bytes is None:
@@ -184,11 +194,12 @@ def columns_of(displacements: Tensor) -> Tensor:
     return displacements.permute(1, 0, 2).reshape(count, batch * dim)
 
 
-def from_columns(values: Tensor, batched: bool, dim: int) -> Tensor:
-    """The inverse of :func:`columns_of` for N_t rows."""
-    if not batched:
+def from_columns(values: Tensor, displacements: Tensor) -> Tensor:
+    """The inverse of :func:`columns_of` for N_t rows, shaped as ``displacements``."""
+    if displacements.ndim == 2:
         return values
-    return values.reshape(values.shape[0], -1, dim).permute(1, 0, 2)
+    batch, _, dim = displacements.shape
+    return values.reshape(values.shape[0], batch, dim).permute(1, 0, 2)
 
 
 def rbf_interpolate(
@@ -222,13 +233,11 @@ def rbf_interpolate(
     -------
     Tensor, shape (N_t, D) or (B, N_t, D), the dtype of the displacements.
     """
-    controls = as_points(controls, "controls", dim=controls.shape[-1])
+    controls = as_points(controls, "controls", dim=dim_of(controls))
     dim = controls.shape[1]
     targets = as_points(targets, "targets", dim=dim, allow_empty=True)
     check_same_device_dtype(controls, "controls", targets, "targets")
-    batched = check_vectors(
-        displacements, "displacements", controls.shape[0], dim=dim, what="control points"
-    )
+    check_vectors(displacements, "displacements", controls.shape[0], dim=dim, what="control points")
     check_same_device_dtype(controls, "controls", displacements, "displacements")
     kernel, _, degree, _, scale = check_options(
         kernel, epsilon, degree, support_radius, controls.shape[0], dim
@@ -254,4 +263,4 @@ def rbf_interpolate(
         poly_scale=poly_scale,
         block_bytes=block_bytes,
     )
-    return from_columns(result, batched, dim).to(displacements.dtype)
+    return from_columns(result, displacements).to(displacements.dtype)

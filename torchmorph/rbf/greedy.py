@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from torchmorph._checks import as_index, as_points, check_float_dtype
-from torchmorph.rbf.functional import check_distinct, check_options
+from torchmorph.rbf.functional import check_distinct, check_options, dim_of
 from torchmorph.rbf.kernels import (
     MIN_DEGREE,
     kernel_matrix,
@@ -84,7 +84,7 @@ class RBFErrorOracle:
         degree: int = 1,
         support_radius: float | None = None,
     ) -> None:
-        points = as_points(points, "points", dim=points.shape[-1] if points.ndim == 2 else 3)
+        points = as_points(points, "points", dim=dim_of(points))
         count, dim = points.shape
         if not isinstance(displacements, Tensor):
             raise TypeError(

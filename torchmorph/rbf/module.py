@@ -23,6 +23,7 @@ from torchmorph.rbf.functional import (
     check_distinct,
     check_options,
     columns_of,
+    dim_of,
     evaluate,
     from_columns,
     rbf_interpolate,
@@ -129,6 +130,11 @@ class RBF(nn.Module):
     The factorisation and the solves are in float64 whatever the points' dtype (float32
     RBF systems are too ill-conditioned); a float32 module evaluates and returns float32.
     The Wendland kernels' compact support is not exploited: their matrices are dense.
+    The thin-plate spline in float64 on the CPU runs fused numba kernels
+    (:mod:`torchmorph.rbf._numba`, one thread whatever ``torch.get_num_threads()``);
+    the other kernels, float32, CUDA and calls that need gradients run torch blocks.
+    The factorisation is LAPACK's (Cholesky, or LU), O(N_c³): about 1.2 s for 5,000
+    controls on one thread, most of a fit.
 
     Gradients flow to the displacements. Pass moved ``controls``/``targets`` to
     :meth:`forward` (or build the module from points that require grad) to differentiate
@@ -162,9 +168,7 @@ class RBF(nn.Module):
         dense_bytes: int | None = None,
     ) -> None:
         super().__init__()
-        if not isinstance(controls, Tensor) and not hasattr(controls, "__len__"):
-            raise TypeError(f"controls must be a tensor, got {type(controls).__name__}")
-        controls = as_points(controls, "controls", dim=_dim_of(controls))
+        controls = as_points(controls, "controls", dim=dim_of(controls))
         targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True)
         check_same_device_dtype(controls, "controls", targets, "targets")
         check_choice(mode, "mode", ("auto", "dense", "matrix_free"))
@@ -318,7 +322,7 @@ class RBF(nn.Module):
         Tensor, shape (N_t, D) or (B, N_t, D)
         """
         dim = self.controls.shape[1]
-        batched = check_vectors(
+        check_vectors(
             displacements, "displacements", self.num_controls, dim=dim, what="control points"
         )
         check_same_device_dtype(
@@ -358,7 +362,7 @@ class RBF(nn.Module):
                 poly_scale=self.poly_scale,
                 block_bytes=self.block_bytes,
             ).to(displacements.dtype)
-        return from_columns(result, batched, dim)
+        return from_columns(result, displacements)
 
     @staticmethod
     def _check_moved(moved: Tensor, reference: Tensor, name: str) -> Tensor:
@@ -382,12 +386,3 @@ class RBF(nn.Module):
             f"kernel={self.kernel!r}, {scale}, degree={self.degree}, mode={self.mode!r}, "
             f"solver={self.solver!r}"
         )
-
-
-def _dim_of(points) -> int:
-    """The dimension a point array claims (its last axis), 3 when it has none, so that
-    :func:`as_points` reports a bad shape against a sensible one."""
-    shape = getattr(points, "shape", None)
-    if shape is not None and len(shape) == 2 and shape[1] in (2, 3):
-        return int(shape[1])
-    return 3
