@@ -348,3 +348,4 @@ def test_a_sampled_selection_is_checked_on_every_target():
     error = nodal_error(mesh, displacement, morph.control_nodes.numpy())
     assert error == pytest.approx(plan.result_.error, rel=1e-9)
     assert error <= tolerance and plan.result_.converged
+    assert plan.result_.rounds > 1 and plan.result_.history[0][0] == 0  # every run counted

@@ -484,13 +484,16 @@ def _checked_selection(
         scale = torch.cat([torch.ones(len(worst)), torch.full((len(rest),), stands_for)])
         options.update(sample=torch.cat([worst, rest]), sample_scale=scale)
         oracle = IDWErrorOracle(candidates, targets, displacements, **options)
+        earlier = result
         result = greedy_selection(
             oracle,
             tolerance=tolerance,
             max_controls=max_controls,
-            initial=result.indices,
+            initial=earlier.indices,
             **loop,
         )
+        result.rounds += earlier.rounds
+        result.history[:0] = earlier.history
     return result, num_targets
 
 
