@@ -53,7 +53,7 @@ def relative_error(result, exact):
 
 @pytest.mark.parametrize("tolerance", [1e-2, 1e-4, 1e-6])
 @pytest.mark.parametrize("kind", ["uniform", "surface", "graded"])
-def test_tolerance_holds_against_exact_float64(kind, tolerance):
+def test_certified_tolerance_holds_against_exact_float64(kind, tolerance):
     generator = torch.Generator().manual_seed(3)
     controls, targets = cloud(kind, generator)
     displacements = field(controls)
@@ -65,15 +65,32 @@ def test_tolerance_holds_against_exact_float64(kind, tolerance):
     assert relative_error(result, exact) <= max(module.last_bound_) + 1e-13
 
 
+@pytest.mark.parametrize("tolerance", [1e-2, 1e-4, 1e-6])
+@pytest.mark.parametrize("kind", ["uniform", "surface", "graded"])
+def test_sampled_tolerance_holds_against_exact_float64(kind, tolerance):
+    """The sampled check at 1,024 of 1,500 targets; the error over all of them holds too,
+    also on a second call (which starts from the first call's threshold)."""
+    generator = torch.Generator().manual_seed(9)
+    controls, targets = cloud(kind, generator)
+    displacements = field(controls)
+    exact = brute_force(controls, targets, displacements, 4.0)
+    module = TreeIDW(controls, targets, tolerance=tolerance, error_control="sampled")
+    for _ in range(2):
+        result = module(displacements)
+        assert relative_error(result, exact) <= tolerance
+        assert max(module.last_sampled_error_) <= tolerance / 2
+
+
+@pytest.mark.parametrize("error_control", ["certified", "sampled"])
 @pytest.mark.parametrize("power", [2.0, 3.0, 4.0, 7.5])
-def test_powers(power):
+def test_powers(power, error_control):
     generator = torch.Generator().manual_seed(4)
     controls, targets = cloud("graded", generator)
     displacements = field(controls)
     exact = brute_force(controls, targets, displacements, power)
     result = idw_tree_apply(
         controls=controls, targets=targets, displacements=displacements, power=power,
-        tolerance=1e-3,
+        tolerance=1e-3, error_control=error_control,
     )  # fmt: skip
     assert relative_error(result, exact) <= 1e-3
 
@@ -86,10 +103,11 @@ def test_far_field_is_used_and_error_is_below_bound():
     targets = sphere(2000, generator) * 0.5
     displacements = field(controls)
     exact = brute_force(controls, targets, displacements, 4.0)
-    module = TreeIDW(controls, targets, tolerance=1e-1)
+    module = TreeIDW(controls, targets, tolerance=1e-1, error_control="sampled")
     result = module(displacements)
     error = relative_error(result, exact)
-    assert 0 < error <= max(module.last_bound_) <= 1e-1
+    assert 1e-12 < error <= 1e-1
+    assert error <= max(module.last_bound_)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -137,8 +155,9 @@ def test_gradient_is_the_transpose():
     controls = sphere(3000, generator)
     targets = torch.cat([sphere(1000, generator) * 0.5, controls[:5]])
     displacements = field(controls).requires_grad_(True)
-    module = TreeIDW(controls, targets, tolerance=1e-1)
+    module = TreeIDW(controls, targets, tolerance=1e-1, error_control="sampled")
     result = module(displacements)
+    assert max(module.last_bound_) > 0  # the far field is in use
     probe = torch.randn(result.shape, generator=generator, dtype=torch.float64)
     (gradient,) = torch.autograd.grad(result, displacements, probe)
     lhs = float((result.detach() * probe).sum())
@@ -157,6 +176,7 @@ def test_gradient_is_the_transpose():
         ({"tolerance": -1e-3}, "tolerance must lie in"),
         ({"power": 0.0}, "power must be finite and > 0"),
         ({"leaf_size": 0}, "leaf_size must be a positive integer"),
+        ({"error_control": "exact"}, "error_control must be 'certified' or 'sampled'"),
     ],
 )
 def test_bad_arguments_are_named(arguments, message):

@@ -64,8 +64,10 @@ def remainder(theta, power):
 
 
 @njit(**_OPTIONS)
-def node_geometry(points, starts, stops, centroids, radii, second):
-    """Per node: the centroid, the radius about it and Σ s sᵀ over its controls."""
+def node_geometry(points, starts, stops, centroids, radii, second, effective):
+    """Per node: the centroid, the radius ρ about it, Σ s sᵀ and the effective count
+    Σ|s|³/ρ³ <= n over its controls (every term of the remainder is of degree >= 3 in
+    |s|, so Σ_k T2(|s_k|/R) <= (Σ|s_k|³/ρ³) T2(ρ/R))."""
     dim = points.shape[1]
     for node in prange(starts.shape[0]):
         start, stop = starts[node], stops[node]
@@ -80,7 +82,12 @@ def node_geometry(points, starts, stops, centroids, radii, second):
                 for b in range(dim):
                     second[node, a, b] += sa * (points[k, b] - centroids[node, b])
             largest = max(largest, squared)
+            effective[node] += squared * math.sqrt(squared)
         radii[node] = math.sqrt(largest)
+        if largest > 0:
+            effective[node] /= largest * radii[node]
+        else:
+            effective[node] = stop - start
 
 
 @njit(**_OPTIONS)
@@ -150,10 +157,34 @@ def _weights(chunk, width, ref2, half_power, mode):
 
 
 @njit(**_OPTIONS)
+def _power(ratio, power, mode):
+    """ratio^p, as a product for p = 4 and 2."""
+    if mode == 4:
+        square = ratio * ratio
+        return square * square
+    if mode == 2:
+        return ratio * ratio
+    return ratio**power
+
+
+@njit(**_OPTIONS)
+def _quadratic(offset, matrix, rows, out):
+    """out[t] = offset[:, t]ᵀ matrix offset[:, t] for a symmetric matrix (rows vectorised)."""
+    dim = offset.shape[0]
+    for t in range(rows):
+        out[t] = 0.0
+    for a in range(dim):
+        for b in range(a, dim):
+            entry = matrix[a, b] if a == b else 2.0 * matrix[a, b]
+            for t in range(rows):
+                out[t] += entry * offset[a, t] * offset[b, t]
+
+
+@njit(**_OPTIONS)
 def _visit_block(
     first_target, last_target, targets, reference, controls_t, values_t, scaled, children,
-    starts, stops, centroids, radii, second_geometry, zeroth, first, second, power, mode,
-    budget, radius2, transpose, sums, numerator, bounds, coincident, coincident_sum,
+    starts, stops, centroids, radii, second_geometry, effective, zeroth, first, second, power, mode,
+    eta, n_controls, radius2, transpose, sums, numerator, bounds, coincident, coincident_sum,
     node_zeroth, node_first, node_second, out, max_leaf,
 ):  # fmt: skip
     """One block of targets against the tree (see :func:`traverse`)."""
@@ -165,6 +196,11 @@ def _visit_block(
     distance = np.empty(rows)
     unit = np.empty(dim)
     buffer = np.empty(max_leaf)
+    offset = np.empty((dim, rows))
+    inverse2 = np.empty(rows)
+    weight = np.empty(rows)
+    quad = np.empty(rows)
+    linear = np.empty(rows)
     stack = np.empty(STACK, np.int64)
     stack[0] = 0
     depth = 1
@@ -174,6 +210,7 @@ def _visit_block(
         rho = radii[node]
         nearest = np.inf
         smallest_lower = np.inf
+        farthest = 0.0
         for t in range(rows):
             squared = 0.0
             for a in range(dim):
@@ -182,50 +219,75 @@ def _visit_block(
             distance[t] = math.sqrt(squared)
             nearest = min(nearest, distance[t])
             smallest_lower = min(smallest_lower, lower[t])
+            farthest = max(farthest, distance[t])
         accepted = False
         worst = 0.0
         count = stops[node] - starts[node]
         if rho < nearest:
-            worst = (reference / nearest) ** power * remainder(rho / nearest, power)
-            accepted = worst <= budget * smallest_lower
+            worst = _power(reference / nearest, power, mode) * remainder(rho / nearest, power)
+            share = max(
+                smallest_lower / n_controls, _power(reference / (farthest + rho), power, mode)
+            )
+            accepted = effective[node] * worst <= 0.5 * eta * count * share
         if accepted:
             coefficient = 0.5 * power * (power + 2.0)
-            for t in range(rows):
-                target = first_target + t
-                big_r = distance[t]
-                inverse = 1.0 / big_r
-                weight = (reference * inverse) ** power
-                lower[t] += count * (reference / (big_r + rho)) ** power
+            for t in range(rows):  # r = x - c, 1/R², the centroid's weight (ref/R)^p
                 for a in range(dim):
-                    unit[a] = (targets[target, a] - centroids[node, a]) * inverse
-                if not transpose:
-                    bounds[target] += count * worst
-                    quad = 0.0
+                    offset[a, t] = targets[first_target + t, a] - centroids[node, a]
+                inverse2[t] = 1.0 / (distance[t] * distance[t])
+            for t in range(rows):
+                lower[t] += count * _power(reference / (distance[t] + rho), power, mode)
+            if mode == 4:
+                for t in range(rows):
+                    ratio = ref2 * inverse2[t]
+                    weight[t] = ratio * ratio
+            elif mode == 2:
+                for t in range(rows):
+                    weight[t] = ref2 * inverse2[t]
+            else:
+                for t in range(rows):
+                    weight[t] = (ref2 * inverse2[t]) ** half_power
+            if not transpose:  # P summed over the node: n, Σd, Σd s, Σ s sᵀ, Σ d s sᵀ
+                for t in range(rows):
+                    bounds[first_target + t] += effective[node] * worst
+                trace = 0.0
+                for a in range(dim):
+                    trace += second_geometry[node, a, a]
+                _quadratic(offset, second_geometry[node], rows, quad)
+                for t in range(rows):
+                    sums[first_target + t] += weight[t] * (
+                        count
+                        + (coefficient * quad[t] * inverse2[t] - half_power * trace) * inverse2[t]
+                    )
+                for column in range(columns):
                     trace = 0.0
                     for a in range(dim):
-                        trace += second_geometry[node, a, a]
-                        for b in range(dim):
-                            quad += unit[a] * unit[b] * second_geometry[node, a, b]
-                    sums[target] += weight * (
-                        count + (coefficient * quad - half_power * trace) * inverse * inverse
-                    )
-                    for column in range(columns):
-                        linear = 0.0
-                        quad = 0.0
-                        trace = 0.0
-                        for a in range(dim):
-                            linear += first[node, column, a] * unit[a]
-                            trace += second[node, column, a, a]
-                            for b in range(dim):
-                                quad += unit[a] * unit[b] * second[node, column, a, b]
-                        numerator[target, column] += weight * (
-                            zeroth[node, column]
-                            + power * linear * inverse
-                            + (coefficient * quad - half_power * trace) * inverse * inverse
+                        trace += second[node, column, a, a]
+                    _quadratic(offset, second[node, column], rows, quad)
+                    base = zeroth[node, column]
+                    for t in range(rows):
+                        linear[t] = 0.0
+                    for a in range(dim):
+                        moment = first[node, column, a]
+                        for t in range(rows):
+                            linear[t] += moment * offset[a, t]
+                    for t in range(rows):
+                        numerator[first_target + t, column] += weight[t] * (
+                            base
+                            + power * linear[t] * inverse2[t]
+                            + (coefficient * quad[t] * inverse2[t] - half_power * trace)
+                            * inverse2[t]
                         )
-                elif coincident[target] == 0:
+            else:
+                for t in range(rows):
+                    target = first_target + t
+                    if coincident[target] != 0:
+                        continue
+                    inverse = math.sqrt(inverse2[t])
+                    for a in range(dim):
+                        unit[a] = offset[a, t] * inverse
                     for column in range(columns):
-                        g = scaled[target, column] * weight
+                        g = scaled[target, column] * weight[t]
                         if g == 0.0:
                             continue
                         node_zeroth[node, column] += g
@@ -298,20 +360,22 @@ def _visit_block(
 @njit(parallel=True, **_OPTIONS)
 def traverse(
     targets, block_starts, references, controls_t, values_t, scaled, children, starts, stops,
-    centroids, radii, second_geometry, zeroth, first, second, power, mode, budget, radius2,
-    transpose, groups, sums, numerator, bounds, coincident, coincident_sum, node_zeroth,
+    centroids, radii, second_geometry, effective, zeroth, first, second, power, mode, eta,
+    radius2, transpose, groups, sums, numerator, bounds, coincident, coincident_sum, node_zeroth,
     node_first, node_second, out, max_leaf,
 ):  # fmt: skip
     """Every block of targets against the tree, in parallel over ``groups`` groups of
     blocks (each with its own transposed accumulators ``node_*[group]``, ``out[group]``).
 
-    A node is accepted for a block when its expansion's bound, at the block's nearest
-    target, satisfies ``n δ <= budget · n · L`` with ``L`` the smallest, over the block, of
-    the weights summed so far (lower bounds of every target's S): summed over accepted
-    nodes this keeps ``Σ n δ <= budget · N_c · S`` for every target (``budget`` is the
-    tolerance on the weight sums divided by N_c). Leaves not accepted are summed exactly;
+    A node of ``n`` controls (effective count ``m``, see :func:`node_geometry`) is accepted
+    for a block when its bound ``δ`` at the block's nearest target satisfies
+    ``m δ <= (η/2) n max(L / N_c, (ref / (R_far + ρ))^p)``, with ``L`` the smallest over
+    the block of the weights summed so far (lower bounds of each target's S, near nodes
+    first) and ``R_far`` the block's farthest target: summed over accepted nodes the first
+    term stays below ``(η/2) S``, the second below ``(η/2)`` times the far nodes' share of
+    S, so ``E = Σ m δ <= η S`` for every target. Leaves not accepted are summed exactly;
     a target within ``radius2`` of a control is coincident (counted, its values summed).
-    Forward (``transpose=False``): ``sums``, ``numerator``, ``bounds`` (Σ n δ) and the
+    Forward (``transpose=False``): ``sums``, ``numerator``, ``bounds`` (E) and the
     coincident counts and sums. Transposed: ``out[group] += Aᵀ scaled`` by leaves and by
     per-node coefficients (spread by :func:`push_down`), ``scaled`` holding grad / S'."""
     blocks = block_starts.shape[0] - 1
@@ -320,8 +384,8 @@ def traverse(
             _visit_block(
                 block_starts[block], block_starts[block + 1], targets, references[block],
                 controls_t, values_t, scaled, children, starts, stops, centroids, radii,
-                second_geometry, zeroth, first, second, power, mode, budget, radius2,
-                transpose, sums, numerator, bounds, coincident, coincident_sum,
+                second_geometry, effective, zeroth, first, second, power, mode, eta,
+                stops[0] - starts[0], radius2, transpose, sums, numerator, bounds, coincident, coincident_sum,
                 node_zeroth[group], node_first[group], node_second[group], out[group],
                 max_leaf,
             )  # fmt: skip
