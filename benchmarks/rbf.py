@@ -15,7 +15,10 @@ Printed (markdown), each step timed once (a fit takes seconds) except the later 
   morph, later morphs (the factorisation reused: one solve and one product in dense
   mode, a solve and the kernel sum in blocks matrix-free), and the ratios of scipy's
   fit plus evaluation to ours;
-* the largest difference of the morphed targets from scipy's.
+* the largest difference of the morphed targets from scipy's;
+* greedy reduction of the controls (:class:`~torchmorph.rbf.RBFErrorOracle` in
+  :func:`~torchmorph.selection.greedy.greedy_selection`) to ``--tolerances``: the
+  controls kept, the loop's time, and the error of an RBF refitted on them.
 
 numba's kernels (the thin-plate spline's fused pass) are loaded from its cache by a tiny
 morph before the timings: a one-time cost per process (about 0.3 s), as scipy's are
@@ -43,7 +46,8 @@ import torch  # noqa: E402
 from _timing import median_time, seconds  # noqa: E402
 from scipy.interpolate import RBFInterpolator  # noqa: E402
 
-from torchmorph.rbf import RBF  # noqa: E402
+from torchmorph.rbf import RBF, RBFErrorOracle  # noqa: E402
+from torchmorph.selection.greedy import greedy_selection  # noqa: E402
 
 
 def sphere(count: int) -> np.ndarray:
@@ -82,6 +86,7 @@ def main(argv=None) -> None:
     parser.add_argument("--controls", type=int, default=5000)
     parser.add_argument("--targets", type=int, default=50000)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--tolerances", type=float, nargs="*", default=[1e-2, 1e-3, 1e-4])
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     controls, targets = sphere(args.controls), shell(args.targets)
@@ -125,6 +130,30 @@ def main(argv=None) -> None:
         "\nRatios: scipy's fit + evaluation over ours (fit + first morph), scipy's "
         "evaluation over one later morph."
     )
+    greedy_table(tensors[0], tensors[2], args.tolerances)
+
+
+def greedy_table(points: torch.Tensor, values: torch.Tensor, tolerances) -> None:
+    """Greedy reduction of the controls: the selection loop with the RBF oracle, and the
+    error of a thin-plate RBF refitted on the selected controls (at every candidate)."""
+    print(
+        f"\nGreedy reduction of the {points.shape[0]:,} controls (thin_plate_spline, "
+        "degree=1; relative error max |s - d| / max |d| over the candidates):\n"
+    )
+    print("| tolerance | controls | loop time | scorings | error (oracle) | error (refit) |")
+    print("|---:|---:|---:|---:|---:|---:|")
+    for tolerance in tolerances:
+        start = time.perf_counter()
+        oracle = RBFErrorOracle(points, values)
+        result = greedy_selection(oracle, tolerance=tolerance, initial=oracle.anchors)
+        elapsed = time.perf_counter() - start
+        chosen = result.indices
+        refit = RBF(points[chosen], points)(values[chosen])
+        error = float((refit - values).norm(dim=-1).max() / values.norm(dim=-1).max())
+        print(
+            f"| {tolerance:g} | {chosen.numel():,} | {seconds(elapsed)} | {result.rounds} | "
+            f"{result.error:.2e} | {error:.2e} |"
+        )
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 import torch
+from scipy.linalg.blas import dtpsv
 from torch import Tensor
 
 from torchmorph._checks import as_index, as_points, check_float_dtype
@@ -137,7 +138,7 @@ class RBFErrorOracle:
         norms = family.detach().double().norm(dim=-1).amax(dim=1)  # (F,)
         self._norms = torch.where(norms > 0, norms, torch.ones_like(norms))
         self._order: list[int] = []
-        self._factor = work.new_zeros(0, 0)
+        self._packed = np.zeros(0)  # the rows of L, one after another
         self._columns = work.new_zeros(count, 0)  # φ(candidates, rest in order)
 
     # --------------------------------------------------------------- factor
@@ -151,35 +152,43 @@ class RBFErrorOracle:
         return phi
 
     def _extend(self, candidate: int) -> None:
-        """The bordered update of L for one more control (O(k²))."""
+        """The bordered update of L for one more control: one packed triangular solve
+        (BLAS ``dtpsv`` on the rows of L stored one after another, so that the leading
+        k × k block is the first k(k + 1)/2 entries), O(k²)."""
         size = len(self._order)
-        if size == self._factor.shape[0] or size == self._columns.shape[1]:
+        if size == self._columns.shape[1]:
             capacity = max(16, 2 * size)
-            grown = self._factor.new_zeros(capacity, capacity)
-            grown[:size, :size] = self._factor[:size, :size]
-            self._factor = grown
+            packed = np.zeros(capacity * (capacity + 1) // 2)
+            packed[: self._packed.size] = self._packed
+            self._packed = packed
             columns = self._columns.new_zeros(self._columns.shape[0], capacity)
             columns[:, :size] = self._columns[:, :size]
             self._columns = columns
-        order = torch.tensor(self._order, dtype=torch.int64)
-        diagonal = self._schur(torch.tensor([candidate]), candidate)[0]
+        start = size * (size + 1) // 2
+        diagonal = float(self._schur(torch.tensor([candidate]), candidate)[0])
         if size:
-            border = self._schur(order, candidate)
-            row = torch.linalg.solve_triangular(
-                self._factor[:size, :size], border[:, None], upper=False
-            )[:, 0]
-            diagonal = diagonal - row @ row
-            self._factor[size, :size] = row
-        if float(diagonal) <= 0:
+            border = self._schur(torch.tensor(self._order, dtype=torch.int64), candidate)
+            # L l = c: the packed rows of L are the packed columns of U = Lᵀ (upper)
+            row = dtpsv(size, self._packed, border.cpu().numpy(), lower=0, trans=1)
+            diagonal -= float(row @ row)
+            self._packed[start : start + size] = row
+        if diagonal <= 0:
             raise ValueError(
                 f"selected: adding candidate {candidate} makes the system singular to working "
                 "precision"
             )
-        self._factor[size, size] = torch.sqrt(diagonal)
+        self._packed[start + size] = np.sqrt(diagonal)
         self._columns[:, size] = kernel_matrix(
             self._work, self._work[candidate : candidate + 1], self.kernel, self.scale
         )[:, 0]
         self._order.append(candidate)
+
+    def _lower(self, size: int) -> Tensor:
+        """L for the first ``size`` controls, as a dense (size, size) tensor."""
+        rows, columns = np.tril_indices(size)
+        dense = np.zeros((size, size))
+        dense[rows, columns] = self._packed[: size * (size + 1) // 2]
+        return torch.from_numpy(dense).to(self._work.device)
 
     def _sync(self, selected: Tensor) -> int:
         """Make the factor that of ``selected`` (anchors first): keep the common prefix,
@@ -202,8 +211,7 @@ class RBFErrorOracle:
 
     def factor(self, selected: Tensor) -> Tensor:
         """The Cholesky factor of the Schur complement for ``selected``, shape (k, k)."""
-        size = self._sync(selected)
-        return self._factor[:size, :size].clone()
+        return self._lower(self._sync(selected))
 
     # --------------------------------------------------------------- values
     def interpolate(self, selected: Tensor) -> Tensor:
@@ -223,14 +231,14 @@ class RBFErrorOracle:
             self._anchor_part = values.new_zeros(values.shape)
             if not size:
                 return values.new_zeros(0, values.shape[1])
-            return torch.cholesky_solve(values[order], self._factor[:size, :size])
+            return torch.cholesky_solve(values[order], self._lower(size))
         monomials = self.anchors.numel()
         padded = torch.cat([values[self.anchors], values.new_zeros(monomials, values.shape[1])])
         anchor_solution = torch.linalg.lu_solve(*self._block, padded)
         weights = values.new_zeros(0, values.shape[1])
         if size:
             rhs = values[order] - self._border[order] @ anchor_solution
-            weights = torch.cholesky_solve(rhs, self._factor[:size, :size])
+            weights = torch.cholesky_solve(rhs, self._lower(size))
             anchor_solution = anchor_solution - self._reduced[:, order] @ weights
         self._anchor_part = self._border @ anchor_solution
         return weights
