@@ -59,3 +59,29 @@ def test_a_strided_evaluation_matrix_is_written_in_place():
     assert dense.evaluation is not None and dense.evaluation.shape == (45, 34)
     expected = kernels.kernel_matrix(targets, controls, "thin_plate_spline", 1.0)
     torch.testing.assert_close(dense.evaluation[:, :30], expected, rtol=0, atol=0)
+
+
+def test_the_fused_pass_is_differentiable_in_the_weights():
+    from torch.autograd import gradcheck
+
+    targets, controls = points(12), points(9, seed=1)
+    weights = points(9, seed=2).requires_grad_()
+    poly = torch.zeros(0, 3, dtype=torch.float64)
+
+    def fused(weights):
+        return evaluate(
+            targets,
+            controls,
+            weights,
+            poly,
+            kernel="thin_plate_spline",
+            scale=0.8,
+            powers=[],
+            shift=None,
+            poly_scale=None,
+        )
+
+    assert gradcheck(fused, (weights,))
+    morph = RBF(controls, targets, mode="matrix_free")
+    values = points(9, seed=3).requires_grad_()
+    assert gradcheck(morph, (values,))

@@ -164,12 +164,9 @@ def evaluate(
     -------
     Tensor, shape (N_t, S)
     """
-    plain = not (
-        torch.is_grad_enabled()
-        and any(t.requires_grad for t in (targets, controls, weights, poly_coefficients))
-    )
-    if plain and fused(kernel, controls) and targets.shape[0]:
-        value = _numba.tps_apply(targets, controls, scale, weights)
+    geometry_grad = torch.is_grad_enabled() and (targets.requires_grad or controls.requires_grad)
+    if not geometry_grad and fused(kernel, controls) and targets.shape[0]:
+        value = _FusedApply.apply(targets, controls, scale, weights)
         if powers:
             value += polynomial_matrix(targets, powers, shift, poly_scale) @ poly_coefficients
         return value
@@ -184,6 +181,26 @@ def evaluate(
     if not parts:
         return weights.new_zeros(0, weights.shape[1])
     return torch.cat(parts) if len(parts) > 1 else parts[0]
+
+
+class _FusedApply(torch.autograd.Function):
+    """``Φ(targets, controls) @ weights`` by the fused kernel, differentiable in the
+    weights: the backward pass is the same kernel with the roles swapped,
+    ``Φ(controls, targets) @ grad`` (Φ is symmetric in its two point sets)."""
+
+    @staticmethod
+    def forward(ctx, targets, controls, scale, weights):  # type: ignore[override]
+        ctx.save_for_backward(targets, controls)
+        ctx.scale = scale
+        return _numba.tps_apply(targets, controls, scale, weights)
+
+    @staticmethod
+    def backward(ctx, grad):  # type: ignore[override]
+        targets, controls = ctx.saved_tensors
+        weights_grad = None
+        if ctx.needs_input_grad[3]:
+            weights_grad = _numba.tps_apply(controls, targets, ctx.scale, grad.contiguous())
+        return None, None, None, weights_grad
 
 
 def columns_of(displacements: Tensor) -> Tensor:

@@ -132,7 +132,9 @@ class RBF(nn.Module):
     The Wendland kernels' compact support is not exploited: their matrices are dense.
     The thin-plate spline in float64 on the CPU runs fused numba kernels
     (:mod:`torchmorph.rbf._numba`, one thread whatever ``torch.get_num_threads()``);
-    the other kernels, float32, CUDA and calls that need gradients run torch blocks.
+    the other kernels, float32, CUDA and calls differentiated in the positions run torch
+    blocks (the fused pass is differentiable in the displacements: its backward pass is
+    the same kernel with targets and controls swapped).
     The factorisation is LAPACK's (Cholesky, or LU), O(N_c³): about 1.2 s for 5,000
     controls on one thread, most of a fit.
 
