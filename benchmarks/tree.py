@@ -131,10 +131,10 @@ def main() -> None:
 
     print()
     print(
-        "| N_t | N_c | exact fused | tolerance | tree build | first call | second call "
-        "| exact / second | certified bound | measured error |"
+        "| N_t | N_c | exact fused | error control | tolerance | tree build | first call "
+        "| second call | exact / second | certified bound | measured error |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         print(row)
     if len(sizes) > 1:

@@ -24,14 +24,19 @@ for every p > 0. The approximation is again a weighted mean with weights
 
     u' - u = Σ_k ε_k (d_k - u) / S',   |u' - u| <= Δ E / (S - E),
 
-with ``E = Σ_far n δ`` the accumulated bound, ``S`` the exact weight sum and ``Δ`` the
-diameter of the displacements' bounding box (``|d_k - u| <= Δ`` as ``u`` is a mean of
-the ``d_k``). The traversal accepts a node for a block of targets when ``δ`` at the
-block's nearest target is at most ``η / N_c`` times the smallest running lower bound of
-``S`` over the block (exact leaf sums and ``n (R + ρ)^-p`` per accepted node, near nodes
-first), so ``E <= η S`` for every target and ``|u' - u| <= Δ η / (1 - η)``.
+with ``E`` the accumulated bound, ``S`` the exact weight sum and ``Δ`` the diameter of
+the displacements' bounding box (``|d_k - u| <= Δ`` as ``u`` is a mean of the ``d_k``).
+Every term of the remainder has degree >= 3 in ``|s|``, so a node contributes at most
+``m δ`` to ``E`` with the effective count ``m = Σ_k |s_k|³ / ρ³ <= n``. The traversal
+(near nodes first) accepts a node for a block of targets when, at the block's nearest
+target, ``m δ <= (η/2) n max(L / N_c, (R_far + ρ)^-p)``: ``L`` is the smallest over the
+block of the running lower bounds of ``S`` (exact leaf sums and ``n (R + ρ)^-p`` per
+accepted node) and ``R_far`` the block's farthest target. Summed over the accepted
+nodes, each term stays below ``(η/2) S``, so ``E <= η S`` for every target and
+``|u' - u| <= Δ η / (1 - η)``.
 
-``η`` starts from the tolerance, ``η = tolerance · rms(u) / (2 Δ)`` with ``rms(u)``
+With ``error_control="certified"`` (the default) ``η`` starts from the tolerance,
+``η = tolerance · rms(u) / (2 Δ)`` with ``rms(u)``
 estimated by exact sums at up to :data:`SAMPLE_TARGETS` targets. After the traversal
 the bound is certified over all targets: with ``b_i = Δ E_i / (S'_i - E_i)`` the
 per-target bound, ``B = (Σ_i b_i²)^½`` and ``‖u'‖ - B <= ‖u‖``, the certified relative
@@ -43,7 +48,21 @@ repeated, keeping the last certified result; a :class:`TreeIDW` remembers the fa
 for its later calls. The bound is worst-case (it ignores the cancellations of the odd
 Gegenbauer terms and the smoothness of ``d``): measured errors are 100-3000 times below
 the certified bound on the clouds of the tests and benchmarks, so the tree accepts far
-fewer nodes than an error estimate would allow.
+fewer nodes than an error estimate would allow, and a certified call is slower than the
+exact fused sum at every size measured (``benchmarks/tree.py``).
+
+Sampled error control
+---------------------
+``error_control="sampled"`` uses the same traversal with a larger ``η``, tuned until the
+relative 2-norm error at :data:`SAMPLE_TARGETS` targets (evenly spaced in the targets'
+order), measured against exact float64 sums of the fused kernels, is below
+``tolerance / SAMPLE_SAFETY`` (``η`` is raised while it is below a further factor
+:data:`LOOSEN`). That is an estimate of the error over all targets, not a bound: it
+holds on the clouds of the tests (uniform; surface controls with targets filling the
+volume; graded by 10^4) and of the benchmark, where the error over all targets came out
+2-10 times below the tolerance, but a field whose error concentrates on a few targets
+missed by the sample can exceed it. ``last_bound_`` still reports the certified bound
+of the result.
 
 Exactness and gradients
 -----------------------
@@ -54,7 +73,13 @@ takes that control's displacement (the mean over several), the rule of
 the forward pass used (the same traversal, with the far-field coefficients gathered per
 node and spread to its controls). ``η`` depends on the displacements' spread and size;
 that choice is piecewise constant and not differentiated. No gradients to the point
-positions: inputs that require them are refused (use :func:`~torchmorph.idw.idw_apply`).
+positions: inputs that require them are refused (use :func:`~torchmorph.idw.idw_apply`);
+the expansion is differentiable in ``x`` and ``c`` in principle, not implemented.
+
+Not done here: CUDA (Triton) kernels; a mode of :class:`~torchmorph.idw.IDW`, use by
+``MeshMorph``, the POD offline phase or the sharded modules (call :class:`TreeIDW`
+directly); targets coinciding with a control are found only by leaves summed exactly,
+which always holds (a node containing the control has ``ρ >= R``).
 """
 
 from __future__ import annotations

@@ -301,13 +301,15 @@ def _visit_block(
         elif children[node, 0] < 0:  # a leaf, summed exactly
             start, stop = starts[node], stops[node]
             width = stop - start
+            reachable = nearest - rho <= 2.0 * math.sqrt(radius2)  # a coincidence possible
             for t in range(rows):
                 target = first_target + t
                 chunk = buffer[:width]
                 _squared(targets[target], controls_t, start, stop, chunk)
                 closest = np.inf
-                for k in range(width):
-                    closest = min(closest, chunk[k])
+                if reachable:
+                    for k in range(width):
+                        closest = min(closest, chunk[k])
                 if closest <= radius2:  # coincident controls: counted, never weighted
                     for k in range(width):
                         if chunk[k] <= radius2:
