@@ -194,3 +194,16 @@ def test_bad_inputs_are_named():
         TreeIDW(controls.clone().requires_grad_(True), controls)
     with pytest.raises(ValueError, match="displacements"):
         module(torch.full((10, 3), math.nan, dtype=torch.float64))
+
+
+def test_state_dict_brings_the_clouds_and_rebuilds_the_trees():
+    generator = torch.Generator().manual_seed(10)
+    controls, targets = cloud("surface", generator)
+    other = TreeIDW(controls[:200], targets[:300])
+    module = TreeIDW(controls, targets)
+    other.load_state_dict(module.state_dict())
+    displacements = field(controls)
+    exact = brute_force(controls, targets, displacements, 4.0)
+    assert relative_error(other(displacements), exact) <= 1e-4
+    with pytest.raises(ValueError, match="power"):
+        TreeIDW(controls, targets, power=2.0).load_state_dict(module.state_dict())

@@ -97,6 +97,7 @@ from torchmorph._checks import (
     check_same_device_dtype,
     check_vectors,
 )
+from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph.idw._geometry import check_tolerance, normalise
 from torchmorph.idw.backends._protocol import power_code
 from torchmorph.idw.backends.numba import _tree_jit
@@ -412,9 +413,19 @@ class TreeIDW(nn.Module):
         self.error_control = error_control
         self.register_buffer("controls", controls.detach().clone())
         self.register_buffer("targets", targets.detach().clone())
+        self._build()
+        self.last_bound_: list[float] = []
+        self.last_sampled_error_: list[float] = []
+
+    _calibration: float
+    """η over its first value, learnt from the checks of earlier calls."""
+
+    def _build(self) -> None:
+        """The trees of the current ``controls`` and ``targets`` (again after a state is
+        loaded, which may bring other clouds)."""
         with torch.no_grad():
             scaled_targets, scaled_controls, radius2 = normalise(
-                targets.detach(), controls.detach(), self.coincidence_tolerance
+                self.targets, self.controls, self.coincidence_tolerance
             )
         self._operator = _TreeOperator(
             scaled_controls.double().numpy(),
@@ -423,9 +434,30 @@ class TreeIDW(nn.Module):
             float(radius2),
             self.leaf_size,
         )
-        self.last_bound_: list[float] = []
-        self.last_sampled_error_: list[float] = []
-        self._calibration = 1.0  # η over its a-priori value, learnt from certified bounds
+        self._calibration = 1.0
+
+    # ----------------------------------------------------------------- state
+    def get_extra_state(self) -> dict:
+        return {**self._hyperparameters(), "tolerance": self.tolerance}
+
+    def set_extra_state(self, state: dict) -> None:
+        check_saved_hyperparameters("TreeIDW", state, self._hyperparameters())
+
+    def _hyperparameters(self) -> dict[str, float]:
+        return {"power": self.power, "coincidence_tolerance": self.coincidence_tolerance}
+
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ):
+        if prefix + "_extra_state" in state_dict:  # before anything is loaded
+            check_saved_hyperparameters(
+                "TreeIDW", state_dict[prefix + "_extra_state"], self._hyperparameters()
+            )
+        resize_buffers_for_load(self, state_dict, prefix, ("controls", "targets"))
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+        self._build()
 
     def _scale(self, values64: Tensor, batch: int, dim: int):
         """Per field: Δ, the diameter of its bounding box; rms(u) at sampled targets; and
