@@ -181,6 +181,42 @@ def _quadratic(offset, matrix, rows, out):
 
 
 @njit(**_OPTIONS)
+def _leaf_by_controls(
+    local, controls_t, values_t, start, stop, rows, ref2, half_power, mode, weight, sums,
+    numerator,
+):  # fmt: skip
+    """A leaf's exact sums for a block with no coincident target, added to the block's
+    ``sums`` (rows,) and ``numerator`` (columns, rows): control by control, the block's
+    targets in the vector lanes (``weight`` is scratch)."""
+    dim, columns = controls_t.shape[0], values_t.shape[0]
+    for k in range(start, stop):
+        for t in range(rows):
+            diff = local[0, t] - controls_t[0, k]
+            weight[t] = diff * diff
+        for a in range(1, dim):
+            coordinate = controls_t[a, k]
+            for t in range(rows):
+                diff = local[a, t] - coordinate
+                weight[t] += diff * diff
+        if mode == 4:
+            for t in range(rows):
+                ratio = ref2 / weight[t]
+                weight[t] = ratio * ratio
+        elif mode == 2:
+            for t in range(rows):
+                weight[t] = ref2 / weight[t]
+        else:
+            for t in range(rows):
+                weight[t] = (ref2 / weight[t]) ** half_power
+        for t in range(rows):
+            sums[t] += weight[t]
+        for column in range(columns):
+            value = values_t[column, k]
+            for t in range(rows):
+                numerator[column, t] += weight[t] * value
+
+
+@njit(**_OPTIONS)
 def _visit_block(
     first_target, last_target, targets, reference, controls_t, values_t, scaled, children,
     starts, stops, centroids, radii, second_geometry, effective, zeroth, first, second, power, mode,
@@ -192,7 +228,7 @@ def _visit_block(
     rows = last_target - first_target
     half_power = 0.5 * power
     ref2 = reference * reference
-    lower = np.zeros(rows)  # Σ of lower bounds of the weights met so far (<= the true S)
+    lower = np.zeros(rows)  # with block_sums: lower bounds of the weights met so far (<= S)
     distance = np.empty(rows)
     unit = np.empty(dim)
     buffer = np.empty(max_leaf)
@@ -201,6 +237,12 @@ def _visit_block(
     weight = np.empty(rows)
     quad = np.empty(rows)
     linear = np.empty(rows)
+    local = np.empty((dim, rows))  # the block's targets, transposed
+    for t in range(rows):
+        for a in range(dim):
+            local[a, t] = targets[first_target + t, a]
+    block_sums = np.zeros(rows)  # leaf sums of :func:`_leaf_by_controls`
+    block_numerator = np.zeros((columns, rows))
     stack = np.empty(STACK, np.int64)
     stack[0] = 0
     depth = 1
@@ -218,7 +260,7 @@ def _visit_block(
                 squared += diff * diff
             distance[t] = math.sqrt(squared)
             nearest = min(nearest, distance[t])
-            smallest_lower = min(smallest_lower, lower[t])
+            smallest_lower = min(smallest_lower, lower[t] + block_sums[t])
             farthest = max(farthest, distance[t])
         accepted = False
         worst = 0.0
@@ -302,6 +344,12 @@ def _visit_block(
             start, stop = starts[node], stops[node]
             width = stop - start
             reachable = nearest - rho <= 2.0 * math.sqrt(radius2)  # a coincidence possible
+            if not transpose and not reachable:  # controls outer, the block's targets in SIMD
+                _leaf_by_controls(
+                    local, controls_t, values_t, start, stop, rows, ref2, half_power, mode,
+                    weight, block_sums, block_numerator,
+                )  # fmt: skip
+                continue
             for t in range(rows):
                 target = first_target + t
                 chunk = buffer[:width]
@@ -357,6 +405,11 @@ def _visit_block(
             stack[depth] = far
             stack[depth + 1] = near
             depth += 2
+    if not transpose:
+        for t in range(rows):
+            sums[first_target + t] += block_sums[t]
+            for column in range(columns):
+                numerator[first_target + t, column] += block_numerator[column, t]
 
 
 @njit(parallel=True, **_OPTIONS)
