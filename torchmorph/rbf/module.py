@@ -135,8 +135,14 @@ class RBF(nn.Module):
     the other kernels, float32, CUDA and calls differentiated in the positions run torch
     blocks (the fused pass is differentiable in the displacements: its backward pass is
     the same kernel with targets and controls swapped).
-    The factorisation is LAPACK's (Cholesky, or LU), O(N_c³): about 1.2 s for 5,000
+    The factorisation is LAPACK's (Cholesky, or LU), O(N_c³): about 1 s for 5,000
     controls on one thread, most of a fit.
+
+    Dense mode stores ``[Φ_tc P_t]`` and solves for the coefficients on every call
+    (O(N_c²) per value column with the stored factor) rather than the operator
+    ``[Φ_tc P_t] · (system⁻¹)[:, :N_c]``: the two take the same memory, and forming the
+    operator costs N_t · N_c² multiply-adds (2.5 · 10¹² at 5,000 × 50,000), far more
+    than every solve a morphing run makes.
 
     Gradients flow to the displacements. Pass moved ``controls``/``targets`` to
     :meth:`forward` (or build the module from points that require grad) to differentiate
