@@ -183,6 +183,16 @@ class RBFErrorOracle:
         )[:, 0]
         self._order.append(candidate)
 
+    def _solve(self, values: Tensor, size: int) -> Tensor:
+        """``(L Lᵀ)⁻¹ values`` for the first ``size`` controls: two packed triangular
+        solves per column on the stored rows (no dense copy of L)."""
+        array = values.detach().cpu().numpy()
+        solution = np.empty_like(array)
+        for column in range(array.shape[1]):
+            forward = dtpsv(size, self._packed, array[:, column], lower=0, trans=1)
+            solution[:, column] = dtpsv(size, self._packed, forward, lower=0, trans=0)
+        return torch.from_numpy(solution).to(values.device)
+
     def _lower(self, size: int) -> Tensor:
         """L for the first ``size`` controls, as a dense (size, size) tensor."""
         rows, columns = np.tril_indices(size)
@@ -204,7 +214,10 @@ class RBFErrorOracle:
         common = 0
         while common < min(len(rest), len(self._order)) and rest[common] == self._order[common]:
             common += 1
-        del self._order[common:]  # the leading block of L is the prefix's factor
+        if common < len(rest):  # another tail: the common prefix's factor is kept
+            del self._order[common:]
+        # else a prefix of the stored order: the leading block of L is its factor, and the
+        # longer factor stays for the loop's next, longer selection
         for candidate in rest[common:]:
             self._extend(candidate)
         return len(rest)
@@ -219,7 +232,7 @@ class RBFErrorOracle:
         ``selected`` (anchors first)."""
         size = self._sync(selected)
         values = self._values
-        order = torch.tensor(self._order, dtype=torch.int64)
+        order = torch.tensor(self._order[:size], dtype=torch.int64)
         weights = self._rest_weights(values, order, size)
         result = self._anchor_part + self._columns[:, :size] @ weights
         return result.reshape(values.shape[0], self._family, self._dim).permute(1, 0, 2)
@@ -231,14 +244,14 @@ class RBFErrorOracle:
             self._anchor_part = values.new_zeros(values.shape)
             if not size:
                 return values.new_zeros(0, values.shape[1])
-            return torch.cholesky_solve(values[order], self._lower(size))
+            return self._solve(values[order], size)
         monomials = self.anchors.numel()
         padded = torch.cat([values[self.anchors], values.new_zeros(monomials, values.shape[1])])
         anchor_solution = torch.linalg.lu_solve(*self._block, padded)
         weights = values.new_zeros(0, values.shape[1])
         if size:
             rhs = values[order] - self._border[order] @ anchor_solution
-            weights = torch.cholesky_solve(rhs, self._lower(size))
+            weights = self._solve(rhs, size)
             anchor_solution = anchor_solution - self._reduced[:, order] @ weights
         self._anchor_part = self._border @ anchor_solution
         return weights
@@ -246,7 +259,7 @@ class RBFErrorOracle:
     def _relative(self, selected: Tensor) -> Tensor:
         """Relative error of every candidate for every member, shape (F, N)."""
         size = self._sync(selected)
-        order = torch.tensor(self._order, dtype=torch.int64)
+        order = torch.tensor(self._order[:size], dtype=torch.int64)
         weights = self._rest_weights(self._values, order, size)
         result = self._anchor_part + self._columns[:, :size] @ weights
         residual = (result - self._values).reshape(-1, self._family, self._dim)
