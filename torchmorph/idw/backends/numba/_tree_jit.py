@@ -183,11 +183,14 @@ def _quadratic(offset, matrix, rows, out):
 @njit(**_OPTIONS)
 def _leaf_by_controls(
     local, controls_t, values_t, start, stop, rows, ref2, half_power, mode, weight, sums,
-    numerator,
+    numerator, transpose, scaled, out,
 ):  # fmt: skip
-    """A leaf's exact sums for a block with no coincident target, added to the block's
-    ``sums`` (rows,) and ``numerator`` (columns, rows): control by control, the block's
-    targets in the vector lanes (``weight`` is scratch)."""
+    """A leaf's exact sums for a block none of whose targets lies within the coincidence
+    radius of it, added to the block's ``sums`` (rows,) and ``numerator`` (columns, rows),
+    or when transposed ``out[k] += Σ_t w_tk scaled[:, t]``: control by control, the
+    block's targets in the vector lanes (``weight`` is scratch). The forward and
+    transposed passes share it, so that their running sums, hence their acceptance
+    decisions, are the same to the bit."""
     dim, columns = controls_t.shape[0], values_t.shape[0]
     for k in range(start, stop):
         for t in range(rows):
@@ -210,10 +213,17 @@ def _leaf_by_controls(
                 weight[t] = (ref2 / weight[t]) ** half_power
         for t in range(rows):
             sums[t] += weight[t]
-        for column in range(columns):
-            value = values_t[column, k]
-            for t in range(rows):
-                numerator[column, t] += weight[t] * value
+        if transpose:
+            for column in range(scaled.shape[0]):
+                total = 0.0
+                for t in range(rows):
+                    total += weight[t] * scaled[column, t]
+                out[k, column] += total
+        else:
+            for column in range(columns):
+                value = values_t[column, k]
+                for t in range(rows):
+                    numerator[column, t] += weight[t] * value
 
 
 @njit(**_OPTIONS)
@@ -242,7 +252,14 @@ def _visit_block(
         for a in range(dim):
             local[a, t] = targets[first_target + t, a]
     block_sums = np.zeros(rows)  # leaf sums of :func:`_leaf_by_controls`
-    block_numerator = np.zeros((columns, rows))
+    block_numerator = np.zeros((columns, rows))  # leaves and accepted nodes
+    far_sums = np.zeros(rows)  # S of the accepted nodes (not a lower bound)
+    block_scaled = np.zeros((scaled.shape[1], rows if transpose else 0))
+    if transpose:  # coincident targets take no weighted sums
+        for t in range(rows):
+            if coincident[first_target + t] == 0:
+                for column in range(scaled.shape[1]):
+                    block_scaled[column, t] = scaled[first_target + t, column]
     stack = np.empty(STACK, np.int64)
     stack[0] = 0
     depth = 1
@@ -253,15 +270,20 @@ def _visit_block(
         nearest = np.inf
         smallest_lower = np.inf
         farthest = 0.0
+        for t in range(rows):  # r = x - c and R, the block's targets in the vector lanes
+            distance[t] = 0.0
+        for a in range(dim):
+            centre = centroids[node, a]
+            for t in range(rows):
+                diff = local[a, t] - centre
+                offset[a, t] = diff
+                distance[t] += diff * diff
         for t in range(rows):
-            squared = 0.0
-            for a in range(dim):
-                diff = targets[first_target + t, a] - centroids[node, a]
-                squared += diff * diff
-            distance[t] = math.sqrt(squared)
+            distance[t] = math.sqrt(distance[t])
+        for t in range(rows):
             nearest = min(nearest, distance[t])
-            smallest_lower = min(smallest_lower, lower[t] + block_sums[t])
             farthest = max(farthest, distance[t])
+            smallest_lower = min(smallest_lower, lower[t] + block_sums[t])
         accepted = False
         worst = 0.0
         count = stops[node] - starts[node]
@@ -273,9 +295,7 @@ def _visit_block(
             accepted = effective[node] * worst <= 0.5 * eta * count * share
         if accepted:
             coefficient = 0.5 * power * (power + 2.0)
-            for t in range(rows):  # r = x - c, 1/R², the centroid's weight (ref/R)^p
-                for a in range(dim):
-                    offset[a, t] = targets[first_target + t, a] - centroids[node, a]
+            for t in range(rows):  # 1/R², the centroid's weight (ref/R)^p
                 inverse2[t] = 1.0 / (distance[t] * distance[t])
             for t in range(rows):
                 lower[t] += count * _power(reference / (distance[t] + rho), power, mode)
@@ -297,7 +317,7 @@ def _visit_block(
                     trace += second_geometry[node, a, a]
                 _quadratic(offset, second_geometry[node], rows, quad)
                 for t in range(rows):
-                    sums[first_target + t] += weight[t] * (
+                    far_sums[t] += weight[t] * (
                         count
                         + (coefficient * quad[t] * inverse2[t] - half_power * trace) * inverse2[t]
                     )
@@ -314,7 +334,7 @@ def _visit_block(
                         for t in range(rows):
                             linear[t] += moment * offset[a, t]
                     for t in range(rows):
-                        numerator[first_target + t, column] += weight[t] * (
+                        block_numerator[column, t] += weight[t] * (
                             base
                             + power * linear[t] * inverse2[t]
                             + (coefficient * quad[t] * inverse2[t] - half_power * trace)
@@ -344,10 +364,10 @@ def _visit_block(
             start, stop = starts[node], stops[node]
             width = stop - start
             reachable = nearest - rho <= 2.0 * math.sqrt(radius2)  # a coincidence possible
-            if not transpose and not reachable:  # controls outer, the block's targets in SIMD
+            if not reachable:  # controls outer, the block's targets in SIMD
                 _leaf_by_controls(
                     local, controls_t, values_t, start, stop, rows, ref2, half_power, mode,
-                    weight, block_sums, block_numerator,
+                    weight, block_sums, block_numerator, transpose, block_scaled, out,
                 )  # fmt: skip
                 continue
             for t in range(rows):
@@ -407,7 +427,7 @@ def _visit_block(
             depth += 2
     if not transpose:
         for t in range(rows):
-            sums[first_target + t] += block_sums[t]
+            sums[first_target + t] += block_sums[t] + far_sums[t]
             for column in range(columns):
                 numerator[first_target + t, column] += block_numerator[column, t]
 
