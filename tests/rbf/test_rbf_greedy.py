@@ -11,7 +11,7 @@ import torch
 from scipy.interpolate import RBFInterpolator
 
 from torchmorph.rbf import RBF
-from torchmorph.rbf.greedy import RBFErrorOracle
+from torchmorph.rbf.greedy import BLOCK_COLUMNS, RBFErrorOracle
 from torchmorph.rbf.kernels import kernel_matrix
 from torchmorph.selection.greedy import ErrorOracle, greedy_selection
 
@@ -72,9 +72,12 @@ def test_the_interpolant_equals_a_refit_from_scratch(kernel, epsilon, degree):
 def test_the_bordered_factor_equals_cholesky_from_scratch(kernel, epsilon, degree):
     points = candidates(60)
     oracle = RBFErrorOracle(points, family(points), kernel=kernel, epsilon=epsilon, degree=degree)
-    selected = selection(oracle, [3, 9, 27, 31, 44, 50, 12])
-    oracle.factor(selected[: oracle.anchors.numel() + 2])  # then grown by bordered updates
-    factor = oracle.factor(selected)
+    selected = selection(oracle, [3, 9, 27, 31, 44, 50, 12, *range(13, 27), *range(32, 40)])
+    anchors_count = oracle.anchors.numel()
+    assert selected.numel() - 3 - (anchors_count + 2) > BLOCK_COLUMNS
+    oracle.factor(selected[: anchors_count + 2])  # then grown by bordered updates:
+    oracle.factor(selected[:-3])  # a block of more than BLOCK_COLUMNS controls at once
+    factor = oracle.factor(selected)  # and a few, one packed solve each
     anchors, rest = selected[: oracle.anchors.numel()], selected[oracle.anchors.numel() :]
     scale = epsilon or 1.0
     phi = kernel_matrix(points[rest], points[rest], kernel, scale)
