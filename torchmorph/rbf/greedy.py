@@ -14,8 +14,10 @@ p(x)]``, the Schur complement of A in the saddle matrix of the selected controls
 (for the anchors' polynomial reproduction, the Gram matrix of the kernel that
 vanishes on the anchors), symmetric positive definite for a kernel with degree at
 least its order. Its Cholesky factor L grows by a bordered update: for a new control
-p, ``l = L⁻¹ S[order, p]`` and the new diagonal ``√(S_pp − lᵀl)``. A prefix of the
-order keeps the leading block of L, so the loop's halving prefixes cost nothing.
+p, ``l = L⁻¹ S[order, p]`` and the new diagonal ``√(S_pp − lᵀl)`` (for b controls
+added at once, the block form: X = L⁻¹ S[order, new] and the Cholesky factor of
+``S[new, new] − XᵀX``). A prefix of the order keeps the leading block of L, so the
+loop's halving prefixes cost nothing.
 
 The solve for control values d: ``y = A⁻¹ [d₀; 0]``, ``λ_r = S⁻¹ (d_r − B_r y)``,
 ``[λ₀; β] = y − A⁻¹ B_rᵀ λ_r``; the interpolant at every candidate is
