@@ -28,7 +28,7 @@ from torchmorph.mesh.model import CellBlock, Mesh
 from torchmorph.mesh.quality import inverted_cells
 
 if TYPE_CHECKING:
-    from torchmorph.selection.plan import SelectionPlan
+    from torchmorph.selection.plan import AdaptivePlan, SelectionPlan
 
 __all__ = ["MeshMorph"]
 
@@ -50,8 +50,9 @@ class MeshMorph(nn.Module):
         :class:`~torchmorph.mesh.Mesh`: mixed, quadratic, 2-D). Its boundary is the
         facets used once; the mid-side nodes of quadratic boundary facets are boundary
         nodes, and the others interior nodes.
-    plan : SelectionPlan, optional
-        Control-point selection (SIDW/ESIDW). None: all boundary nodes.
+    plan : SelectionPlan or AdaptivePlan, optional
+        Control-point selection: SIDW/ESIDW, or error-driven (AdaptivePlan). None: all
+        boundary nodes.
     power : float
         IDW exponent (default 4).
     mode : {"auto", "dense", "matrix_free"}
@@ -110,7 +111,7 @@ class MeshMorph(nn.Module):
     def __init__(
         self,
         mesh: Mesh,
-        plan: SelectionPlan | None = None,
+        plan: SelectionPlan | AdaptivePlan | None = None,
         *,
         power: float = 4.0,
         mode: Mode = "auto",
@@ -457,7 +458,7 @@ class MeshMorph(nn.Module):
 
 
 def select_controls(
-    mesh: Mesh, plan: SelectionPlan | None, generator: torch.Generator | None
+    mesh: Mesh, plan: SelectionPlan | AdaptivePlan | None, generator: torch.Generator | None
 ) -> Tensor:
     """The control points of Algorithm 2's selection phase: every boundary node without a
     plan, else the plan's selection (SIDW/ESIDW); sorted unique global node ids."""

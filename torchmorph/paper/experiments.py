@@ -211,7 +211,7 @@ def adaptive_morph(
         tolerance = row.error_value
     with torch.no_grad():
         family = torch.cat([context.boundary_star[None], context.family(parameters)])
-        plan: Any = AdaptivePlan(tolerance, family)  # MeshMorph calls any plan's select()
+        plan = AdaptivePlan(tolerance, family)
         return MeshMorph(context.mesh, plan, mode=context.mode)
 
 
