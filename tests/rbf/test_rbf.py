@@ -232,18 +232,28 @@ def test_in_place_blocks_equal_the_masked_kernels(kernel):
     torch.testing.assert_close(slow.detach(), fast, rtol=1e-13, atol=1e-14)
 
 
-def test_the_projection_equals_lapack_ormqr():
-    from torchmorph.rbf.system import project_symmetric
+@pytest.mark.parametrize("degree", [0, 1, 2])
+def test_the_projected_blocks_equal_lapack_ormqr(degree):
+    from torchmorph.rbf.kernels import (
+        kernel_matrix,
+        monomial_powers,
+        polynomial_matrix,
+        polynomial_scaling,
+    )
+    from torchmorph.rbf.system import projected_blocks
 
-    generator = torch.Generator().manual_seed(0)
-    poly = torch.randn(50, 10, dtype=F64, generator=generator)
-    matrix = torch.randn(50, 50, dtype=F64, generator=generator)
-    matrix = matrix + matrix.T
+    controls = torch.from_numpy(cloud(50))
+    shift, scale = polynomial_scaling(controls)
+    poly = polynomial_matrix(controls, monomial_powers(3, degree), shift, scale)
     qr, tau = torch.geqrf(poly)
+    matrix = kernel_matrix(controls, controls, "cubic", 1.0)
     left = torch.ormqr(qr, tau, matrix, left=True, transpose=True)
     expected = torch.ormqr(qr, tau, left, left=False, transpose=False)
-    project_symmetric(matrix, qr, tau)
-    torch.testing.assert_close(matrix, expected, rtol=0, atol=1e-12)
+    trailing, coupling = projected_blocks(controls, "cubic", 1.0, qr, tau)
+    count = poly.shape[1]
+    assert trailing.is_contiguous()
+    torch.testing.assert_close(trailing, expected[count:, count:], rtol=0, atol=1e-12)
+    torch.testing.assert_close(coupling, expected[:count, count:], rtol=0, atol=1e-12)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
