@@ -17,6 +17,7 @@ LIBRARY = ROOT / "torchmorph"
 CORE = (
     "torchmorph.idw",
     "torchmorph.ffd",
+    "torchmorph.rbf",
     "torchmorph.selection",
     "torchmorph.morph",
     "torchmorph.large_motions",
@@ -153,6 +154,12 @@ def test_ffd_stays_inside_ffd():
     for module in [m for m in modules() if inside(m, "torchmorph.ffd")]:
         for other in imports_of(module):
             assert inside(other, "torchmorph.ffd") or other in SHARED, (module, other)
+
+
+def test_rbf_stays_inside_rbf():
+    for module in [m for m in modules() if inside(m, "torchmorph.rbf")]:
+        for other in imports_of(module):
+            assert inside(other, "torchmorph.rbf") or other in SHARED, (module, other)
 
 
 def test_one_tet_edge_table():

@@ -28,14 +28,17 @@ from torchmorph.mesh import (
 )
 from torchmorph.morph import MeshMorph
 from torchmorph.pod import PODReducer
+from torchmorph.rbf import RBF, RBFErrorOracle, rbf_interpolate
 from torchmorph.selection import Region, SelectionPlan, select_control_points
 
 __all__ = [
     "FFD",
     "IDW",
+    "RBF",
     "Mesh",
     "MeshMorph",
     "PODReducer",
+    "RBFErrorOracle",
     "Region",
     "SelectionPlan",
     "TetMesh",
@@ -48,6 +51,7 @@ __all__ = [
     "mass_matrix",
     "quality_by_kind",
     "quality_summary",
+    "rbf_interpolate",
     "read_mesh",
     "relative_l2_error",
     "relative_nodal_error",
