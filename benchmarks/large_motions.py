@@ -8,7 +8,9 @@ Three bodies turned by a growing angle, their meshes morphed four ways:
   previous mesh (:func:`torchmorph.large_motions.morph_in_steps`);
 - **rotations**: rotation-aware IDW in one shot (``MeshMorph(...)(d, rotations="fit")``,
   :mod:`torchmorph.idw.rotations`);
-- **both**: rotation-aware and in steps.
+- **both**: rotation-aware and in steps;
+- **rbf**: a thin-plate-spline RBF with the linear polynomial (``torchmorph.RBF``) from
+  every boundary node, in one shot, for comparison.
 
 The bodies: the Wigley hull of the paper's case C pitched about its centre (the z axis;
 0° to 90°, bow down), a 2-D NACA0012 section in a 16 × 8 chord box turned about its
@@ -37,11 +39,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchmorph import MeshMorph
+from torchmorph import RBF, MeshMorph
 from torchmorph.large_motions import morph_in_steps
 from torchmorph.mesh import Mesh, quality_summary
 
-METHODS = ("plain", "steps", "rotations", "both")
+METHODS = ("plain", "steps", "rotations", "both", "rbf")
 
 
 @dataclass
@@ -156,9 +158,21 @@ def cases(size: str, step: float) -> list[Case]:
     ]
 
 
+_RBF_CACHE: dict[int, RBF] = {}
+
+
 def morph_once(morph: MeshMorph, case: Case, method: str, degrees: float, steps: int) -> Tensor:
     def path(t: float) -> Tensor:
         return morph.boundary_displacement(case.moving, lambda p: case.turn(p, t * degrees))
+
+    if method == "rbf":  # the fit once per mesh, reused for every angle
+        key = id(morph)
+        if key not in _RBF_CACHE:
+            _RBF_CACHE[key] = RBF(
+                morph.points[morph.boundary_nodes], morph.points[morph.interior_nodes]
+            )
+        boundary = path(1.0)
+        return morph.assemble(boundary, _RBF_CACHE[key](boundary))
 
     rotations = "fit" if method in ("rotations", "both") else None
     if method in ("steps", "both"):
@@ -250,7 +264,7 @@ def plot(results: dict, path: Path) -> None:
     figure, axes = plt.subplots(2, len(results), figsize=(5.2 * len(results), 7.5))
     for column, (name, (rows, _)) in enumerate(results.items()):
         angles = [row["angle"] for row in rows]
-        for method, style in zip(METHODS, ("o-", "s--", "^-", "D-"), strict=True):
+        for method, style in zip(METHODS, ("o-", "s--", "^-", "D-", "x:"), strict=True):
             inverted = [row[method]["num_inverted"] for row in rows]
             jacobian = [row[method]["min_scaled_jacobian"] for row in rows]
             axes[0, column].plot(angles, inverted, style, ms=3, label=method)
