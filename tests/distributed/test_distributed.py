@@ -251,7 +251,7 @@ DISAGREEMENTS = {
             "ValueError: IDW(controls, targets) failed on rank 1 (that rank raised the error "
             f"that says why){STOP_IDW}"
         ),
-        "ValueError: mode must be one of 'auto', 'dense', 'matrix_free'; got 'bogus'",
+        "ValueError: mode must be one of 'auto', 'dense', 'matrix_free', 'tree'; got 'bogus'",
     ),
     "not_a_tensor": (
         REFERRED.format("targets", 1) + STOP_IDW,

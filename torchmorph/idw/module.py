@@ -35,6 +35,7 @@ from torchmorph.idw._geometry import (
     prepare,
     warn_duplicate_controls,
 )
+from torchmorph.idw._tree_mode import TreeOperator
 from torchmorph.idw.functional import (
     DEFAULT_COINCIDENCE_TOLERANCE,
     Implementation,
@@ -48,7 +49,7 @@ DEFAULT_DENSE_BYTES: int | None = None
 """``mode="auto"`` stores W (dense) when it takes at most this many bytes; ``None``
 means half of the memory the device has free when the module is built."""
 
-Mode = Literal["auto", "dense", "matrix_free"]
+Mode = Literal["auto", "dense", "matrix_free", "tree"]
 
 
 def auto_mode(
@@ -93,15 +94,22 @@ class IDW(nn.Module):
         Points whose displacement is interpolated (e.g. the interior nodes).
     power : float
         IDW exponent p > 0; default 4 (the paper's).
-    mode : {"auto", "dense", "matrix_free"}
+    mode : {"auto", "dense", "matrix_free", "tree"}
         ``dense`` assembles and stores W (N_t, N_c) once; ``matrix_free``
-        recomputes weights on every call and never stores W; ``auto`` picks
+        recomputes weights on every call and never stores W; ``tree`` applies a
+        :class:`~torchmorph.idw.tree.TreeIDW` built once (far clusters of controls summed
+        by a quadrupole expansion, to the relative error ``tolerance``; CPU only, never
+        chosen by ``auto``); ``auto`` picks between the two exact modes
         (:func:`auto_mode`): matrix-free where the fused CPU kernels run (one fused
         pass costs about a dense product, so storing W only delays the first call)
         and in float32 (a float32 W sums in float32 BLAS, 5–17× less accurately than
         the kernels' float64 partial sums); elsewhere dense when W takes at most
         ``dense_bytes``. Pass ``mode="dense"`` for W itself (``torch.compile``,
         repeated large batches on a GPU).
+    tolerance : float, optional
+        ``mode="tree"`` only (default :data:`~torchmorph.idw.tree.DEFAULT_TOLERANCE`,
+        1e-4): the relative error ``‖u_tree - u‖ / ‖u‖`` (2-norm over the targets, per
+        displacement field) that the tree's certified bound keeps.
     block_bytes : int, optional
         Byte budget of one block of pairwise temporaries of the torch
         implementation (default: 4 MiB on the CPU, 256 MiB on CUDA).
@@ -122,14 +130,16 @@ class IDW(nn.Module):
     weights : buffer, shape (N_t, N_c), dense mode only
         W (rows sum to 1).
     assembly_time : float
-        Seconds spent assembling W (0 in matrix-free mode).
+        Seconds spent assembling W, or building the trees in tree mode (0 in
+        matrix-free mode).
 
     Raises
     ------
     ValueError
         For bad points or options; ``mode="dense"`` when W does not fit in the
         memory the device has free (before allocating; the message names
-        ``mode="matrix_free"``).
+        ``mode="matrix_free"``); ``tolerance`` given with a mode other than
+        ``"tree"``; in tree mode, points off the CPU or that require grad.
 
     Notes
     -----
@@ -147,9 +157,22 @@ class IDW(nn.Module):
     a matrix-free module (W is dropped) and a matrix-free one into a dense module
     (W is assembled from the loaded geometry).
 
+    Tree mode (:mod:`torchmorph.idw.tree`) approximates: gradients flow to the
+    displacements only (the backward applies the transpose of the operator that the
+    forward used, so its accuracy follows the forward's displacements: an all-zero
+    field gets the loosest threshold, and a vector-Jacobian product taken at zeros is
+    not held to ``tolerance``), moved ``controls``/``targets`` in :meth:`forward` are
+    refused, and :meth:`weights_matrix` raises — the tree stores no W, and an exact W
+    would not be the map that :meth:`forward` applies. Its state holds ``tolerance``
+    beside ``mode``; two tree states must agree on it, and a tree state loads into a
+    dense or matrix-free module and back (the geometry is the state; the trees are
+    rebuilt from it). ``.to("cuda")`` of a tree module moves its buffers, but its
+    forward then raises: the tree has no CUDA kernels. Tree mode does not compose with
+    ``torch.func`` nor trace under ``torch.compile``.
+
     The forward composes with ``torch.func``: ``vmap`` over displacements (a
     per-value family mapped over μ equals the batched call), ``grad``, ``jacrev``
-    and ``jacfwd`` in both modes; in dense mode also over moved positions. Dense
+    and ``jacfwd`` in the exact modes; in dense mode also over moved positions. Dense
     mode traces under ``torch.compile(fullgraph=True)`` without graph breaks (the
     finiteness check of the inputs is skipped while compiling); matrix-free mode
     does not (its KD-tree search runs in NumPy), nor does it ``vmap`` over positions.
@@ -170,12 +193,18 @@ class IDW(nn.Module):
         dense_bytes: int | None = DEFAULT_DENSE_BYTES,
         coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
         implementation: Implementation = "auto",
+        tolerance: float | None = None,
     ) -> None:
         super().__init__()
         controls = as_points(controls, "controls", dim=dim_of(controls))
         targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True)
         check_same_device_dtype(controls, "controls", targets, "targets")
-        check_choice(mode, "mode", ("auto", "dense", "matrix_free"))
+        check_choice(mode, "mode", ("auto", "dense", "matrix_free", "tree"))
+        if tolerance is not None and mode != "tree":
+            raise ValueError(
+                f"tolerance: only mode='tree' takes a tolerance (the other modes are exact), "
+                f"got mode={mode!r}"
+            )
         self.power = check_power(power)
         self.block_bytes = (
             None if block_bytes is None else int(check_positive(block_bytes, "block_bytes"))
@@ -210,6 +239,14 @@ class IDW(nn.Module):
         self.register_buffer("targets", targets if targets.requires_grad else targets.clone())
         self.assembly_time = 0.0
         self._fused_cache: tuple | None = None
+        self.tolerance: float | None = None
+        self._tree: TreeOperator | None = None
+        if mode == "tree":
+            self._tree = TreeOperator(self.power, self.coincidence_tolerance, tolerance)
+            self.tolerance = self._tree.tolerance
+            start = time.perf_counter()
+            self._tree.operator(self.controls, self.targets)
+            self.assembly_time = time.perf_counter() - start
         if mode == "dense":
             start = time.perf_counter()
             with torch.no_grad():
@@ -236,7 +273,14 @@ class IDW(nn.Module):
         )
 
     def weights_matrix(self) -> Tensor:
-        """W of shape (N_t, N_c): the stored buffer, or assembled now (matrix-free)."""
+        """W of shape (N_t, N_c): the stored buffer, or assembled now (matrix-free).
+
+        Raises ``RuntimeError`` in tree mode, which has no W (see the class notes)."""
+        if self._tree is not None:
+            raise RuntimeError(
+                "weights_matrix: mode='tree' stores no W and applies an approximation of "
+                "it; build the IDW with mode='dense' or 'matrix_free' for W"
+            )
         if self.weights is not None:
             return self.weights
         with torch.no_grad():
@@ -244,28 +288,33 @@ class IDW(nn.Module):
 
     # ----------------------------------------------------------------- state
     def get_extra_state(self) -> dict:
-        return {
+        state = {
             "power": self.power,
             "coincidence_tolerance": self.coincidence_tolerance,
             "mode": self.mode,
         }
+        return state if self.tolerance is None else {**state, "tolerance": self.tolerance}
 
     def set_extra_state(self, state: dict) -> None:
-        check_saved_hyperparameters("IDW", state, self._hyperparameters())
+        self._check_saved(state)
 
     def _hyperparameters(self) -> dict[str, float]:
         return {"power": self.power, "coincidence_tolerance": self.coincidence_tolerance}
+
+    def _check_saved(self, state: dict) -> None:
+        """The load rule; ``tolerance`` is compared between two tree states only."""
+        check_saved_hyperparameters("IDW", state, self._hyperparameters())
+        if self.mode == "tree" and state.get("mode") == "tree":
+            check_saved_hyperparameters("IDW", state, {"tolerance": self.tolerance})
 
     def _load_from_state_dict(
         self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
     ):
         if prefix + "_extra_state" in state_dict:  # before anything is loaded
-            check_saved_hyperparameters(
-                "IDW", state_dict[prefix + "_extra_state"], self._hyperparameters()
-            )
+            self._check_saved(state_dict[prefix + "_extra_state"])
         key = prefix + "weights"
         has_weights = key in state_dict
-        if self.mode == "matrix_free" and has_weights:  # a dense state: W is not needed
+        if self.mode in ("matrix_free", "tree") and has_weights:  # a dense state: W is not needed
             state_dict = {k: v for k, v in state_dict.items() if k != key}
         resize_buffers_for_load(self, state_dict, prefix, ("controls", "targets", "weights"))
         super()._load_from_state_dict(
@@ -355,6 +404,14 @@ class IDW(nn.Module):
         check_same_device_dtype(
             self.controls, "the module's controls", displacements, "displacements"
         )
+        if self._tree is not None:
+            for name, moved in (("controls", controls), ("targets", targets)):
+                if moved is not None:
+                    raise ValueError(
+                        f"{name}: mode='tree' applies the operator of the stored geometry; "
+                        "moved positions need mode='dense' or 'matrix_free'"
+                    )
+            return self._tree.operator(self.controls, self.targets)(displacements)
         new_geometry = controls is not None or targets is not None
         if controls is not None:
             controls = self._check_moved(controls, self.controls, "controls")
@@ -428,5 +485,6 @@ class IDW(nn.Module):
         return (
             f"num_controls={self.num_controls}, num_targets={self.num_targets}, "
             f"power={self.power:g}, mode={self.mode!r}, "
-            f"implementation={self.implementation!r}"
+            + ("" if self.tolerance is None else f"tolerance={self.tolerance:g}, ")
+            + f"implementation={self.implementation!r}"
         )
