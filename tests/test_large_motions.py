@@ -107,6 +107,8 @@ def test_rotation_aware_morph_refuses_bad_rotations():
         morph(boundary, rotations=bad.float())
     with pytest.raises(ValueError, match="reach must be a positive length"):
         morph(boundary, rotations="fit", reach=-1.0)
+    with pytest.raises(ValueError, match="reach: only a rotation-aware morph"):
+        morph(boundary, reach=1.0)
 
 
 def test_one_step_is_the_plain_morph_and_steps_end_on_the_boundary():

@@ -55,7 +55,7 @@ class MeshMorph(nn.Module):
         boundary nodes.
     power : float
         IDW exponent (default 4).
-    mode : {"auto", "dense", "matrix_free"}
+    mode : {"auto", "dense", "matrix_free", "tree"}
         Passed to :class:`~torchmorph.idw.IDW`.
     generator : torch.Generator, optional
         Randomness of the selection (random start points and strategy).
@@ -364,6 +364,8 @@ class MeshMorph(nn.Module):
         ):
             shape = tuple(points.shape) if isinstance(points, Tensor) else type(points)
             raise ValueError(f"points must have shape {tuple(self.points.shape)}, got {shape}")
+        if reach is not None and rotations is None:
+            raise ValueError("reach: only a rotation-aware morph (rotations=...) takes a reach")
         if rotations is not None:
             from torchmorph.large_motions import rotation_aware
 
