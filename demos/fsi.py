@@ -37,6 +37,7 @@ convergence and of a section of the deformed fluid mesh.
 from __future__ import annotations
 
 import argparse
+import copy
 import math
 import sys
 import time
@@ -288,14 +289,8 @@ def training_responses(interface: Interface) -> list[np.ndarray]:
     responses = []
     for degrees in (-10.0, -5.0, 0.0, 5.0, 10.0):
         alpha = math.radians(degrees)
-        flow_at = type(flow)(
-            flow.tets,
-            flow.wall_faces,
-            flow.wing_faces,
-            flow.num_nodes,
-            velocity=speed * np.array([math.cos(alpha), math.sin(alpha), 0.0]),
-            density=flow.density,
-        )
+        flow_at = copy.copy(flow)  # the same mesh and faces, another free stream
+        flow_at.velocity = speed * np.array([math.cos(alpha), math.sin(alpha), 0.0])
         forces = interface.to_structure.spread(flow_at.solve(reference).forces)
         responses.append(structure.solve(forces))
     points = wing.points.numpy()

@@ -35,7 +35,13 @@ ABOVE_THE_CORE = (
 #: The only library modules that may import data_gen (the paper's reproduction).
 MAY_USE_DATA_GEN = ("torchmorph.paper",)
 #: Shared helpers every subpackage may use.
-SHARED = ("torchmorph._checks", "torchmorph._state", "torchmorph._atomic", "torchmorph._timing")
+SHARED = (
+    "torchmorph._checks",
+    "torchmorph._state",
+    "torchmorph._atomic",
+    "torchmorph._timing",
+    "torchmorph._memory",
+)
 
 
 def module_name(path: Path) -> str:

@@ -16,6 +16,7 @@ from torchmorph.cli._common import (
     _float_list,
     _line,
     _positive_float,
+    _positive_int,
     _seconds,
 )
 from torchmorph.meshing.estimate import MAX_ELEMENTS
@@ -126,7 +127,7 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
     )
     sizing.add_argument(
         "--threads",
-        type=_threads,
+        type=_positive_int,
         default=1,
         help="fTetWild's threads, gmsh's for CAD files (default 1: reproducible)",
     )
@@ -175,16 +176,6 @@ from 0.08 on the car to 0.6; the third: a CAD part in a box, meshed with gmsh, n
 sets part, far_field, the walls, part_face0 ... and part_edges; the fourth morphs
 the first result by a displacement of the body, see 'torchmorph morph --help')
 """
-
-
-def _threads(text: str) -> int:
-    try:
-        number = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if number < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return number
 
 
 def _max_elements(text: str) -> int | None:

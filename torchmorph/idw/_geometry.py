@@ -6,7 +6,6 @@ a device has free, and the warning about duplicated control points."""
 from __future__ import annotations
 
 import math
-import os
 import warnings
 
 import torch
@@ -155,31 +154,6 @@ def dim_of(points) -> int:
     if shape is not None and len(shape) == 2 and shape[1] >= 1:
         return int(shape[1])
     return 3
-
-
-def free_memory(device: torch.device) -> int:
-    """Bytes the device can still allocate: CUDA's free memory plus what torch's caching
-    allocator holds unused; on the CPU the kernel's MemAvailable (physical memory if
-    unknown)."""
-    if device.type == "cuda":
-        free, _ = torch.cuda.mem_get_info(device)
-        stats = torch.cuda.memory_stats(device)
-        return int(
-            free
-            + stats.get("reserved_bytes.all.current", 0)
-            - stats.get("allocated_bytes.all.current", 0)
-        )
-    try:
-        with open("/proc/meminfo") as info:
-            for line in info:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return 2**63 - 1
 
 
 def warn_duplicate_controls(controls: Tensor, tolerance: float, targets: Tensor) -> None:

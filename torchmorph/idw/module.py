@@ -18,6 +18,7 @@ from torchmorph._checks import (
     check_same_device_dtype,
     check_vectors,
 )
+from torchmorph._memory import free_memory
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph.idw._dispatch import (
     apply_with,
@@ -31,7 +32,6 @@ from torchmorph.idw._geometry import (
     check_power,
     check_tolerance,
     dim_of,
-    free_memory,
     prepare,
     warn_duplicate_controls,
 )

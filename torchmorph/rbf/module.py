@@ -4,7 +4,6 @@ mode, the evaluation matrix as registered buffers, over :mod:`torchmorph.rbf.sys
 
 from __future__ import annotations
 
-import os
 import time
 from typing import Literal
 
@@ -18,6 +17,7 @@ from torchmorph._checks import (
     check_same_device_dtype,
     check_vectors,
 )
+from torchmorph._memory import free_memory
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph.rbf.functional import (
     check_distinct,
@@ -40,23 +40,6 @@ from torchmorph.rbf.system import FACTOR_NAMES, factorise, solve
 __all__ = ["RBF", "Mode"]
 
 Mode = Literal["auto", "dense", "matrix_free"]
-
-
-def free_memory(device: torch.device) -> int:
-    """Bytes the device can still allocate (CUDA's free memory; on the CPU MemAvailable)."""
-    if device.type == "cuda":
-        return int(torch.cuda.mem_get_info(device)[0])
-    try:
-        with open("/proc/meminfo") as info:
-            for line in info:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return 2**63 - 1
 
 
 class RBF(nn.Module):
