@@ -20,6 +20,7 @@ CORE = (
     "torchmorph.rbf",
     "torchmorph.selection",
     "torchmorph.morph",
+    "torchmorph._morph_state",
     "torchmorph.large_motions",
     "torchmorph.pod",
     "torchmorph.mesh",

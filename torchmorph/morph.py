@@ -20,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from torchmorph._checks import check_same_device_dtype, check_vectors
+from torchmorph._morph_state import STATE_VERSION, check_morph_state, upgraded_state
 from torchmorph._state import resize_buffers_for_load
 from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE
 from torchmorph.idw.module import DEFAULT_DENSE_BYTES, IDW, Implementation, Mode
@@ -174,7 +175,7 @@ class MeshMorph(nn.Module):
         "node_set_members",
         "node_set_offsets",
     )
-    _STATE_VERSION = 2  # 1: tetrahedra only, a "tets" buffer (still loads)
+    _STATE_VERSION = STATE_VERSION
 
     @property
     def node_sets(self) -> dict[str, Tensor]:
@@ -200,8 +201,8 @@ class MeshMorph(nn.Module):
         self._cell_blocks = [(str(kind), int(count)) for kind, count in state["cell_blocks"]]
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        state_dict = _upgraded_state(state_dict, prefix)
-        _check_morph_state(state_dict, prefix)
+        state_dict = upgraded_state(state_dict, prefix)
+        check_morph_state(state_dict, prefix)
         resize_buffers_for_load(self, state_dict, prefix, self._STATE_BUFFERS)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
@@ -481,149 +482,3 @@ def boundary_rows(boundary: Tensor, control_nodes: Tensor) -> Tensor:
     ):
         raise ValueError("plan selected nodes that are not boundary nodes")
     return rows
-
-
-def _upgraded_state(state_dict, prefix: str):
-    """A state saved by version 1 (tetrahedra only: a ``tets`` buffer) in version 2's
-    form (``cell_nodes``, ``cell_orientation`` and the blocks in the extra state); other
-    states as they are."""
-    extra = state_dict.get(prefix + "_extra_state")
-    tets = state_dict.get(prefix + "tets")
-    if not (isinstance(extra, dict) and extra.get("version") == 1 and isinstance(tets, Tensor)):
-        return state_dict
-    if tets.ndim != 2 or tets.shape[1] != 4:
-        raise ValueError(f"state_dict[{prefix + 'tets'!r}]: must have shape (M, 4)")
-    upgraded = {key: value for key, value in state_dict.items() if key != prefix + "tets"}
-    upgraded[prefix + "cell_nodes"] = tets.reshape(-1)
-    upgraded[prefix + "cell_orientation"] = torch.ones(
-        tets.shape[0], dtype=torch.int8, device=tets.device
-    )
-    upgraded[prefix + "_extra_state"] = {
-        **extra,
-        "version": MeshMorph._STATE_VERSION,
-        "cell_blocks": [["tetra", int(tets.shape[0])]],
-    }
-    return upgraded
-
-
-def _check_morph_state(state_dict, prefix: str) -> None:
-    """Raise ``ValueError`` naming the field if a MeshMorph state is inconsistent.
-
-    Runs before anything is loaded, so a rejected state leaves the module as it was.
-    Missing entries are left to ``load_state_dict``'s own missing-key report.
-    """
-
-    def entry(name: str) -> Any:
-        return state_dict.get(prefix + name)
-
-    def fail(name: str, message: str) -> None:
-        raise ValueError(f"state_dict[{prefix + name!r}]: {message}")
-
-    def index(name: str, size: int | None = None) -> Tensor | None:
-        value = entry(name)
-        if value is None:
-            return None
-        if (
-            not isinstance(value, Tensor)
-            or value.ndim != 1
-            or value.is_floating_point()
-            or value.dtype == torch.bool
-        ):
-            fail(name, "must be a 1-D integer tensor")
-        if (
-            size is not None
-            and value.numel()
-            and (int(value.min()) < 0 or int(value.max()) >= size)
-        ):
-            fail(name, f"holds indices outside [0, {size})")
-        return value
-
-    extra = entry("_extra_state")
-    if extra is not None:
-        if (
-            not isinstance(extra, dict)
-            or not isinstance(extra.get("node_set_names"), list)
-            or not all(isinstance(n, str) and n for n in extra["node_set_names"])
-        ):
-            fail("_extra_state", "must hold 'node_set_names', a list of non-empty strings")
-        if extra.get("version") != MeshMorph._STATE_VERSION:
-            fail(
-                "_extra_state",
-                f"version {extra.get('version')!r} is not {MeshMorph._STATE_VERSION}",
-            )
-        blocks = extra.get("cell_blocks")
-        if not isinstance(blocks, list) or not all(
-            isinstance(b, (list, tuple)) and len(b) == 2 and isinstance(b[1], int) and b[1] >= 0
-            for b in blocks
-        ):
-            fail("_extra_state", "must hold 'cell_blocks', a list of [kind, count] pairs")
-        try:
-            width = sum(cell_kind(kind).num_nodes * count for kind, count in blocks)
-        except ValueError as error:
-            fail("_extra_state", str(error))
-        nodes = entry("cell_nodes")
-        if isinstance(nodes, Tensor) and nodes.numel() != width:
-            fail("cell_nodes", f"holds {nodes.numel()} entries but the cell blocks need {width}")
-        orientation = entry("cell_orientation")
-        count = sum(count for _, count in blocks)
-        if isinstance(orientation, Tensor) and orientation.numel() != count:
-            fail("cell_orientation", f"holds {orientation.numel()} entries for {count} cells")
-    points = entry("points")
-    if points is None:
-        return
-    if (
-        not isinstance(points, Tensor)
-        or points.ndim != 2
-        or points.shape[1] not in (2, 3)
-        or not points.is_floating_point()
-    ):
-        fail(
-            "points",
-            f"must be a floating tensor (N, 2 or 3), got {getattr(points, 'shape', points)}",
-        )
-    num_nodes = points.shape[0]
-    index("cell_nodes", num_nodes)
-    boundary = index("boundary_nodes", num_nodes)
-    interior = index("interior_nodes", num_nodes)
-    if boundary is not None and interior is not None:
-        together = torch.cat([boundary, interior]).cpu()
-        if together.numel() != num_nodes or not torch.equal(
-            torch.sort(together).values, torch.arange(num_nodes)
-        ):
-            fail(
-                "interior_nodes",
-                f"boundary_nodes and interior_nodes must split the {num_nodes} nodes into two sets",
-            )
-    selected = index("selected", None if boundary is None else boundary.numel())
-    controls = index("control_nodes", num_nodes)
-    if (
-        selected is not None
-        and controls is not None
-        and boundary is not None
-        and not torch.equal(boundary.cpu()[selected.cpu()], controls.cpu())
-    ):
-        fail("control_nodes", "must equal boundary_nodes[selected]")
-    members = index("node_set_members", num_nodes)
-    offsets = index("node_set_offsets")
-    if members is not None and offsets is not None:
-        steps = offsets.cpu().diff()
-        if (
-            offsets.numel() == 0
-            or int(offsets[0]) != 0
-            or int(offsets[-1]) != members.numel()
-            or bool((steps < 0).any())
-        ):
-            fail("node_set_offsets", "must rise from 0 to the number of node_set_members")
-        if extra is not None and offsets.numel() != len(extra["node_set_names"]) + 1:
-            fail(
-                "node_set_offsets",
-                f"holds {offsets.numel() - 1} node sets but the names are "
-                f"{len(extra['node_set_names'])}",
-            )
-    for name, expected in (
-        ("idw.controls", None if controls is None else controls.numel()),
-        ("idw.targets", None if interior is None else interior.numel()),
-    ):
-        value = entry(name)
-        if expected is not None and isinstance(value, Tensor) and value.shape[0] != expected:
-            fail(name, f"has {value.shape[0]} rows but the morph's state needs {expected}")
