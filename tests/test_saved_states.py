@@ -35,6 +35,14 @@ def test_mesh_morph_state_of_0_1_0_loads(saved):
     )
 
 
+def test_mesh_morph_state_of_0_1_0_is_an_idw_morph(saved):
+    morph = MeshMorph(box_mesh(2), mode="dense")
+    morph.load_state_dict(saved["mesh_morph"])
+    assert morph.method == "idw" and morph.state_dict()["_extra_state"]["method"] == "idw"
+    with pytest.raises(ValueError, match="method: the state was saved with method='idw'"):
+        MeshMorph(box_mesh(2), method="rbf").load_state_dict(saved["mesh_morph"])
+
+
 def test_pod_reducer_state_of_0_1_0_loads(saved):
     with pytest.raises(ValueError, match="energy_tolerance: the state was saved with"):
         PODReducer().load_state_dict(saved["pod_reducer"])  # the load rule: same hyper-parameters

@@ -1,28 +1,42 @@
 """The saved state of a :class:`~torchmorph.morph.MeshMorph`: its version, the upgrade of
-older versions, and the consistency check run before anything is loaded."""
+older versions, and the consistency checks run before anything is loaded."""
 
 from __future__ import annotations
 
 from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
+from torchmorph._state import check_saved_hyperparameters
 from torchmorph.mesh.cells import cell_kind
+from torchmorph.rbf.module import RBF
 
-__all__ = ["STATE_VERSION", "check_morph_state", "upgraded_state"]
+__all__ = ["STATE_VERSION", "check_interpolant_state", "check_morph_state", "upgraded_state"]
 
-#: The version of MeshMorph's extra state (1: tetrahedra only, a "tets" buffer; still loads).
-STATE_VERSION = 2
+#: The version of MeshMorph's extra state. 1: tetrahedra only, a "tets" buffer; 2: cell
+#: blocks, IDW only; 3: the method ("idw" or "rbf") in the extra state. All still load.
+STATE_VERSION = 3
 
 
 def upgraded_state(state_dict, prefix: str):
-    """A state saved by version 1 (tetrahedra only: a ``tets`` buffer) in version 2's
-    form (``cell_nodes``, ``cell_orientation`` and the blocks in the extra state); other
-    states as they are."""
+    """A state saved by an earlier version in this version's form (other states as they
+    are): version 1's ``tets`` buffer as ``cell_nodes``, ``cell_orientation`` and the
+    blocks in the extra state; versions 1 and 2 (IDW only) with ``method="idw"``."""
     extra = state_dict.get(prefix + "_extra_state")
+    if isinstance(extra, dict) and extra.get("version") == 1:
+        state_dict = _upgraded_from_1(state_dict, prefix, extra)
+        extra = state_dict.get(prefix + "_extra_state")
+    if isinstance(extra, dict) and extra.get("version") == 2:
+        state_dict = dict(state_dict)
+        state_dict[prefix + "_extra_state"] = {**extra, "version": 3, "method": "idw"}
+    return state_dict
+
+
+def _upgraded_from_1(state_dict, prefix: str, extra: dict):
+    """Version 1 (a ``tets`` buffer) in version 2's form."""
     tets = state_dict.get(prefix + "tets")
-    if not (isinstance(extra, dict) and extra.get("version") == 1 and isinstance(tets, Tensor)):
+    if not isinstance(tets, Tensor):
         return state_dict
     if tets.ndim != 2 or tets.shape[1] != 4:
         raise ValueError(f"state_dict[{prefix + 'tets'!r}]: must have shape (M, 4)")
@@ -33,7 +47,7 @@ def upgraded_state(state_dict, prefix: str):
     )
     upgraded[prefix + "_extra_state"] = {
         **extra,
-        "version": STATE_VERSION,
+        "version": 2,
         "cell_blocks": [["tetra", int(tets.shape[0])]],
     }
     return upgraded
@@ -84,6 +98,8 @@ def check_morph_state(state_dict, prefix: str) -> None:
                 "_extra_state",
                 f"version {extra.get('version')!r} is not {STATE_VERSION}",
             )
+        if extra.get("method") not in ("idw", "rbf"):
+            fail("_extra_state", f"method {extra.get('method')!r} is not 'idw' or 'rbf'")
         blocks = extra.get("cell_blocks")
         if not isinstance(blocks, list) or not all(
             isinstance(b, (list, tuple)) and len(b) == 2 and isinstance(b[1], int) and b[1] >= 0
@@ -154,9 +170,26 @@ def check_morph_state(state_dict, prefix: str) -> None:
                 f"{len(extra['node_set_names'])}",
             )
     for name, expected in (
-        ("idw.controls", None if controls is None else controls.numel()),
-        ("idw.targets", None if interior is None else interior.numel()),
+        (f"{method}.{part}", None if rows is None else rows.numel())
+        for method in ("idw", "rbf")
+        for part, rows in (("controls", controls), ("targets", interior))
     ):
         value = entry(name)
         if expected is not None and isinstance(value, Tensor) and value.shape[0] != expected:
             fail(name, f"has {value.shape[0]} rows but the morph's state needs {expected}")
+
+
+def check_interpolant_state(state_dict, prefix: str, interpolant: nn.Module) -> None:
+    """Raise ``ValueError`` naming the field if the RBF state under ``prefix`` was saved
+    with other hyper-parameters than ``interpolant``'s, before anything is loaded (an
+    IDW checks its own when it loads)."""
+    extra = state_dict.get(prefix + "_extra_state")
+    if extra is None or not isinstance(interpolant, RBF):
+        return
+    current = {
+        "kernel": interpolant.kernel,
+        "epsilon": interpolant.epsilon,
+        "degree": interpolant.degree,
+        "support_radius": interpolant.support_radius,
+    }
+    check_saved_hyperparameters("RBF", extra, current)

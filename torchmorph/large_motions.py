@@ -17,7 +17,9 @@ Ballarin et al. 2017) produces around a body that turns far:
 
 Both work on any :class:`~torchmorph.morph.MeshMorph` (any element kinds, 2-D or 3-D,
 IDW or a selection), are differentiable like its forward pass, and take batches (the
-steps of a batch are walked one displacement at a time).
+steps of a batch are walked one displacement at a time). Increments work with
+``method="rbf"`` as well (the RBF system factorised again from each step's positions);
+rotations do not (they blend IDW's positive weights): a ``ValueError``.
 """
 
 from __future__ import annotations
@@ -47,7 +49,10 @@ class MeshMorph(Protocol):
     interior_nodes: Tensor
     control_nodes: Tensor
     selected: Tensor
-    idw: Any
+    method: str
+
+    @property
+    def interpolant(self) -> Any: ...
 
     @property
     def dim(self) -> int: ...
@@ -161,6 +166,11 @@ def rotation_aware(
     -------
     Tensor, shape (N_int, D) or (B, N_int, D)
     """
+    if morph.method != "idw":
+        raise ValueError(
+            f"rotations: the rotation-aware morph blends IDW weights (method='idw'); this "
+            f"morph's method is {morph.method!r}"
+        )
     reference = morph.points if points is None else points
     omega = _boundary_rotations(morph, boundary_displacement, rotations, reference)
     if reach is None:
@@ -170,8 +180,8 @@ def rotation_aware(
 
     def apply(values: Tensor) -> Tensor:
         if points is None:
-            return morph.idw(values)
-        return morph.idw(values, controls=controls, targets=targets)
+            return morph.interpolant(values)
+        return morph.interpolant(values, controls=controls, targets=targets)
 
     return blend_rigid_motions(
         apply,
@@ -303,7 +313,7 @@ def _walk(
             moved = rotation_aware(morph, increment, rotations="fit", points=current, reach=reach)
         else:
             controls = morph.controls_from_boundary(increment)
-            moved = morph.idw(
+            moved = morph.interpolant(
                 controls,
                 controls=current[morph.control_nodes],
                 targets=current[interior],

@@ -2,8 +2,8 @@
 
 :class:`MeshMorph` composes the pieces: control points chosen from the
 boundary nodes (all of them, or a :class:`~torchmorph.selection.SelectionPlan`
-for SIDW/ESIDW), an :class:`~torchmorph.idw.IDW` from the selected points to
-the interior nodes, and the scatter of boundary and interior displacements
+for SIDW/ESIDW), an :class:`~torchmorph.idw.IDW` (or, with ``method="rbf"``, an
+:class:`~torchmorph.rbf.RBF`) from the selected points to the interior nodes, and the scatter of boundary and interior displacements
 into one nodal field. Nothing of it depends on the element kinds or on the
 dimension: a :class:`~torchmorph.mesh.Mesh` of any kinds, 2-D or 3-D, is morphed
 alike (the paper: SIDW/ESIDW "can be applied to any dimension and to arbitrary
@@ -20,13 +20,24 @@ import torch
 from torch import Tensor, nn
 
 from torchmorph._checks import check_same_device_dtype, check_vectors
-from torchmorph._morph_state import STATE_VERSION, check_morph_state, upgraded_state
-from torchmorph._state import resize_buffers_for_load
-from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE
+from torchmorph._morph_methods import (
+    Method,
+    build_interpolant,
+    check_method_options,
+    interpolation_matrix,
+)
+from torchmorph._morph_state import (
+    STATE_VERSION,
+    check_interpolant_state,
+    check_morph_state,
+    upgraded_state,
+)
+from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph.idw.module import DEFAULT_DENSE_BYTES, IDW, Implementation, Mode
 from torchmorph.mesh.cells import cell_kind
 from torchmorph.mesh.model import CellBlock, Mesh
 from torchmorph.mesh.quality import inverted_cells
+from torchmorph.rbf.module import RBF
 
 if TYPE_CHECKING:
     from torchmorph.selection.plan import AdaptivePlan, SelectionPlan
@@ -35,12 +46,14 @@ __all__ = ["MeshMorph"]
 
 
 class MeshMorph(nn.Module):
-    """IDW / SIDW / ESIDW morph of a mesh of any element kinds, 2-D or 3-D (Algorithm 2).
+    """IDW / SIDW / ESIDW (or RBF) morph of a mesh of any element kinds, 2-D or 3-D
+    (Algorithm 2).
 
     Selection phase (once, here): choose the control points among the boundary
     nodes — every boundary node when ``plan`` is None (plain IDW), else the
     union of Algorithm 1 per region plus the enrichment sets of ``plan`` —
-    and assemble W between them and the interior nodes.
+    and assemble W between them and the interior nodes (``method="rbf"``: factorise
+    the RBF system of the control points instead).
     Deformation phase (:meth:`forward`, many times): boundary nodes take their
     prescribed displacement exactly; interior nodes get ``W d_selected``.
 
@@ -53,11 +66,21 @@ class MeshMorph(nn.Module):
         nodes, and the others interior nodes.
     plan : SelectionPlan or AdaptivePlan, optional
         Control-point selection: SIDW/ESIDW, or error-driven (AdaptivePlan). None: all
-        boundary nodes.
+        boundary nodes. Either method interpolates from the controls it selects (an
+        AdaptivePlan measures IDW's error whatever the method).
+    method : {"idw", "rbf"}
+        How the interior follows the controls: inverse distance weighting (the paper's
+        eq. 2, default) or radial basis functions (:class:`~torchmorph.rbf.RBF`, exact at
+        the controls, reproducing affine motions with ``degree >= 1``). An option of the
+        other method is a ``ValueError`` naming it.
     power : float
-        IDW exponent (default 4).
+        IDW exponent (default 4). IDW only.
+    kernel, epsilon, degree, support_radius
+        RBF only: passed to :class:`~torchmorph.rbf.RBF` (defaults: the thin-plate
+        spline, degree 1; epsilon and support_radius as RBF requires for the kernel).
     mode : {"auto", "dense", "matrix_free", "tree"}
-        Passed to :class:`~torchmorph.idw.IDW`.
+        Passed to :class:`~torchmorph.idw.IDW` or :class:`~torchmorph.rbf.RBF`
+        (``"tree"`` is IDW's only).
     generator : torch.Generator, optional
         Randomness of the selection (random start points and strategy).
     block_bytes, dense_bytes : int, optional
@@ -65,9 +88,9 @@ class MeshMorph(nn.Module):
         half of the free memory).
     implementation : {"auto", "fused", "torch"}
         Passed to :class:`~torchmorph.idw.IDW`: fused kernels (Triton on CUDA, numba
-        on the CPU) or torch operations.
+        on the CPU) or torch operations. IDW only.
     coincidence_tolerance : float
-        Passed to :class:`~torchmorph.idw.IDW`.
+        Passed to :class:`~torchmorph.idw.IDW`. IDW only.
 
     Attributes
     ----------
@@ -79,10 +102,17 @@ class MeshMorph(nn.Module):
         Indices into ``boundary_nodes`` of the control points.
     control_nodes : buffer (N_sel,)
         Global ids of the control points.
+    method : str
+        ``"idw"`` or ``"rbf"``.
     idw : IDW
-        The interpolation from control points to interior nodes.
+        With ``method="idw"``: the interpolation from control points to interior nodes.
+    rbf : RBF
+        With ``method="rbf"``: the same, by radial basis functions.
+    interpolant : IDW or RBF
+        Whichever of the two the morph has.
     selection_time, assembly_time : float
-        Seconds spent selecting control points and assembling W.
+        Seconds spent selecting control points and assembling W (RBF: factorising the
+        system and, dense, assembling its evaluation matrix).
 
     Notes
     -----
@@ -96,6 +126,14 @@ class MeshMorph(nn.Module):
     and to ``points``, works under ``torch.func`` transforms (``vmap`` over a
     parameter, ``jacrev``/``jacfwd`` with respect to it) and, with a dense W, under
     ``torch.compile(fullgraph=True)``; see :class:`~torchmorph.idw.IDW`.
+
+    With ``method="rbf"`` everything above holds (the morph is linear in the
+    displacement: POD reduction, :meth:`adjoint`, :meth:`weights_matrix` computed from
+    the RBF, gradients, batches) except the rotation-aware morph (``rotations=``, which
+    blends IDW's positive weights) and ``mode="tree"``: both raise ``ValueError``.
+    The method and the RBF's hyper-parameters are part of :meth:`state_dict`: a state
+    loads only into a morph of the same method and hyper-parameters (states saved before
+    the method existed are IDW's).
     """
 
     # buffers, registered in __init__
@@ -114,19 +152,38 @@ class MeshMorph(nn.Module):
         mesh: Mesh,
         plan: SelectionPlan | AdaptivePlan | None = None,
         *,
-        power: float = 4.0,
+        method: Method = "idw",
+        power: float | None = None,
+        kernel: str | None = None,
+        epsilon: float | None = None,
+        degree: int | None = None,
+        support_radius: float | None = None,
         mode: Mode = "auto",
         generator: torch.Generator | None = None,
         block_bytes: int | None = None,
         dense_bytes: int | None = DEFAULT_DENSE_BYTES,
-        implementation: Implementation = "auto",
-        coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
+        implementation: Implementation | None = None,
+        coincidence_tolerance: float | None = None,
     ) -> None:
         super().__init__()
         if not isinstance(mesh, Mesh):
             raise TypeError(
                 f"mesh must be a torchmorph Mesh (or TetMesh), got {type(mesh).__name__}"
             )
+        options = check_method_options(
+            method,
+            mode,
+            {
+                "power": power,
+                "implementation": implementation,
+                "coincidence_tolerance": coincidence_tolerance,
+                "kernel": kernel,
+                "epsilon": epsilon,
+                "degree": degree,
+                "support_radius": support_radius,
+            },
+        )
+        self.method: str = method
         boundary = mesh.boundary_nodes
         interior = mesh.interior_nodes
         start = time.perf_counter()
@@ -151,17 +208,27 @@ class MeshMorph(nn.Module):
             torch.cat([boundary.new_empty(0), *(nodes.to(boundary.device) for nodes in members)]),
         )
         self.register_buffer("node_set_offsets", torch.cumsum(sizes, 0).to(boundary.device))
-        self.idw = IDW(
+        interpolant = build_interpolant(
+            method,
             self.points[control_nodes],
             self.points[interior],
-            power=power,
             mode=mode,
             block_bytes=block_bytes,
             dense_bytes=dense_bytes,
-            implementation=implementation,
-            coincidence_tolerance=coincidence_tolerance,
+            options=options,
         )
-        self.assembly_time = self.idw.assembly_time
+        if isinstance(interpolant, IDW):
+            self.idw = interpolant
+            self.assembly_time = interpolant.assembly_time
+        else:
+            self.rbf = interpolant
+            self.assembly_time = interpolant.fit_time + interpolant.evaluation_time
+
+    @property
+    def interpolant(self) -> IDW | RBF:
+        """The interpolation from the control points to the interior nodes: :attr:`idw`
+        or :attr:`rbf`."""
+        return self._modules[self.method]  # type: ignore[return-value]
 
     # ------------------------------------------------------------------ state
     _STATE_BUFFERS = (
@@ -192,6 +259,7 @@ class MeshMorph(nn.Module):
     def get_extra_state(self) -> dict[str, Any]:
         return {
             "version": self._STATE_VERSION,
+            "method": self.method,
             "node_set_names": list(self._node_set_names),
             "cell_blocks": [list(block) for block in self._cell_blocks],
         }
@@ -203,6 +271,10 @@ class MeshMorph(nn.Module):
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         state_dict = upgraded_state(state_dict, prefix)
         check_morph_state(state_dict, prefix)
+        extra = state_dict.get(prefix + "_extra_state")
+        if extra is not None:  # before anything is loaded
+            check_saved_hyperparameters("MeshMorph", extra, {"method": self.method})
+        check_interpolant_state(state_dict, prefix + self.method + ".", self.interpolant)
         resize_buffers_for_load(self, state_dict, prefix, self._STATE_BUFFERS)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
@@ -334,7 +406,8 @@ class MeshMorph(nn.Module):
         rotations: str | Tensor | None = None,
         reach: float | None = None,
     ) -> Tensor:
-        """Morph: displacement of every node of the mesh.
+        """Morph: displacement of every node of the mesh (``W d_selected`` inside: IDW or
+        RBF, as ``method``).
 
         Parameters
         ----------
@@ -349,7 +422,7 @@ class MeshMorph(nn.Module):
             (:func:`torchmorph.large_motions.rotation_aware`): ``"fit"`` fits each
             boundary node's rotation to its neighbourhood's motion; a tensor (N_b, r) or
             (B, N_b, r) gives them (r = 1 angle in 2-D, 3 rotation vector in 3-D).
-            None (default): plain IDW.
+            None (default): plain IDW. ``method="idw"`` only.
         reach : float, optional
             With ``rotations``: the distance from the turning part within which the
             rotation is carried whole (default: that part's size).
@@ -367,6 +440,11 @@ class MeshMorph(nn.Module):
             raise ValueError(f"points must have shape {tuple(self.points.shape)}, got {shape}")
         if reach is not None and rotations is None:
             raise ValueError("reach: only a rotation-aware morph (rotations=...) takes a reach")
+        if rotations is not None and self.method != "idw":
+            raise ValueError(
+                f"rotations: the rotation-aware morph blends IDW weights (method='idw'); this "
+                f"morph's method is {self.method!r}"
+            )
         if rotations is not None:
             from torchmorph.large_motions import rotation_aware
 
@@ -376,9 +454,9 @@ class MeshMorph(nn.Module):
             return self.assemble(boundary_displacement, interior)
         controls = self.controls_from_boundary(boundary_displacement)
         if points is None:
-            interior = self.idw(controls)
+            interior = self.interpolant(controls)
         else:
-            interior = self.idw(
+            interior = self.interpolant(
                 controls, controls=points[self.control_nodes], targets=points[self.interior_nodes]
             )
         return self.assemble(boundary_displacement, interior)
@@ -397,21 +475,27 @@ class MeshMorph(nn.Module):
         return self.selected
 
     def weights_matrix(self) -> Tensor:
-        """W (N_int, N_sel): ``forward(d)[:, interior_nodes] = W @ d[:, selected]``."""
-        return self.idw.weights_matrix()
+        """W (N_int, N_sel): ``forward(d)[:, interior_nodes] = W @ d[:, selected]``.
+
+        IDW's stored (or assembled) W; for ``method="rbf"`` the RBF applied to the unit
+        displacements of the controls (one batched solve and evaluation, N_int x N_sel
+        memory)."""
+        if self.method == "idw":
+            return self.idw.weights_matrix()
+        return interpolation_matrix(self.rbf, self.num_controls, self.dim)
 
     def adjoint(self, fields: Tensor) -> Tensor:
         """The transpose of the morph: nodal fields (B, N, D) -> (B, N_b, D).
 
         Boundary rows pass through; interior rows are mapped by Wᵀ onto the control
-        points (one GEMM with a dense W, a vector-Jacobian product of the IDW
-        otherwise). The morph is linear, so ``<morph(d), g> = <d, adjoint(g)>``.
+        points (one GEMM with IDW's dense W, a vector-Jacobian product of the IDW or
+        RBF otherwise). The morph is linear, so ``<morph(d), g> = <d, adjoint(g)>``.
         """
         dim = self.dim
         check_vectors(fields, "fields", self.num_nodes, dim=dim, what="mesh nodes")
         batch = fields if fields.ndim == 3 else fields.unsqueeze(0)
         interior = batch.index_select(1, self.interior_nodes)
-        weights = getattr(self.idw, "weights", None)
+        weights = getattr(self.interpolant, "weights", None)
         if isinstance(weights, Tensor):
             columns = interior.permute(1, 0, 2).reshape(self.num_interior, -1)  # (N_int, D B)
             controls = (columns.mT @ weights).reshape(batch.shape[0], dim, -1).mT
@@ -419,7 +503,9 @@ class MeshMorph(nn.Module):
             with torch.enable_grad():
                 shape = (batch.shape[0], self.num_controls, dim)
                 probe = batch.new_zeros(shape, requires_grad=True)
-                (controls,) = torch.autograd.grad(self.idw(probe), probe, grad_outputs=interior)
+                (controls,) = torch.autograd.grad(
+                    self.interpolant(probe), probe, grad_outputs=interior
+                )
         result = batch.index_select(1, self.boundary_nodes)
         result = result.index_add(1, self.selected, controls)
         return result if fields.ndim == 3 else result[0]
@@ -456,7 +542,7 @@ class MeshMorph(nn.Module):
         return (
             f"num_nodes={self.num_nodes}, num_boundary={self.num_boundary}, "
             f"num_interior={self.num_interior}, num_controls={self.num_controls}, "
-            f"mode={self.idw.mode!r}"
+            f"method={self.method!r}, mode={self.interpolant.mode!r}"
         )
 
 

@@ -1,0 +1,114 @@
+"""The interpolants a :class:`~torchmorph.morph.MeshMorph` moves its interior nodes with:
+IDW (the paper's eq. 2, :class:`~torchmorph.idw.IDW`) or radial basis functions
+(:class:`~torchmorph.rbf.RBF`). Each method's options are checked here (an option of the
+other method is an error naming it) and the module is built from them."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import torch
+from torch import Tensor, nn
+
+from torchmorph._checks import check_choice
+from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE
+from torchmorph.idw.module import IDW
+from torchmorph.rbf.module import RBF
+
+__all__ = [
+    "IDW_OPTIONS",
+    "METHODS",
+    "RBF_OPTIONS",
+    "Method",
+    "build_interpolant",
+    "check_method_options",
+    "interpolation_matrix",
+]
+
+Method = Literal["idw", "rbf"]
+
+METHODS = ("idw", "rbf")
+#: Options that only IDW takes, with their defaults.
+IDW_OPTIONS: dict[str, Any] = {
+    "power": 4.0,
+    "implementation": "auto",
+    "coincidence_tolerance": DEFAULT_COINCIDENCE_TOLERANCE,
+}
+#: Options that only RBF takes, with their defaults (epsilon and support_radius: RBF's).
+RBF_OPTIONS: dict[str, Any] = {
+    "kernel": "thin_plate_spline",
+    "epsilon": None,
+    "degree": 1,
+    "support_radius": None,
+}
+#: The storage modes of each method.
+MODES = {"idw": ("auto", "dense", "matrix_free", "tree"), "rbf": ("auto", "dense", "matrix_free")}
+
+
+def check_method_options(method: str, mode: str, options: dict[str, Any]) -> dict[str, Any]:
+    """The options of ``method`` with their defaults filled in.
+
+    ``options`` maps every IDW and RBF option to the value given, None where it was not
+    given. Raises ``ValueError`` naming the argument for an unknown method, an option of
+    the other method, or a mode the method does not have.
+    """
+    check_choice(method, "method", METHODS)
+    own, other = (IDW_OPTIONS, RBF_OPTIONS) if method == "idw" else (RBF_OPTIONS, IDW_OPTIONS)
+    for name in other:
+        if options.get(name) is not None:
+            raise ValueError(
+                f"{name}: an option of method={'rbf' if method == 'idw' else 'idw'!r}, not of "
+                f"method={method!r} (which takes {', '.join(own)})"
+            )
+    if method != "idw" and mode in MODES["idw"] and mode not in MODES[method]:
+        kinds = ", ".join(repr(kind) for kind in MODES[method])
+        raise ValueError(f"mode: {mode!r} is IDW's; method={method!r} takes {kinds}")
+    check_choice(mode, "mode", MODES[method])
+    return {
+        name: default if options.get(name) is None else options[name]
+        for name, default in own.items()
+    }
+
+
+def build_interpolant(
+    method: str,
+    controls: Tensor,
+    targets: Tensor,
+    *,
+    mode: str,
+    block_bytes: int | None,
+    dense_bytes: int | None,
+    options: dict[str, Any],
+) -> IDW | RBF:
+    """The interpolation from ``controls`` (N_c, D) to ``targets`` (N_t, D) of ``method``,
+    with the options of :func:`check_method_options`."""
+    if method == "idw":
+        return IDW(
+            controls,
+            targets,
+            mode=mode,  # type: ignore[arg-type]
+            block_bytes=block_bytes,
+            dense_bytes=dense_bytes,
+            **options,
+        )
+    return RBF(
+        controls,
+        targets,
+        mode=mode,  # type: ignore[arg-type]
+        block_bytes=block_bytes,
+        dense_bytes=dense_bytes,
+        **options,
+    )
+
+
+def interpolation_matrix(interpolant: nn.Module, num_controls: int, dim: int) -> Tensor:
+    """W (N_t, N_c) of a linear interpolant that maps every component alike
+    (``interpolant(d)[:, k] = W @ d[:, k]``): the interpolant applied to the unit columns,
+    ``dim`` of them per batch member, in one batched call."""
+    reference = next(interpolant.buffers())
+    count = -(-num_controls // dim)
+    unit = torch.eye(count * dim, num_controls, dtype=reference.dtype, device=reference.device)
+    probe = unit.reshape(count, dim, num_controls).transpose(1, 2)  # (count, N_c, D)
+    with torch.no_grad():
+        values = interpolant(probe.contiguous())  # values[b, :, k] = W[:, b * dim + k]
+    return values.transpose(1, 2).reshape(count * dim, -1)[:num_controls].T.contiguous()
