@@ -21,6 +21,7 @@ CORE = (
     "torchmorph.selection",
     "torchmorph.morph",
     "torchmorph._morph_state",
+    "torchmorph._morph_methods",
     "torchmorph.large_motions",
     "torchmorph.pod",
     "torchmorph.mesh",

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from torchmorph.cli._common import _check_names, _positive_float, _positive_int
+from torchmorph.cli._methods import DEFAULT_POWER
 
 if TYPE_CHECKING:
     from torchmorph.mesh.model import Mesh
@@ -112,7 +113,7 @@ def add_selection_arguments(parser: argparse.ArgumentParser) -> None:
         help="error-driven selection: add boundary nodes to the controls, those that lower "
         "the error most first, until the morph's relative nodal error against full IDW "
         "(every boundary node a control) is at most TOL (e.g. 0.01); a --select, --region "
-        "or --enrich selection is where it starts",
+        "or --enrich selection is where it starts (the error is IDW's whatever --method)",
     )
     selection.add_argument(
         "--max-controls",
@@ -187,7 +188,11 @@ def _adaptive_plan(
         start = SelectionPlan((), enrich=enrich, uncovered="ignore")
     family = torch.as_tensor(rows, dtype=mesh.dtype, device=mesh.device)
     plan = AdaptivePlan(
-        args.adaptive, family, max_controls=args.max_controls, start=start, power=args.power
+        args.adaptive,
+        family,
+        max_controls=args.max_controls,
+        start=start,
+        power=DEFAULT_POWER if args.power is None else args.power,
     )
     budget = "" if args.max_controls is None else f", at most {args.max_controls} controls"
     if start is None:

@@ -18,7 +18,6 @@ from torchmorph.cli._common import (
     _check_names,
     _line,
     _load_displacement,
-    _positive_float,
     _positive_int,
     _progress_option,
     _read,
@@ -26,6 +25,7 @@ from torchmorph.cli._common import (
     _Stages,
     _warn,
 )
+from torchmorph.cli._methods import add_method_arguments, method_options, method_summary
 from torchmorph.cli._selection import (
     _adaptive_plan,
     _selection_plan,
@@ -45,8 +45,9 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         help="morph a mesh from a boundary displacement",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Morph a mesh: boundary nodes take the prescribed displacement\n"
-        "exactly, interior nodes are interpolated by IDW from the control points (all\n"
-        "boundary nodes, or a selection: --select / --region, with --enrich).",
+        "exactly, interior nodes are interpolated by IDW (or, --method rbf, radial basis\n"
+        "functions) from the control points (all boundary nodes, or a selection:\n"
+        "--select / --region, with --enrich).",
         epilog=_MORPH_EPILOG,
     )
     morph.add_argument("mesh", metavar="MESH", help=MESH_HELP)
@@ -75,16 +76,8 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
         "moved; else a mesh file with the morph's fields (.vtu, .vtk, .xdmf, .msh, ...)",
     )
     add_selection_arguments(morph)
-    idw = morph.add_argument_group("interpolation")
-    idw.add_argument(
-        "--power", type=_positive_float, default=4.0, help="IDW exponent p (default 4, the paper's)"
-    )
-    idw.add_argument(
-        "--mode",
-        choices=("auto", "dense", "matrix_free"),
-        default="auto",
-        help="store W (dense), recompute it in tiles (matrix_free), or choose by size (auto)",
-    )
+    add_method_arguments(morph)
+    idw = morph.add_argument_group("morphing")
     idw.add_argument(
         "--rotations",
         action="store_true",
@@ -200,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
             "argument --enrich: needs --select, --region or --adaptive (without a selection "
             "every boundary node is a control point already)"
         )
+    options = method_options(args)
     try:
         device = torch.device(args.device)
     except RuntimeError as error:
@@ -257,11 +251,17 @@ def run(args: argparse.Namespace) -> int:
         plan, selection_mesh, method = _selection_plan(args, mesh)
         if args.adaptive is not None:
             plan, method = _adaptive_plan(args, plan, rows, mesh, method)
+        if args.method == "rbf":  # the selection is the same, the interpolation RBF
+            method = (
+                "RBF: every boundary node is a control point"
+                if plan is None
+                else f"RBF on the controls of {method}"
+            )
         generator = torch.Generator().manual_seed(args.seed)
         with stages.step("selecting controls, assembling W"):
             try:
                 morph = MeshMorph(
-                    selection_mesh, plan, power=args.power, mode=args.mode, generator=generator
+                    selection_mesh, plan, mode=args.mode, generator=generator, **options
                 )
             except UncoveredNodesError as error:
                 raise CommandError(_uncovered_message(mesh, error)) from error
@@ -354,6 +354,7 @@ def run(args: argparse.Namespace) -> int:
         f"{float(np.abs(rows).max()) if rows.size else 0.0:.4g}",
     )
     _line("method", method)
+    _line("interpolation", method_summary(morph))
     _line("controls", f"{morph.num_controls} of {morph.num_boundary} boundary nodes")
     result = getattr(plan, "result_", None)
     if result is not None:
@@ -369,17 +370,21 @@ def run(args: argparse.Namespace) -> int:
                 f"with {morph.num_controls} controls ({result.reason}); raise --max-controls",
             )
     _line("selection", _seconds(morph.selection_time))
-    storage = (
-        "matrix-free: weights recomputed at every morph"
-        if morph.idw.mode == "matrix_free"
-        else "dense, stored"
-    )
-    _line(
-        "assembly",
-        f"{_seconds(morph.assembly_time)} (W {morph.num_interior} x "
-        f"{morph.num_controls}, {storage}; p={args.power:g}, "
-        f"{args.dtype} on {device})",
-    )
+    if morph.method == "idw":
+        storage = (
+            "matrix-free: weights recomputed at every morph"
+            if morph.idw.mode == "matrix_free"
+            else "dense, stored"
+        )
+        built = f"W {morph.num_interior} x {morph.num_controls}, {storage}"
+    else:
+        storage = (
+            "kernel evaluated at every morph"
+            if morph.rbf.mode == "matrix_free"
+            else f"evaluation matrix {morph.num_interior} rows, stored"
+        )
+        built = f"system of {morph.num_controls} controls factorised, {storage}"
+    _line("assembly", f"{_seconds(morph.assembly_time)} ({built}; {args.dtype} on {device})")
     how = ["rotation-aware"] if args.rotations else []
     if args.steps > 1:
         how.append(f"in {args.steps} steps")
@@ -422,7 +427,8 @@ def run(args: argparse.Namespace) -> int:
             "morph",
             f"the morph inverts {num_inverted} of {mesh.num_cells} cells (cell "
             "data 'inverted' marks them); try a smaller displacement, more control "
-            "points (smaller R, --enrich) or a larger --power",
+            "points (smaller R, --enrich) or "
+            + ("a larger --power" if morph.method == "idw" else "--method idw"),
         )
         if args.strict:
             return EXIT_INVERTED

@@ -1,0 +1,157 @@
+"""``torchmorph morph``'s interpolation methods: IDW (``--power``) or radial basis functions
+(``--method rbf`` with ``--kernel``, ``--shape-parameter``, ``--support-radius``,
+``--degree``), checked together and turned into :class:`~torchmorph.morph.MeshMorph`'s
+keyword arguments.
+
+The RBF's shape parameter is ``--shape-parameter`` (the library's ``epsilon``):
+``--epsilon`` is fTetWild's envelope in ``torchmorph mesh``, and a flag means one thing in
+every subcommand."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from torchmorph.cli._common import _positive_float
+from torchmorph.rbf.kernels import KERNELS, SCALE_INVARIANT, WENDLAND
+
+__all__: list[str] = []
+
+#: IDW's exponent when ``--power`` is not given (the paper's).
+DEFAULT_POWER = 4.0
+#: The RBF options and the library argument each one sets.
+RBF_FLAGS = {
+    "--kernel": "kernel",
+    "--shape-parameter": "epsilon",
+    "--support-radius": "support_radius",
+    "--degree": "degree",
+}
+
+
+def _degree(text: str) -> int:
+    try:
+        number = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if number < -1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= -1 (-1: none), got {text!r}")
+    return number
+
+
+def add_method_arguments(parser: argparse.ArgumentParser) -> None:
+    """The interpolation-method options of ``torchmorph morph``."""
+    group = parser.add_argument_group(
+        "interpolation method (default: IDW, the paper's eq. 2)",
+        "--method rbf moves the interior by radial basis functions from the same controls",
+    )
+    group.add_argument(
+        "--method",
+        choices=("idw", "rbf"),
+        default="idw",
+        help="inverse distance weighting (idw, default) or radial basis functions with a "
+        "polynomial tail (rbf: exact at the controls, affine motions reproduced)",
+    )
+    group.add_argument(
+        "--power",
+        type=_positive_float,
+        default=None,
+        help=f"IDW exponent p (default {DEFAULT_POWER:g}, the paper's); IDW only",
+    )
+    group.add_argument(
+        "--mode",
+        choices=("auto", "dense", "matrix_free"),
+        default="auto",
+        help="store W (dense; RBF: its evaluation matrix), recompute it in tiles "
+        "(matrix_free), or choose by size (auto)",
+    )
+    group.add_argument(
+        "--kernel",
+        choices=tuple(KERNELS),
+        default=None,
+        metavar="NAME",
+        help="with --method rbf: the radial function (default thin_plate_spline); "
+        f"{', '.join(KERNELS)}",
+    )
+    group.add_argument(
+        "--shape-parameter",
+        type=_positive_float,
+        default=None,
+        metavar="E",
+        help="with --method rbf: the shape parameter scaling distances (scipy's epsilon); "
+        f"default 1 for {', '.join(SCALE_INVARIANT)}, required for the other global "
+        "kernels, not taken by the Wendland kernels",
+    )
+    group.add_argument(
+        "--support-radius",
+        type=_positive_float,
+        default=None,
+        metavar="R",
+        help=f"with --method rbf: the support radius, required by (and only by) "
+        f"{', '.join(WENDLAND)}",
+    )
+    group.add_argument(
+        "--degree",
+        type=_degree,
+        default=None,
+        metavar="K",
+        help="with --method rbf: degree of the polynomial tail (default 1; -1: none)",
+    )
+
+
+def method_options(args: argparse.Namespace) -> dict[str, Any]:
+    """MeshMorph's method keyword arguments from the options; ``args.parser.error`` (exit
+    code 2) for a combination that does not go together."""
+    error = args.parser.error
+    if args.method == "idw":
+        for flag, name in RBF_FLAGS.items():
+            if getattr(args, name if name != "epsilon" else "shape_parameter") is not None:
+                error(f"argument {flag}: an RBF option; needs --method rbf")
+        power = DEFAULT_POWER if args.power is None else args.power
+        return {"method": "idw", "power": power}
+    if args.power is not None:
+        error("argument --power: the IDW exponent; --method rbf takes --kernel and its options")
+    if args.rotations:
+        error(
+            "argument --rotations: rotation-aware morphing blends IDW weights; not with "
+            "--method rbf (--steps K is)"
+        )
+    kernel = args.kernel or "thin_plate_spline"
+    if kernel in WENDLAND:
+        if args.support_radius is None:
+            error(f"argument --support-radius: required with --kernel {kernel}")
+        if args.shape_parameter is not None:
+            error(
+                f"argument --shape-parameter: --kernel {kernel} is scaled by --support-radius, "
+                "not a shape parameter"
+            )
+    else:
+        if args.support_radius is not None:
+            error(
+                f"argument --support-radius: only the compactly supported kernels "
+                f"({', '.join(WENDLAND)}) take one; --kernel is {kernel}"
+            )
+        if args.shape_parameter is None and kernel not in SCALE_INVARIANT:
+            error(
+                f"argument --shape-parameter: required with --kernel {kernel} (only "
+                f"{', '.join(SCALE_INVARIANT)} default to 1)"
+            )
+    return {
+        "method": "rbf",
+        "kernel": kernel,
+        "epsilon": args.shape_parameter,
+        "support_radius": args.support_radius,
+        "degree": 1 if args.degree is None else args.degree,
+    }
+
+
+def method_summary(morph: Any) -> str:
+    """What the morph interpolates with, for the command's report."""
+    if morph.method == "idw":
+        return f"IDW, p={morph.idw.power:g}"
+    rbf = morph.rbf
+    scale = (
+        f"support radius {rbf.support_radius:g}"
+        if rbf.support_radius is not None
+        else f"shape parameter {rbf.epsilon:g}"
+    )
+    return f"RBF {rbf.kernel}, {scale}, polynomial degree {rbf.degree}"
