@@ -245,6 +245,23 @@ def test_rotations_are_idw_only(mesh):
         morph(boundary, reach=1.0)
 
 
+def test_torch_func_of_the_displacement_is_refused_and_of_the_points_works():
+    morph = MeshMorph(box_mesh(2), method="rbf")
+    boundary = smooth_field(morph.boundary_points)
+    scale = torch.tensor(1.0, dtype=F64)
+    message = "boundary_displacement: torch.func transforms .* are not supported"
+    with pytest.raises(ValueError, match=message):
+        torch.func.jacrev(lambda a: morph(a * boundary))(scale)
+    with pytest.raises(ValueError, match=message):
+        torch.func.vmap(lambda a: morph(a * boundary))(scale.repeat(2))
+    with pytest.raises(ValueError, match="points: vmap over the points"):
+        torch.func.vmap(lambda a: morph(boundary, points=morph.points * a))(scale.repeat(2))
+    # reverse mode in the points re-solves the system in torch: as torch.autograd does
+    grow = lambda a: morph(boundary, points=morph.points * a)  # noqa: E731
+    expected = torch.autograd.functional.jacobian(grow, scale)
+    torch.testing.assert_close(torch.func.jacrev(grow)(scale), expected, rtol=1e-12, atol=1e-14)
+
+
 # ----------------------------------------------------------------------------- state
 
 

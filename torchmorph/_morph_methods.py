@@ -22,6 +22,7 @@ __all__ = [
     "Method",
     "build_interpolant",
     "check_method_options",
+    "check_transforms",
     "interpolation_matrix",
 ]
 
@@ -112,3 +113,28 @@ def interpolation_matrix(interpolant: nn.Module, num_controls: int, dim: int) ->
     with torch.no_grad():
         values = interpolant(probe.contiguous())  # values[b, :, k] = W[:, b * dim + k]
     return values.transpose(1, 2).reshape(count * dim, -1)[:num_controls].T.contiguous()
+
+
+def check_transforms(method: str, boundary_displacement: Tensor, points: Tensor | None) -> None:
+    """Raise ``ValueError`` naming the argument where ``method`` cannot follow a
+    ``torch.func`` transform: an RBF's stored factorisation is solved by LAPACK calls that
+    neither ``vmap`` nor forward-mode differentiation pass through, so a transformed
+    displacement, or moved points under ``vmap``, are refused (reverse-mode transforms of
+    the points, ``grad`` and ``jacrev``, re-solve the system in torch and work)."""
+    functorch = getattr(torch._C, "_functorch", None)
+    if method == "idw" or functorch is None:
+        return
+    hint = (
+        "differentiate with torch.autograd (backward(), torch.autograd.functional.jacobian) "
+        "or use method='idw'"
+    )
+    if functorch.is_functorch_wrapped_tensor(boundary_displacement):
+        raise ValueError(
+            "boundary_displacement: torch.func transforms (vmap, grad, jacrev, jacfwd) of the "
+            f"displacement of a method={method!r} morph are not supported; {hint}"
+        )
+    if points is not None and functorch.is_batchedtensor(points):
+        raise ValueError(
+            f"points: vmap over the points of a method={method!r} morph is not supported; "
+            "batch the displacement instead, or loop over the points"
+        )

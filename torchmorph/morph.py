@@ -24,6 +24,7 @@ from torchmorph._morph_methods import (
     Method,
     build_interpolant,
     check_method_options,
+    check_transforms,
     interpolation_matrix,
 )
 from torchmorph._morph_state import (
@@ -130,7 +131,11 @@ class MeshMorph(nn.Module):
     With ``method="rbf"`` everything above holds (the morph is linear in the
     displacement: POD reduction, :meth:`adjoint`, :meth:`weights_matrix` computed from
     the RBF, gradients, batches) except the rotation-aware morph (``rotations=``, which
-    blends IDW's positive weights) and ``mode="tree"``: both raise ``ValueError``.
+    blends IDW's positive weights) and ``mode="tree"``: both raise ``ValueError``; and
+    ``torch.func``: a transformed displacement, or ``vmap`` over ``points``, raise
+    ``ValueError`` (the RBF's LAPACK solve does not pass through them; ``grad``/``jacrev``
+    in the points work, ``jacfwd`` in them does not); ``torch.compile`` runs it with
+    graph breaks (no ``fullgraph``).
     The method and the RBF's hyper-parameters are part of :meth:`state_dict`: a state
     loads only into a morph of the same method and hyper-parameters (states saved before
     the method existed are IDW's).
@@ -415,8 +420,8 @@ class MeshMorph(nn.Module):
             Prescribed displacement of every boundary node, ordered as
             ``boundary_nodes``.
         points : Tensor, shape (N, D), optional
-            Moved reference coordinates (shape optimisation): W is rebuilt
-            differentiably from them.
+            Moved reference coordinates (shape optimisation): W (RBF: the system) is
+            rebuilt differentiably from them.
         rotations : None, "fit" or Tensor, optional
             Rotation-aware IDW for large rotations
             (:func:`torchmorph.large_motions.rotation_aware`): ``"fit"`` fits each
@@ -440,6 +445,7 @@ class MeshMorph(nn.Module):
             raise ValueError(f"points must have shape {tuple(self.points.shape)}, got {shape}")
         if reach is not None and rotations is None:
             raise ValueError("reach: only a rotation-aware morph (rotations=...) takes a reach")
+        check_transforms(self.method, boundary_displacement, points)
         if rotations is not None and self.method != "idw":
             raise ValueError(
                 f"rotations: the rotation-aware morph blends IDW weights (method='idw'); this "
