@@ -3,11 +3,12 @@
 :class:`MeshMorph` composes the pieces: control points chosen from the
 boundary nodes (all of them, or a :class:`~torchmorph.selection.SelectionPlan`
 for SIDW/ESIDW), an :class:`~torchmorph.idw.IDW` (or, with ``method="rbf"``, an
-:class:`~torchmorph.rbf.RBF`) from the selected points to the interior nodes, and the scatter of boundary and interior displacements
-into one nodal field. Nothing of it depends on the element kinds or on the
-dimension: a :class:`~torchmorph.mesh.Mesh` of any kinds, 2-D or 3-D, is morphed
-alike (the paper: SIDW/ESIDW "can be applied to any dimension and to arbitrary
-meshes"); the cells only serve the boundary and the validity checks.
+:class:`~torchmorph.rbf.RBF`) from the selected points to the interior nodes, and
+the scatter of boundary and interior displacements into one nodal field. Nothing of
+it depends on the element kinds or on the dimension: a :class:`~torchmorph.mesh.Mesh`
+of any kinds, 2-D or 3-D, is morphed alike (the paper: SIDW/ESIDW "can be applied to
+any dimension and to arbitrary meshes"); the cells only serve the boundary and the
+validity checks.
 """
 
 from __future__ import annotations
