@@ -146,6 +146,10 @@ examples:
       -o out.vtu
 (regions that share nodes, here the profiles where root and tip meet the sides,
 need --overlap first or --overlap share)
+  torchmorph morph wing.vtu --moving tip -d tip.npy --select 0.05 --method rbf \\
+      --kernel wendland_c2 --support-radius 2.0 -o out.vtu
+(radial basis functions from the selected controls; a Wendland kernel's support
+radius, in the mesh's units, should span the moving part and its surroundings)
 """
 
 
