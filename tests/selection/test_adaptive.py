@@ -140,6 +140,43 @@ def test_scores_are_the_error_decrease_of_each_candidate_alone():
         assert float(scores[candidate]) == pytest.approx(decrease, rel=1e-9, abs=1e-15)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_fused_scores_equal_the_torch_products(monkeypatch, dtype):
+    from torchmorph.selection import _score_jit
+
+    mesh, displacement = bent_box(4)
+    boundary = mesh.points[mesh.boundary_nodes].to(dtype)
+    interior = mesh.points[mesh.interior_nodes].to(dtype)
+    family = torch.stack([displacement, displacement.flip(0)]).to(dtype)
+    oracle = IDWErrorOracle(boundary, interior, family)
+    selected = torch.arange(0, boundary.shape[0], 5)
+    assert _score_jit.available(oracle.weights_t)
+    errors, fused = oracle.scores(selected)
+    monkeypatch.setattr(_score_jit, "available", lambda weights_t: False)
+    errors_torch, plain = oracle.scores(selected)
+    assert torch.equal(errors, errors_torch)
+    finite = torch.isfinite(plain)
+    assert torch.equal(finite, torch.isfinite(fused))
+    scale = float(plain[finite].abs().max())
+    tolerance = 1e-12 if dtype == torch.float64 else 1e-5
+    assert float((fused[finite] - plain[finite]).abs().max()) <= tolerance * scale
+
+
+def test_errors_after_a_scoring_equal_a_fresh_oracle():
+    """The oracle reuses the last scoring's sums for the selections that extend it."""
+    mesh, displacement = bent_box(4)
+    boundary = mesh.points[mesh.boundary_nodes]
+    interior = mesh.points[mesh.interior_nodes]
+    oracle = IDWErrorOracle(boundary, interior, displacement)
+    base = torch.arange(0, boundary.shape[0], 4)
+    oracle.scores(base)
+    extended = torch.cat([base, torch.tensor([1, 2, 7])])
+    other = torch.arange(1, boundary.shape[0], 3)  # does not start with the base
+    for selected in (base, extended, other, base[:5]):
+        fresh = IDWErrorOracle(boundary, interior, displacement).errors(selected)
+        assert float(oracle.errors(selected)) == pytest.approx(float(fresh), rel=1e-12)
+
+
 def test_from_nothing_the_scores_are_shares_of_the_error():
     mesh, displacement = bent_box(4)
     boundary = mesh.points[mesh.boundary_nodes]

@@ -1,7 +1,8 @@
 """Inverse Distance Weighting (the paper's Section 2, eqs. 1–4).
 
 The functional core (:mod:`torchmorph.idw.functional`: :func:`idw_weights`,
-:func:`idw_apply`) and the :class:`IDW` module (:mod:`torchmorph.idw.module`) over it.
+:func:`idw_apply`) and the :class:`IDW` module (:mod:`torchmorph.idw.module`) over it;
+:class:`StiffenedIDW` (:mod:`torchmorph.idw.stiffened`) adds near-wall stiffening.
 Both hand the kernel work to one of the backends of :mod:`torchmorph.idw.backends`
 (torch operations, Triton on CUDA, numba on the CPU), chosen per call in
 :mod:`torchmorph.idw._dispatch`.
@@ -16,6 +17,7 @@ from torchmorph.idw.functional import (
     idw_weights,
 )
 from torchmorph.idw.module import DEFAULT_DENSE_BYTES, IDW, Mode
+from torchmorph.idw.stiffened import StiffenedIDW, stiffening_blend
 
 __all__ = [
     "DEFAULT_BLOCK_BYTES",
@@ -26,7 +28,9 @@ __all__ = [
     "IMPLEMENTATIONS",
     "Implementation",
     "Mode",
+    "StiffenedIDW",
     "fused_available",
     "idw_apply",
     "idw_weights",
+    "stiffening_blend",
 ]

@@ -48,12 +48,13 @@ charged to the body's nodes.
 Cost
 ----
 ``W`` is assembled once on a sample of the targets (all of them when the sample fits
-``sample_bytes``) by the fused kernels; a selective field is then ``W[:, S]``
-renormalised (``W_S,ij = W_ij / σ_i``, exact), a product with ``|S|`` columns of the
-sample. A scoring reads the whole sample (``score_samples`` targets of it), so the
-selection costs about one sampled full-IDW evaluation per round, plus the rounds'
-cheap error evaluations; rounds grow with the number of controls the tolerance needs
-(see benchmarks/adaptive.py).
+``sample_bytes``) by the fused kernels. A scoring is one pass over the sampled ``W``
+(a numba kernel forms each candidate's ratios ``t_ij`` once and reduces them against the
+fields' columns, ``T`` is never stored): about two full IDW evaluations when every
+target is sampled. The greedy loop's trial prefixes extend the last scoring's selection,
+so their errors add the new candidates' rows of ``W`` to the sums kept from it. Rounds
+grow with the number of controls the tolerance needs and with how strongly candidates
+pull the same targets (see benchmarks/adaptive.py).
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ from torch import Tensor
 
 from torchmorph._checks import as_points, check_float_dtype, check_positive
 from torchmorph.idw.functional import idw_apply, idw_weights
+from torchmorph.selection import _score_jit
 from torchmorph.selection.greedy import (
     ErrorOracle,
     GreedySelection,
@@ -218,6 +220,10 @@ class IDWErrorOracle:
         kept = _distinct_up_to_scale(self.family)
         self.family, self.reference = self.family[kept], self.reference[kept]
         self.reference_sq = reference_sq[kept]
+        columns = self._columns(self.family)
+        self._with_ones = torch.cat([columns, columns.new_ones(columns.shape[0], 1)], dim=1)
+        # the selection of the last scoring and its accumulated sums (see _accumulated)
+        self._base = (torch.zeros(0, dtype=torch.int64, device=self.points.device), columns)
 
     def _transposed_weights(self) -> Tensor:
         """Full IDW's weights from every candidate to the sampled targets, stored as
@@ -252,10 +258,7 @@ class IDWErrorOracle:
         if selected.numel() == 0:
             return torch.zeros_like(self.reference), self.reference.new_zeros(len(self.sample))
         selected = selected.to(self.points.device)
-        weights = self.weights_t.index_select(0, selected)  # (|S|, N_s): W's columns of S
-        columns = self._columns(self.family.index_select(1, selected))
-        ones = columns.new_ones(columns.shape[0], 1)
-        both = weights.mT @ torch.cat([columns, ones], dim=1)
+        both = self._accumulated(selected)
         sums = both[:, -1]
         tiny = torch.finfo(sums.dtype).tiny / torch.finfo(sums.dtype).eps
         field = self._field(both[:, :-1] / sums[:, None].clamp_min(tiny))
@@ -268,6 +271,21 @@ class IDWErrorOracle:
                 power=self.power,
             )
         return field, sums
+
+    def _accumulated(self, selected: Tensor) -> Tensor:
+        """``Σ_{k∈S} W_ik [d_k | 1]`` at the sampled targets, (N_s, F·D + 1). When
+        ``selected`` extends the selection of the last scoring (the greedy loop's
+        prefixes do), only the added candidates' rows are read."""
+        base, sums = self._base
+        start = 0
+        if 0 < base.numel() <= selected.numel() and torch.equal(selected[: base.numel()], base):
+            start = base.numel()
+        added = selected[start:]
+        if not added.numel():
+            return sums
+        weights = self.weights_t.index_select(0, added)  # (|added|, N_s): W's columns
+        product = weights.mT @ self._with_ones.index_select(0, added)
+        return product if start == 0 else sums + product
 
     def _field(self, flat: Tensor) -> Tensor:
         num_members, dim = self.family.shape[0], self.family.shape[2]
@@ -289,6 +307,9 @@ class IDWErrorOracle:
         notes) or, when no candidate alone lowers it, its first-order share of
         ``Σ_f err_f²``; ``-inf`` for the selected ones."""
         with torch.no_grad():
+            selected = selected.to(self.points.device)
+            if selected.numel():  # later prefixes of the greedy loop start from these sums
+                self._base = (selected.clone(), self._accumulated(selected))
             approx, sums = self._selective(selected)
             error = self.reference - approx
             errors = torch.sqrt(self._weighted_squares(error) / self.reference_sq)
@@ -314,17 +335,21 @@ class IDWErrorOracle:
             ],
             1,
         )
-        first = linear.new_empty(self.points.shape[0], linear.shape[1])
-        second = square.new_empty(self.points.shape[0], square.shape[1])
-        tiny = torch.finfo(sums.dtype).tiny
         weights_t = self.weights_t[:, :count]
-        rows = max(1, _SCORE_BLOCK_BYTES // (count * weights_t.element_size()))
-        for begin in range(0, weights_t.shape[0], rows):
-            block = weights_t[begin : begin + rows]  # candidates' rows of Wᵀ
-            end = begin + block.shape[0]
-            ratio = block / (sums[None, :] + block).clamp_min(tiny)
-            torch.mm(ratio, linear, out=first[begin:end])
-            torch.mm(ratio.square_(), square, out=second[begin:end])
+        if _score_jit.available(self.weights_t):  # one pass over Wᵀ, T never formed
+            first, second = _score_jit.score_rows(self.weights_t, count, sums, linear, square)
+            first, second = first.to(linear.dtype), second.to(square.dtype)
+        else:
+            first = linear.new_empty(self.points.shape[0], linear.shape[1])
+            second = square.new_empty(self.points.shape[0], square.shape[1])
+            tiny = torch.finfo(sums.dtype).tiny
+            rows = max(1, _SCORE_BLOCK_BYTES // (count * weights_t.element_size()))
+            for begin in range(0, weights_t.shape[0], rows):
+                block = weights_t[begin : begin + rows]  # candidates' rows of Wᵀ
+                end = begin + block.shape[0]
+                ratio = block / (sums[None, :] + block).clamp_min(tiny)
+                torch.mm(ratio, linear, out=first[begin:end])
+                torch.mm(ratio.square_(), square, out=second[begin:end])
         family = self.family  # (F, N_c, D)
         gain = 2.0 * self._linear_term(first)
         q = second[:, :num_members].mT
