@@ -13,6 +13,7 @@ from torch import Tensor, nn
 from torchmorph._checks import check_choice
 from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE
 from torchmorph.idw.module import IDW
+from torchmorph.idw.stiffened import StiffenedIDW
 from torchmorph.rbf.module import RBF
 
 __all__ = [
@@ -34,6 +35,8 @@ IDW_OPTIONS: dict[str, Any] = {
     "power": 4.0,
     "implementation": "auto",
     "coincidence_tolerance": DEFAULT_COINCIDENCE_TOLERANCE,
+    "stiffening_length": None,
+    "stiffening_power": None,
 }
 #: Options that only RBF takes, with their defaults (epsilon and support_radius: RBF's).
 RBF_OPTIONS: dict[str, Any] = {
@@ -65,6 +68,13 @@ def check_method_options(method: str, mode: str, options: dict[str, Any]) -> dic
         kinds = ", ".join(repr(kind) for kind in MODES[method])
         raise ValueError(f"mode: {mode!r} is IDW's; method={method!r} takes {kinds}")
     check_choice(mode, "mode", MODES[method])
+    if options.get("stiffening_power") is not None and options.get("stiffening_length") is None:
+        raise ValueError(
+            "stiffening_power: near-wall stiffening needs stiffening_length (the thickness "
+            "of the layer that moves rigidly); give both, or neither for plain IDW"
+        )
+    if options.get("stiffening_length") is not None and mode == "tree":
+        raise ValueError("mode: near-wall stiffening (stiffening_length) has no tree mode")
     return {
         name: default if options.get(name) is None else options[name]
         for name, default in own.items()
@@ -80,10 +90,24 @@ def build_interpolant(
     block_bytes: int | None,
     dense_bytes: int | None,
     options: dict[str, Any],
-) -> IDW | RBF:
+) -> IDW | StiffenedIDW | RBF:
     """The interpolation from ``controls`` (N_c, D) to ``targets`` (N_t, D) of ``method``,
-    with the options of :func:`check_method_options`."""
+    with the options of :func:`check_method_options` (IDW with near-wall stiffening,
+    :class:`~torchmorph.idw.StiffenedIDW`, when ``stiffening_length`` is given)."""
     if method == "idw":
+        options = dict(options)
+        length, steep = options.pop("stiffening_length"), options.pop("stiffening_power")
+        if length is not None:
+            return StiffenedIDW(
+                controls,
+                targets,
+                stiffening_length=length,
+                stiffening_power=steep,
+                mode=mode,
+                block_bytes=block_bytes,
+                dense_bytes=dense_bytes,
+                **options,
+            )
         return IDW(
             controls,
             targets,

@@ -36,6 +36,7 @@ from torchmorph._morph_state import (
 )
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph.idw.module import DEFAULT_DENSE_BYTES, IDW, Implementation, Mode
+from torchmorph.idw.stiffened import StiffenedIDW
 from torchmorph.mesh.cells import cell_kind
 from torchmorph.mesh.model import CellBlock, Mesh
 from torchmorph.mesh.quality import inverted_cells
@@ -77,6 +78,11 @@ class MeshMorph(nn.Module):
         other method is a ``ValueError`` naming it.
     power : float
         IDW exponent (default 4). IDW only.
+    stiffening_length, stiffening_power : float, optional
+        Near-wall stiffening of IDW (:class:`~torchmorph.idw.StiffenedIDW`): weights
+        ``r^-p + ℓ^(q-p) r^-q`` with ℓ = ``stiffening_length`` (the thickness of the
+        layer that moves nearly rigidly with its wall, in the mesh's units) and
+        q = ``stiffening_power`` (default p + 2). IDW only; not with ``mode="tree"``.
     kernel, epsilon, degree, support_radius
         RBF only: passed to :class:`~torchmorph.rbf.RBF` (defaults: the thin-plate
         spline, degree 1; epsilon and support_radius as RBF requires for the kernel).
@@ -106,8 +112,9 @@ class MeshMorph(nn.Module):
         Global ids of the control points.
     method : str
         ``"idw"`` or ``"rbf"``.
-    idw : IDW
-        With ``method="idw"``: the interpolation from control points to interior nodes.
+    idw : IDW or StiffenedIDW
+        With ``method="idw"``: the interpolation from control points to interior nodes
+        (a StiffenedIDW with ``stiffening_length``).
     rbf : RBF
         With ``method="rbf"``: the same, by radial basis functions.
     interpolant : IDW or RBF
@@ -160,6 +167,8 @@ class MeshMorph(nn.Module):
         *,
         method: Method = "idw",
         power: float | None = None,
+        stiffening_length: float | None = None,
+        stiffening_power: float | None = None,
         kernel: str | None = None,
         epsilon: float | None = None,
         degree: int | None = None,
@@ -181,6 +190,8 @@ class MeshMorph(nn.Module):
             mode,
             {
                 "power": power,
+                "stiffening_length": stiffening_length,
+                "stiffening_power": stiffening_power,
                 "implementation": implementation,
                 "coincidence_tolerance": coincidence_tolerance,
                 "kernel": kernel,
@@ -223,15 +234,21 @@ class MeshMorph(nn.Module):
             dense_bytes=dense_bytes,
             options=options,
         )
-        if isinstance(interpolant, IDW):
+        if isinstance(interpolant, (IDW, StiffenedIDW)):
             self.idw = interpolant
             self.assembly_time = interpolant.assembly_time
         else:
             self.rbf = interpolant
             self.assembly_time = interpolant.fit_time + interpolant.evaluation_time
 
+    def _stiffening(self) -> list[float] | None:
+        idw = self._modules.get("idw")
+        if isinstance(idw, StiffenedIDW):
+            return [idw.stiffening_power, idw.stiffening_length]
+        return None
+
     @property
-    def interpolant(self) -> IDW | RBF:
+    def interpolant(self) -> IDW | StiffenedIDW | RBF:
         """The interpolation from the control points to the interior nodes: :attr:`idw`
         or :attr:`rbf`."""
         return self._modules[self.method]  # type: ignore[return-value]
@@ -266,6 +283,7 @@ class MeshMorph(nn.Module):
         return {
             "version": self._STATE_VERSION,
             "method": self.method,
+            "stiffening": self._stiffening(),
             "node_set_names": list(self._node_set_names),
             "cell_blocks": [list(block) for block in self._cell_blocks],
         }
@@ -280,6 +298,13 @@ class MeshMorph(nn.Module):
         extra = state_dict.get(prefix + "_extra_state")
         if extra is not None:  # before anything is loaded
             check_saved_hyperparameters("MeshMorph", extra, {"method": self.method})
+            saved = extra.get("stiffening")  # states before stiffening: plain IDW
+            if saved != self._stiffening():
+                raise ValueError(
+                    f"stiffening: the state was saved with near-wall stiffening {saved!r} "
+                    f"([stiffening_power, stiffening_length], None: none) but this MeshMorph "
+                    f"has {self._stiffening()!r}; build the morph with the saved values"
+                )
         check_interpolant_state(state_dict, prefix + self.method + ".", self.interpolant)
         resize_buffers_for_load(self, state_dict, prefix, self._STATE_BUFFERS)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

@@ -1,4 +1,5 @@
-"""``torchmorph morph``'s interpolation methods: IDW (``--power``) or radial basis functions
+"""``torchmorph morph``'s interpolation methods: IDW (``--power``, near-wall
+``--stiffening``) or radial basis functions
 (``--method rbf`` with ``--kernel``, ``--shape-parameter``, ``--support-radius``,
 ``--degree``), checked together and turned into :class:`~torchmorph.morph.MeshMorph`'s
 keyword arguments.
@@ -58,6 +59,22 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"IDW exponent p (default {DEFAULT_POWER:g}, the paper's); IDW only",
     )
     group.add_argument(
+        "--stiffening",
+        type=_positive_float,
+        default=None,
+        metavar="LENGTH",
+        help="IDW with near-wall stiffening: weights r^-p + L^(q-p) r^-q, so that nodes "
+        "within about LENGTH (mesh units) of the controls move nearly rigidly with them "
+        "(a boundary layer's thickness); IDW only",
+    )
+    group.add_argument(
+        "--stiffening-power",
+        type=_positive_float,
+        default=None,
+        metavar="Q",
+        help="with --stiffening: the near-wall exponent q > p (default p + 2)",
+    )
+    group.add_argument(
         "--mode",
         choices=("auto", "dense", "matrix_free"),
         default="auto",
@@ -107,9 +124,20 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
             if getattr(args, name if name != "epsilon" else "shape_parameter") is not None:
                 error(f"argument {flag}: an RBF option; needs --method rbf")
         power = DEFAULT_POWER if args.power is None else args.power
-        return {"method": "idw", "power": power}
+        options: dict[str, Any] = {"method": "idw", "power": power}
+        if args.stiffening_power is not None and args.stiffening is None:
+            error("argument --stiffening-power: needs --stiffening LENGTH")
+        if args.stiffening is not None:
+            steep = power + 2.0 if args.stiffening_power is None else args.stiffening_power
+            if steep <= power:
+                error(f"argument --stiffening-power: must be larger than --power ({power:g})")
+            options.update(stiffening_length=args.stiffening, stiffening_power=steep)
+        return options
     if args.power is not None:
         error("argument --power: the IDW exponent; --method rbf takes --kernel and its options")
+    if args.stiffening is not None or args.stiffening_power is not None:
+        flag = "--stiffening" if args.stiffening is not None else "--stiffening-power"
+        error(f"argument {flag}: near-wall stiffening of IDW weights; not with --method rbf")
     if args.rotations:
         error(
             "argument --rotations: rotation-aware morphing blends IDW weights; not with "
@@ -147,7 +175,14 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
 def method_summary(morph: Any) -> str:
     """What the morph interpolates with, for the command's report."""
     if morph.method == "idw":
-        return f"IDW, p={morph.idw.power:g}"
+        idw = morph.idw
+        stiffening = getattr(idw, "stiffening_length", None)
+        if stiffening is not None:
+            return (
+                f"IDW, p={idw.power:g}, stiffened near the walls (q={idw.stiffening_power:g}, "
+                f"length {stiffening:g})"
+            )
+        return f"IDW, p={idw.power:g}"
     rbf = morph.rbf
     scale = (
         f"support radius {rbf.support_radius:g}"

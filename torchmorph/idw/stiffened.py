@@ -24,14 +24,16 @@ each with its fused kernels, dense or matrix-free) and the geometric blend λ, c
 once (:func:`stiffening_blend`) in a numerically safe form
 ``λ = 1 / (1 + (ℓ / r_min)^(q-p) · Σ (r_min/r_k)^q / Σ (r_min/r_k)^p)``.
 
-Choosing the parameters: ``q`` about ``p + 2`` to ``p + 4`` (Luke et al. use p = 3,
-q = 5; with the paper's p = 4, q = 6–8); ``ℓ`` the thickness of the layer that should
+Choosing the parameters: ``q`` about ``p + 2`` (the default; Luke et al. use p = 3,
+q = 5) to ``p + 4``; ``ℓ`` the thickness of the layer that should
 move rigidly: a few first-cell heights of a boundary layer, or a fraction (e.g. 0.05–0.2)
 of the moving body's size. ``ℓ → 0`` gives plain IDW of power p; ``ℓ → ∞`` plain IDW of
 power q.
 """
 
 from __future__ import annotations
+
+import time
 
 import torch
 from torch import Tensor, nn
@@ -116,8 +118,9 @@ class StiffenedIDW(nn.Module):
     targets : Tensor, shape (N_t, D)
     power : float, default 4
         p, the exponent far from the controls (the paper's IDW).
-    stiffening_power : float, default 8
-        q > p, the exponent that dominates within ``stiffening_length`` of the controls.
+    stiffening_power : float, optional
+        q > p, the exponent that dominates within ``stiffening_length`` of the controls
+        (default ``power + 2``).
     stiffening_length : float, keyword
         ℓ > 0, in the points' units: the thickness of the layer that moves nearly
         rigidly with its wall.
@@ -149,7 +152,7 @@ class StiffenedIDW(nn.Module):
         *,
         stiffening_length: float,
         power: float = 4.0,
-        stiffening_power: float = 8.0,
+        stiffening_power: float | None = None,
         mode: str = "auto",
         block_bytes: int | None = None,
         dense_bytes: int | None = DEFAULT_DENSE_BYTES,
@@ -157,6 +160,9 @@ class StiffenedIDW(nn.Module):
         implementation: Implementation = "auto",
     ) -> None:
         super().__init__()
+        power = check_power(power)
+        if stiffening_power is None:
+            stiffening_power = power + 2.0
         check_stiffening(power, stiffening_power, stiffening_length)
         if mode == "tree":
             raise ValueError(
@@ -174,7 +180,9 @@ class StiffenedIDW(nn.Module):
         self.power = float(power)
         self.stiffening_power = float(stiffening_power)
         self.stiffening_length = float(stiffening_length)
+        start = time.perf_counter()
         self.register_buffer("blend", self._blend(self.far.controls, self.far.targets))
+        self.blend_time = time.perf_counter() - start
 
     def _blend(self, controls: Tensor, targets: Tensor) -> Tensor:
         return stiffening_blend(
@@ -197,6 +205,23 @@ class StiffenedIDW(nn.Module):
     @property
     def mode(self) -> str:
         return self.far.mode
+
+    @property
+    def controls(self) -> Tensor:
+        return self.far.controls
+
+    @property
+    def targets(self) -> Tensor:
+        return self.far.targets
+
+    @property
+    def coincidence_tolerance(self) -> float:
+        return self.far.coincidence_tolerance
+
+    @property
+    def assembly_time(self) -> float:
+        """Seconds spent on the two morphs' W (dense mode) and the blend."""
+        return self.far.assembly_time + self.near.assembly_time + self.blend_time
 
     def forward(
         self,
