@@ -64,6 +64,24 @@ def remainder(theta, power):
 
 
 @njit(**_OPTIONS)
+def _remainder_fast(theta, power, mode):
+    """T2(θ) as :func:`remainder`, in closed form for p = 4 and 2 (no log/exp)."""
+    if mode == 4:
+        if theta >= 1.0:
+            return np.inf
+        gap = 1.0 - theta
+        gap2 = gap * gap
+        value = theta**3 * (20.0 - theta * (45.0 - theta * (36.0 - 10.0 * theta))) / (gap2 * gap2)
+        return value * (1.0 + 1e-12) + 1e-300
+    if mode == 2:
+        if theta >= 1.0:
+            return np.inf
+        gap = 1.0 - theta
+        return theta**3 * (4.0 - 3.0 * theta) / (gap * gap) * (1.0 + 1e-12) + 1e-300
+    return remainder(theta, power)
+
+
+@njit(**_OPTIONS)
 def node_geometry(points, starts, stops, centroids, radii, second, effective):
     """Per node: the centroid, the radius ρ about it, Σ s sᵀ and the effective count
     Σ|s|³/ρ³ <= n over its controls (every term of the remainder is of degree >= 3 in
@@ -187,43 +205,70 @@ def _leaf_by_controls(
 ):  # fmt: skip
     """A leaf's exact sums for a block none of whose targets lies within the coincidence
     radius of it, added to the block's ``sums`` (rows,) and ``numerator`` (columns, rows),
-    or when transposed ``out[k] += Σ_t w_tk scaled[:, t]``: control by control, the
-    block's targets in the vector lanes (``weight`` is scratch). The forward and
-    transposed passes share it, so that their running sums, hence their acceptance
-    decisions, are the same to the bit."""
+    or when transposed ``out[k] += Σ_t w_tk scaled[:, t]``: target by target, one fused
+    pass over the leaf's contiguous controls for the weights and their sum (squared
+    distances, the ratio form), then one dot product per value column (``weight`` is
+    scratch of the leaf's width). The forward and transposed passes share it, so that
+    their running sums, hence their acceptance decisions, are the same to the bit."""
     dim, columns = controls_t.shape[0], values_t.shape[0]
-    for k in range(start, stop):
-        for t in range(rows):
-            diff = local[0, t] - controls_t[0, k]
-            weight[t] = diff * diff
-        for a in range(1, dim):
-            coordinate = controls_t[a, k]
-            for t in range(rows):
-                diff = local[a, t] - coordinate
-                weight[t] += diff * diff
-        if mode == 4:
-            for t in range(rows):
-                ratio = ref2 / weight[t]
-                weight[t] = ratio * ratio
-        elif mode == 2:
-            for t in range(rows):
-                weight[t] = ref2 / weight[t]
+    width = stop - start
+    for t in range(rows):
+        total = 0.0
+        if dim == 3:
+            x0, x1, x2 = local[0, t], local[1, t], local[2, t]
+            c0 = controls_t[0, start:stop]
+            c1 = controls_t[1, start:stop]
+            c2 = controls_t[2, start:stop]
+            if mode == 4:
+                for k in range(width):
+                    d0, d1, d2 = x0 - c0[k], x1 - c1[k], x2 - c2[k]
+                    ratio = ref2 / (d0 * d0 + d1 * d1 + d2 * d2)
+                    w = ratio * ratio
+                    weight[k] = w
+                    total += w
+            else:
+                for k in range(width):
+                    d0, d1, d2 = x0 - c0[k], x1 - c1[k], x2 - c2[k]
+                    w = _power_of_ratio(ref2 / (d0 * d0 + d1 * d1 + d2 * d2), half_power, mode)
+                    weight[k] = w
+                    total += w
         else:
-            for t in range(rows):
-                weight[t] = (ref2 / weight[t]) ** half_power
-        for t in range(rows):
-            sums[t] += weight[t]
+            for k in range(width):
+                weight[k] = 0.0
+            for a in range(dim):
+                coordinate = local[a, t]
+                column = controls_t[a, start:stop]
+                for k in range(width):
+                    diff = coordinate - column[k]
+                    weight[k] += diff * diff
+            for k in range(width):
+                w = _power_of_ratio(ref2 / weight[k], half_power, mode)
+                weight[k] = w
+                total += w
+        sums[t] += total
         if transpose:
             for column in range(scaled.shape[0]):
-                total = 0.0
-                for t in range(rows):
-                    total += weight[t] * scaled[column, t]
-                out[k, column] += total
+                g = scaled[column, t]
+                if g != 0.0:
+                    for k in range(width):
+                        out[start + k, column] += weight[k] * g
         else:
             for column in range(columns):
-                value = values_t[column, k]
-                for t in range(rows):
-                    numerator[column, t] += weight[t] * value
+                row = values_t[column, start:stop]
+                dot = 0.0
+                for k in range(width):
+                    dot += weight[k] * row[k]
+                numerator[column, t] += dot
+
+
+@njit(**_OPTIONS)
+def _power_of_ratio(ratio, half_power, mode):
+    """ratio^(p/2) for ratio = ref²/d² (a product for p = 4 and 2)."""
+    if mode == 4:
+        return ratio * ratio
+    if mode == 2:
+        return ratio
+    return ratio**half_power
 
 
 @njit(**_OPTIONS)
@@ -245,12 +290,18 @@ def _visit_block(
     offset = np.empty((dim, rows))
     inverse2 = np.empty(rows)
     weight = np.empty(rows)
+    node_bound = np.empty(rows)
     quad = np.empty(rows)
     linear = np.empty(rows)
     local = np.empty((dim, rows))  # the block's targets, transposed
     for t in range(rows):
         for a in range(dim):
             local[a, t] = targets[first_target + t, a]
+    block_centre = np.zeros(dim)
+    for a in range(dim):
+        for t in range(rows):
+            block_centre[a] += local[a, t]
+        block_centre[a] /= rows
     block_sums = np.zeros(rows)  # leaf sums of :func:`_leaf_by_controls`
     block_numerator = np.zeros((columns, rows))  # leaves and accepted nodes
     far_sums = np.zeros(rows)  # S of the accepted nodes (not a lower bound)
@@ -288,11 +339,29 @@ def _visit_block(
         worst = 0.0
         count = stops[node] - starts[node]
         if rho < nearest:
-            worst = _power(reference / nearest, power, mode) * remainder(rho / nearest, power)
+            worst = _power(reference / nearest, power, mode) * _remainder_fast(
+                rho / nearest, power, mode
+            )
             share = max(
                 smallest_lower / n_controls, _power(reference / (farthest + rho), power, mode)
             )
             accepted = effective[node] * worst <= 0.5 * eta * count * share
+            if accepted:
+                for t in range(rows):
+                    node_bound[t] = worst
+            else:  # each target against its own bound and its own sums
+                accepted = True
+                for t in range(rows):
+                    node_bound[t] = _power(reference / distance[t], power, mode) * _remainder_fast(
+                        rho / distance[t], power, mode
+                    )
+                    own = max(
+                        (lower[t] + block_sums[t]) / n_controls,
+                        _power(reference / (distance[t] + rho), power, mode),
+                    )
+                    if effective[node] * node_bound[t] > 0.5 * eta * count * own:
+                        accepted = False
+                        break
         if accepted:
             coefficient = 0.5 * power * (power + 2.0)
             for t in range(rows):  # 1/R², the centroid's weight (ref/R)^p
@@ -311,7 +380,7 @@ def _visit_block(
                     weight[t] = (ref2 * inverse2[t]) ** half_power
             if not transpose:  # P summed over the node: n, Σd, Σd s, Σ s sᵀ, Σ d s sᵀ
                 for t in range(rows):
-                    bounds[first_target + t] += effective[node] * worst
+                    bounds[first_target + t] += effective[node] * node_bound[t]
                 trace = 0.0
                 for a in range(dim):
                     trace += second_geometry[node, a, a]
@@ -367,7 +436,7 @@ def _visit_block(
             if not reachable:  # controls outer, the block's targets in SIMD
                 _leaf_by_controls(
                     local, controls_t, values_t, start, stop, rows, ref2, half_power, mode,
-                    weight, block_sums, block_numerator, transpose, block_scaled, out,
+                    buffer, block_sums, block_numerator, transpose, block_scaled, out,
                 )  # fmt: skip
                 continue
             for t in range(rows):
@@ -414,12 +483,8 @@ def _visit_block(
             near_distance = 0.0
             far_distance = 0.0
             for a in range(dim):
-                centre = 0.0
-                for t in range(rows):
-                    centre += targets[first_target + t, a]
-                centre /= rows
-                near_distance += (centre - centroids[near, a]) ** 2
-                far_distance += (centre - centroids[far, a]) ** 2
+                near_distance += (block_centre[a] - centroids[near, a]) ** 2
+                far_distance += (block_centre[a] - centroids[far, a]) ** 2
             if near_distance > far_distance:
                 near, far = far, near
             stack[depth] = far
@@ -443,12 +508,12 @@ def traverse(
     blocks (each with its own transposed accumulators ``node_*[group]``, ``out[group]``).
 
     A node of ``n`` controls (effective count ``m``, see :func:`node_geometry`) is accepted
-    for a block when its bound ``δ`` at the block's nearest target satisfies
-    ``m δ <= (η/2) n max(L / N_c, (ref / (R_far + ρ))^p)``, with ``L`` the smallest over
-    the block of the weights summed so far (lower bounds of each target's S, near nodes
-    first) and ``R_far`` the block's farthest target: summed over accepted nodes the first
-    term stays below ``(η/2) S``, the second below ``(η/2)`` times the far nodes' share of
-    S, so ``E = Σ m δ <= η S`` for every target. Leaves not accepted are summed exactly;
+    for a block when its bound ``δ_t`` at each target of the block satisfies
+    ``m δ_t <= (η/2) n max(L_t / N_c, (ref / (R_t + ρ))^p)``, with ``L_t`` the weights
+    summed so far for that target (a lower bound of its S, near nodes first); the block is
+    tested at once first (``δ`` at its nearest target, the smallest ``L_t``, its farthest
+    target), then target by target. Summed over accepted nodes the first term stays below
+    ``(η/2) S``, the second below ``(η/2)`` times the far nodes' share of S, so ``E = Σ m δ <= η S`` for every target. Leaves not accepted are summed exactly;
     a target within ``radius2`` of a control is coincident (counted, its values summed).
     Forward (``transpose=False``): ``sums``, ``numerator``, ``bounds`` (E) and the
     coincident counts and sums. Transposed: ``out[group] += Aᵀ scaled`` by leaves and by

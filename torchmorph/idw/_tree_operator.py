@@ -1,0 +1,193 @@
+"""The operator of the tree-approximated IDW (:mod:`torchmorph.idw.tree`): the kd-trees
+of one pair of normalised clouds, their node geometry, and the forward and transposed
+applications by the numba traversal (:mod:`torchmorph.idw.backends.numba._tree_jit`),
+with the autograd function that ties them together. The error bound, the acceptance
+rule and the tolerance's control are described in :mod:`torchmorph.idw.tree`."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchmorph.idw.backends._protocol import power_code
+from torchmorph.idw.backends.numba import _tree_jit
+from torchmorph.idw.backends.numba.kernels import _threads
+
+__all__ = ["TARGET_BLOCK"]
+
+TARGET_BLOCK = 32
+"""Targets per block (a leaf of the target tree): a block shares one traversal."""
+
+
+def _kd_tree(points: np.ndarray, leaf_size: int):
+    """(order, starts, stops, children) of a kd-tree of median splits on the widest axis,
+    nodes in depth-first preorder, each node the range ``order[start:stop]``."""
+    order = np.arange(points.shape[0])
+    starts: list[int] = []
+    stops: list[int] = []
+    children: list[list[int]] = []
+    pending = [(0, points.shape[0], -1, 0)]  # (start, stop, parent, side)
+    while pending:
+        start, stop, parent, side = pending.pop()
+        node = len(starts)
+        starts.append(start)
+        stops.append(stop)
+        children.append([-1, -1])
+        if parent >= 0:
+            children[parent][side] = node
+        if stop - start <= leaf_size:
+            continue
+        members = points[order[start:stop]]
+        axis = int(np.argmax(members.max(axis=0) - members.min(axis=0)))
+        half = (stop - start) // 2
+        split = np.argpartition(members[:, axis], half)
+        order[start:stop] = order[start:stop][split]
+        pending.append((start + half, stop, node, 1))
+        pending.append((start, start + half, node, 0))
+    return (
+        order,
+        np.asarray(starts, np.int64),
+        np.asarray(stops, np.int64),
+        np.asarray(children, np.int64).reshape(-1, 2),
+    )
+
+
+class _TreeOperator:
+    """The trees and geometry of one pair of normalised clouds (float64 numpy)."""
+
+    def __init__(self, controls: np.ndarray, targets: np.ndarray, power, radius2, leaf_size):
+        from scipy.spatial import cKDTree
+
+        self.power, self.radius2 = float(power), float(radius2)
+        self.mode = power_code(power)
+        order, self.starts, self.stops, self.children = _kd_tree(controls, leaf_size)
+        self.control_order = order
+        self.controls = np.ascontiguousarray(controls[order])
+        self.controls_t = np.ascontiguousarray(self.controls.T)
+        self.max_leaf = int((self.stops - self.starts)[self.children[:, 0] < 0].max())
+        nodes, dim = self.starts.shape[0], controls.shape[1]
+        self.centroids = np.zeros((nodes, dim))
+        self.radii = np.zeros(nodes)
+        self.second = np.zeros((nodes, dim, dim))
+        self.effective = np.zeros(nodes)
+        _tree_jit.node_geometry(
+            self.controls, self.starts, self.stops, self.centroids, self.radii, self.second,
+            self.effective,
+        )  # fmt: skip
+        target_order, starts, _, children = _kd_tree(targets, TARGET_BLOCK)
+        self.target_order = target_order
+        self.target_rank = np.argsort(target_order)
+        self.targets = np.ascontiguousarray(targets[target_order])
+        leaves = np.sort(starts[children[:, 0] < 0]) if targets.shape[0] else starts[:0]
+        self.block_starts = np.append(leaves, targets.shape[0]).astype(np.int64)
+        self.references = self._references(cKDTree(self.controls))
+
+    def _references(self, searcher) -> np.ndarray:
+        """Per block: a distance below its targets' nearest (their weights stay <= ~1)."""
+        blocks = self.block_starts.shape[0] - 1
+        if blocks <= 0:
+            return np.zeros(0)
+        counts = np.diff(self.block_starts)
+        centres = np.add.reduceat(self.targets, self.block_starts[:-1], axis=0)
+        centres /= counts[:, None]
+        spread = np.linalg.norm(self.targets - np.repeat(centres, counts, axis=0), axis=1)
+        radius = np.maximum.reduceat(spread, self.block_starts[:-1])
+        nearest, _ = searcher.query(centres, k=1)
+        return np.maximum(nearest - radius, math.sqrt(self.radius2))
+
+    def _run(self, values, scaled, eta, transpose, coincident=None):
+        n_targets, n_controls = self.targets.shape[0], self.controls.shape[0]
+        columns, dim = values.shape[1], self.controls.shape[1]
+        nodes = self.starts.shape[0]
+        with _threads():
+            groups = _tree_jit.numba_threads()
+            if transpose:
+                node_zeroth = np.zeros((groups, nodes, columns))
+                node_first = np.zeros((groups, nodes, columns, dim))
+                node_second = np.zeros((groups, nodes, columns, dim, dim))
+                out = np.zeros((groups, n_controls, columns))
+            else:
+                node_zeroth = np.zeros((groups, 0, columns))
+                node_first = np.zeros((groups, 0, columns, dim))
+                node_second = np.zeros((groups, 0, columns, dim, dim))
+                out = np.zeros((groups, 0, columns))
+            zeroth = np.zeros((nodes, columns))
+            first = np.zeros((nodes, columns, dim))
+            second = np.zeros((nodes, columns, dim, dim))
+            if not transpose:
+                _tree_jit.node_moments(
+                    self.controls, values, self.starts, self.stops, self.centroids,
+                    zeroth, first, second,
+                )  # fmt: skip
+            sums = np.zeros(n_targets)
+            numerator = np.zeros((n_targets, columns))
+            bounds = np.zeros(n_targets)
+            if coincident is None:
+                coincident = np.zeros(n_targets, np.int64)
+            coincident_sum = np.zeros((n_targets, columns))
+            _tree_jit.traverse(
+                self.targets, self.block_starts, self.references, self.controls_t,
+                np.ascontiguousarray(values.T),
+                scaled, self.children, self.starts, self.stops, self.centroids, self.radii,
+                self.second, self.effective, zeroth, first, second, self.power, self.mode,
+                float(eta),
+                self.radius2, transpose, groups, sums, numerator, bounds, coincident,
+                coincident_sum, node_zeroth, node_first, node_second, out, self.max_leaf,
+            )  # fmt: skip
+            if transpose:
+                total = out.sum(axis=0)
+                _tree_jit.push_down(
+                    self.controls, self.starts, self.stops, self.centroids,
+                    node_zeroth.sum(axis=0), node_first.sum(axis=0), node_second.sum(axis=0),
+                    total,
+                )  # fmt: skip
+                return total
+        return sums, numerator, bounds, coincident, coincident_sum
+
+    def apply(self, values: np.ndarray, eta: float):
+        """(u' in the targets' tree order, S', the per-target bound E / (S' - E) on
+        ``|u' - u| / Δ``, the coincident counts); ``values`` (N_c, K) in control order."""
+        values = np.ascontiguousarray(values[self.control_order])
+        empty = np.zeros((self.targets.shape[0], values.shape[1]))
+        sums, numerator, bounds, coincident, coincident_sum = self._run(values, empty, eta, False)
+        result = numerator / np.where(sums > 0, sums, 1.0)[:, None]
+        hit = coincident > 0
+        result[hit] = coincident_sum[hit] / coincident[hit, None]
+        margin = sums - bounds
+        relative = np.where(margin > 0, bounds / np.where(margin > 0, margin, 1.0), np.inf)
+        relative[hit] = 0.0
+        return result, sums, relative, coincident
+
+    def apply_transposed(self, grad: np.ndarray, eta: float, sums, coincident) -> np.ndarray:
+        """Aᵀ grad for ``grad`` (N_t, K) in the targets' tree order; (N_c, K), control order."""
+        hit = coincident > 0
+        scale = np.where(hit, 1.0 / np.maximum(coincident, 1), 1.0 / np.where(sums > 0, sums, 1))
+        scaled = np.ascontiguousarray(grad * scale[:, None])
+        values = np.zeros((self.controls.shape[0], grad.shape[1]))
+        total = self._run(values, scaled, eta, True, coincident.copy())
+        out = np.empty_like(total)
+        out[self.control_order] = total
+        return out
+
+
+class _TreeApply(torch.autograd.Function):
+    """u = A d for the operator fixed by the forward pass; backward: Aᵀ grad."""
+
+    @staticmethod
+    def forward(ctx, values: Tensor, operator: _TreeOperator, eta: float, state: dict):
+        result, sums, relative, coincident = operator.apply(values.detach().double().numpy(), eta)
+        state["sums"], state["coincident"], state["relative"] = sums, coincident, relative
+        ctx.operator, ctx.eta, ctx.state = operator, eta, state
+        out = torch.from_numpy(result)
+        return out.to(values.dtype)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        state = ctx.state
+        total = ctx.operator.apply_transposed(
+            grad.detach().double().numpy(), ctx.eta, state["sums"], state["coincident"]
+        )
+        return torch.from_numpy(total).to(grad.dtype), None, None, None
