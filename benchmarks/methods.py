@@ -323,7 +323,8 @@ def rbf_row(
     plan=None,
 ) -> Row:
     described = ", ".join(f"{k} = {v:.4g}" for k, v in options.items()) or "scale invariant"
-    row = Row(case.letter, f"RBF {kernel}", described + f", degree {degree}")
+    label = f"RBF {kernel}" + ("" if degree == 1 else f" (degree {degree})")
+    row = Row(case.letter, label, described + f", degree {degree}")
     try:
         morph, fit = measure(
             lambda: MeshMorph(
@@ -335,6 +336,8 @@ def rbf_row(
     except (ValueError, RuntimeError, torch.linalg.LinAlgError) as error:
         row.note = f"fit failed: {type(error).__name__}: {error}"
         row.note += scipy_on_failure(case, kernel, options, degree, references.get("scipy"))
+        if len(case.boundary_points) <= cond_controls:
+            row.cond = condition_number(case.boundary_points.numpy(), kernel, options, degree)
         return row
     row.fit, row.morph = fit, per_morph
     row.quality = quality_summary(case.mesh, field_)
@@ -544,7 +547,10 @@ def ffd_rows(case: Case, repeats: int, pygem) -> list[Row]:
             fit_time,
             per_morph,
             quality_summary(mesh, field_),
-            note=f"fit residual {residual:.1e}; {ffd.num_inside:,} nodes in the box",
+            note=(
+                f"fit residual {residual:.1e}; {ffd.num_inside:,} nodes in the box, largest "
+                f"displacement {float(field_.norm(dim=1).max()):.3g} (on the body {scale:.3g})"
+            ),
         )
     )
     return rows
