@@ -531,6 +531,8 @@ class MeshMorph(nn.Module):
         if isinstance(weights, Tensor):
             columns = interior.permute(1, 0, 2).reshape(self.num_interior, -1)  # (N_int, D B)
             controls = (columns.mT @ weights).reshape(batch.shape[0], dim, -1).mT
+        elif isinstance(self.interpolant, IDW) and self.interpolant.mode == "tree":
+            controls = self.interpolant.transposed(interior)  # the tree's own transpose
         else:
             with torch.enable_grad():
                 shape = (batch.shape[0], self.num_controls, dim)

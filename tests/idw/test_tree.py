@@ -207,3 +207,62 @@ def test_state_dict_brings_the_clouds_and_rebuilds_the_trees():
     assert relative_error(other(displacements), exact) <= 1e-4
     with pytest.raises(ValueError, match="power"):
         TreeIDW(controls, targets, power=2.0).load_state_dict(module.state_dict())
+
+
+def exact_transpose(controls, targets, values, power=4.0):
+    """Wᵀ values in float64, literally (W's rows are w_k / Σ w)."""
+    distances = torch.cdist(targets.double(), controls.double())
+    weights = distances ** (-power)
+    weights = weights / weights.sum(1, keepdim=True)
+    return weights.mT @ values.double()
+
+
+@pytest.mark.parametrize("error_control", ["certified", "sampled"])
+@pytest.mark.parametrize("called_first", [False, True])
+@pytest.mark.parametrize("kind", ["surface", "graded"])
+def test_transposed_is_the_exact_transpose_within_tolerance(kind, called_first, error_control):
+    """Aᵀ g against the exact float64 Wᵀ g, for a smooth and a random g, before any call
+    (the threshold of a probe call) and after one; certified: <A d, g> = <d, Aᵀ g>."""
+    generator = torch.Generator().manual_seed(11)
+    controls, targets = cloud(kind, generator)
+    tolerance = 1e-4
+    module = TreeIDW(controls, targets, tolerance=tolerance, error_control=error_control)
+    displacements = field(controls)
+    if called_first:
+        module(displacements)
+    smooth = field(targets)
+    noise = torch.randn(targets.shape, generator=generator, dtype=torch.float64)
+    batched = module.transposed(torch.stack([smooth, noise]))
+    assert batched.shape == (2, controls.shape[0], 3)
+    for index, values in enumerate((smooth, noise)):
+        exact = exact_transpose(controls, targets, values)
+        assert relative_error(batched[index], exact) <= tolerance
+        torch.testing.assert_close(module.transposed(values), batched[index], rtol=0, atol=0)
+    if error_control == "sampled":  # Aᵀ at a tighter threshold than A's
+        return
+    result = module(displacements)  # the operator the transpose now uses
+    lhs = float((result * noise).sum())
+    rhs = float((displacements * module.transposed(noise)).sum())
+    assert math.isclose(lhs, rhs, rel_tol=1e-10)
+
+
+def test_gradient_at_zero_displacements_follows_the_tolerance():
+    """A vector-Jacobian product taken at an all-zero field (whose result is zero at any
+    threshold) uses the tolerance's threshold, not the loosest one."""
+    generator = torch.Generator().manual_seed(12)
+    controls, targets = cloud("graded", generator)
+    module = TreeIDW(controls, targets, tolerance=1e-5)
+    probe = torch.zeros_like(controls, requires_grad=True)
+    upstream = torch.randn(targets.shape, generator=generator, dtype=torch.float64)
+    (gradient,) = torch.autograd.grad(module(probe), probe, upstream)
+    assert relative_error(gradient, exact_transpose(controls, targets, upstream)) <= 1e-5
+
+
+def test_transposed_bad_values_are_named():
+    generator = torch.Generator().manual_seed(13)
+    controls, targets = cloud("uniform", generator)
+    module = TreeIDW(controls, targets)
+    with pytest.raises(ValueError, match=r"^values must have shape \(1500, 3\)"):
+        module.transposed(torch.zeros(400, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="^values"):
+        module.transposed(torch.full((1500, 3), math.nan, dtype=torch.float64))

@@ -286,6 +286,22 @@ class IDW(nn.Module):
         with torch.no_grad():
             return self._assemble(self.targets.detach(), self.controls.detach())
 
+    def transposed(self, values: Tensor) -> Tensor:
+        """``Wᵀ values`` for a field at the targets, (N_t, D) or (B, N_t, D) -> (N_c, D) or
+        (B, N_c, D): the adjoint of :meth:`forward` at the stored geometry.
+
+        In tree mode the transpose of the tree's operator at the threshold its tolerance
+        chose (:meth:`~torchmorph.idw.tree.TreeIDW.transposed`); otherwise the exact one
+        (a vector-Jacobian product). No gradients flow through it in tree mode.
+        """
+        if self._tree is not None:
+            return self._tree.operator(self.controls, self.targets).transposed(values)
+        with torch.enable_grad():
+            shape = (*values.shape[:-2], self.num_controls, values.shape[-1])
+            probe = values.new_zeros(shape, requires_grad=True)
+            (result,) = torch.autograd.grad(self(probe), probe, grad_outputs=values)
+        return result
+
     # ----------------------------------------------------------------- state
     def get_extra_state(self) -> dict:
         state = {

@@ -77,10 +77,12 @@ that choice is piecewise constant and not differentiated. No gradients to the po
 positions: inputs that require them are refused (use :func:`~torchmorph.idw.idw_apply`);
 the expansion is differentiable in ``x`` and ``c`` in principle, not implemented.
 
-Not done here: CUDA (Triton) kernels; a mode of :class:`~torchmorph.idw.IDW`, use by
-``MeshMorph``, the POD offline phase or the sharded modules (call :class:`TreeIDW`
-directly); targets coinciding with a control are found only by leaves summed exactly,
-which always holds (a node containing the control has ``ρ >= R``).
+Not done here: CUDA (Triton) kernels; gradients to the points; targets coinciding with
+a control are found only by leaves summed exactly, which always holds (a node containing
+the control has ``ρ >= R``). :class:`TreeIDW` is also ``IDW(mode="tree")`` and
+``MeshMorph(mode="tree")``; :meth:`TreeIDW.transposed` applies ``Aᵀ`` (the morph's
+adjoint), and a call on all-zero fields keeps the threshold of the last call (or of a
+probe call), so that a vector-Jacobian product taken there is as accurate as elsewhere.
 """
 
 from __future__ import annotations
@@ -89,6 +91,7 @@ import math
 import warnings
 from typing import Literal
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -109,6 +112,7 @@ __all__ = [
     "SAMPLE_SAFETY",
     "SAMPLE_TARGETS",
     "TARGET_BLOCK",
+    "TRANSPOSE_MARGIN",
     "ErrorControl",
     "TreeIDW",
     "idw_tree_apply",
@@ -147,6 +151,11 @@ SAMPLED_START = 300.0
 """``error_control="sampled"``: the first ``η`` of a :class:`TreeIDW`, ``SAMPLED_START``
 times the tolerance (on the benchmark's clouds at p = 4 the error measured was about
 1e-4 η); later calls start from the last call's ``η``."""
+
+TRANSPOSE_MARGIN = 8.0
+"""``error_control="sampled"``: :meth:`TreeIDW.transposed` applies the transpose at the
+last call's ``η`` divided by this (the sampled check is on ``A d``, not on ``Aᵀ g``,
+whose measured error was up to 3 times the forward's at the same ``η``)."""
 
 SAMPLED_ETA_LIMIT = 100.0
 """``error_control="sampled"``: the largest ``η`` tried (nodes still need ``ρ < R``)."""
@@ -269,6 +278,8 @@ class TreeIDW(nn.Module):
             self.leaf_size,
         )
         self._calibration = 1.0
+        self._applied: tuple[float, dict] | None = None  # η and sums of the last result
+        self._transposed_sums: tuple[float, np.ndarray, np.ndarray] | None = None
 
     # ----------------------------------------------------------------- state
     def get_extra_state(self) -> dict:
@@ -332,7 +343,7 @@ class TreeIDW(nn.Module):
         live = spread > 0
         certified = self.error_control == "certified"
         largest = 0.5 if certified else SAMPLED_ETA_LIMIT
-        eta = largest
+        eta = largest if live.any() else self._threshold(largest)
         if live.any():
             scale = 0.5 * self.tolerance * float((rms[live] / spread[live]).min())
             if not certified:  # measured: errors ~1e-4 η at p = 4, far below the bound's
@@ -350,7 +361,7 @@ class TreeIDW(nn.Module):
                 errors = bounds if certified else _sampled(result[sampled_rows], exact, dim)
             worst = max(errors)
             if worst <= goal:
-                best = (result, bounds, errors)
+                best = (result, bounds, errors, eta, state)
                 loosen = LOOSEN if certified else SAMPLED_LOOSEN
                 if worst > goal / loosen or eta >= largest or not live.any():
                     break
@@ -365,7 +376,7 @@ class TreeIDW(nn.Module):
             self._calibration *= factor
             eta = min(largest, eta * factor)
         if best is not None:
-            result, bounds, errors = best
+            result, bounds, errors, eta, state = best
         else:
             what = "error bound" if certified else "sampled error"
             warnings.warn(
@@ -375,8 +386,79 @@ class TreeIDW(nn.Module):
             )
         self.last_sampled_error_ = [] if certified else errors
         self.last_bound_ = bounds
+        self._applied = (eta, state)
         out = result[torch.from_numpy(operator.target_rank)].reshape(n_targets, batch, dim)
         return out.permute(1, 0, 2) if batched else out[:, 0]
+
+    def _threshold(self, largest: float) -> float:
+        """``η`` for a call on all-zero fields (whose result is zero whatever ``η``, but
+        whose transpose is not): the last result's, or that of a call on a probe field,
+        the controls' centred coordinates, when there was none."""
+        if self._applied is None:
+            probe = self.controls - self.controls.mean(0)
+            if not bool(probe.abs().amax() > 0):  # one control point: no far field
+                return largest
+            with torch.no_grad():
+                self(probe)
+        assert self._applied is not None
+        return self._applied[0]
+
+    def transposed(self, values: Tensor) -> Tensor:
+        """``Aᵀ values``: the transpose of the approximated operator, from the targets
+        back to the controls (the adjoint of :meth:`forward`).
+
+        Parameters
+        ----------
+        values : Tensor, shape (N_t, D) or (B, N_t, D)
+            A field at the targets.
+
+        Returns
+        -------
+        Tensor, shape (N_c, D) or (B, N_c, D)
+            ``Σ_t A_tk values_t`` for each control ``k``, where ``A`` is the operator at
+            the acceptance threshold ``η`` the tolerance chose for the last call (or for a
+            call on the controls' centred coordinates when the module was not called
+            yet), divided by :data:`TRANSPOSE_MARGIN` with ``error_control="sampled"``.
+            With ``"certified"`` it is the exact transpose of the last call's operator,
+            ``<A d, g> = <d, Aᵀ g>`` to rounding.
+
+        Notes
+        -----
+        The error of ``Aᵀ g`` against the exact ``Wᵀ g`` is not certified (the bound of
+        the module's notes is on ``A d``): measured below the tolerance on the clouds of
+        the tests, for smooth and random ``g``. One traversal (two the first time at a
+        new threshold in sampled mode). No gradients (``values`` is detached).
+        """
+        n_controls, dim = self.controls.shape
+        n_targets = self.targets.shape[0]
+        batched = check_vectors(values, "values", n_targets, dim=dim, what="targets")
+        check_same_device_dtype(self.controls, "controls", values, "values")
+        batch = values.shape[0] if batched else 1
+        if n_targets == 0:
+            zeros = values.new_zeros((batch, n_controls, dim))
+            return zeros if batched else zeros[0]
+        eta, sums, coincident = self._transposed_operator()
+        flat = (values.permute(1, 0, 2) if batched else values[:, None]).reshape(n_targets, -1)
+        operator = self._operator
+        grad = np.ascontiguousarray(flat.detach().double().numpy()[operator.target_order])
+        total = operator.apply_transposed(grad, eta, sums, coincident)
+        out = torch.from_numpy(total).to(values.dtype).reshape(n_controls, batch, dim)
+        return out.permute(1, 0, 2) if batched else out[:, 0]
+
+    def _transposed_operator(self) -> tuple[float, np.ndarray, np.ndarray]:
+        """(η, S', coincident counts) of the operator :meth:`transposed` applies."""
+        certified = self.error_control == "certified"
+        eta = self._threshold(0.5 if certified else SAMPLED_ETA_LIMIT)
+        assert self._applied is not None
+        if certified:
+            state = self._applied[1]
+            return eta, state["sums"], state["coincident"]
+        eta /= TRANSPOSE_MARGIN
+        if self._transposed_sums is None or self._transposed_sums[0] != eta:
+            zeros = np.zeros((self.controls.shape[0], 1))
+            _, sums, _, coincident = self._operator.apply(zeros, eta)
+            self._transposed_sums = (eta, sums, coincident)
+        return self._transposed_sums
 
     def _certify(self, result: Tensor, spread, batch: int, dim: int, state: dict) -> list[float]:
         """Per field: the certified bound on ‖u' - u‖ / ‖u‖ (see the module's notes)."""
