@@ -230,3 +230,25 @@ def test_mesh_morph_adjoint_in_tree_mode_is_the_exact_adjoint_within_tolerance()
     tree(0.05 * boundary.flip(1))
     assert relative_error(tree.adjoint(fields), expected) <= DEFAULT_TOLERANCE
     assert relative_error(tree.adjoint(fields[0]), expected[0]) <= DEFAULT_TOLERANCE
+
+
+def test_pod_offline_phase_on_a_tree_mode_morph():
+    """PODReducer.fit on MeshMorph(mode='tree'): snapshots and the projection (by the
+    tree's adjoint) agree with the exact morph's within the tolerance; online='paper',
+    which needs W, is refused naming the argument."""
+    from torchmorph.pod import PODReducer
+
+    mesh = box_mesh(8)
+    exact = MeshMorph(mesh, mode="dense")
+    tree = MeshMorph(mesh, mode="tree")
+    boundary = mesh.points[exact.boundary_nodes]
+    x, y, z = boundary.unbind(1)
+    training = 0.05 * torch.stack(
+        [torch.stack([torch.sin(k * y), x * z * k, torch.cos(k * x) - y], 1) for k in (1, 2, 3)]
+    )
+    expected = PODReducer(num_modes=3).fit(exact, training)
+    reduced = PODReducer(num_modes=3).fit(tree, training)
+    probe = 0.5 * training[0] + 0.2 * training[2]
+    assert relative_error(reduced(probe), expected(probe)) <= DEFAULT_TOLERANCE
+    with pytest.raises(ValueError, match=r"^online='paper' needs the morph's matrix W"):
+        PODReducer(num_modes=3, online="paper").fit(tree, training)

@@ -307,7 +307,13 @@ def weights_of(morph: Any, num_inputs: int, num_reduced: int) -> tuple[Tensor, T
             "online='paper' needs the morph's matrix W: a morph with a "
             "weights_matrix() method (IDW, MeshMorph)"
         )
-    weights = method()
+    try:
+        weights = method()
+    except RuntimeError as error:  # a tree-mode IDW or MeshMorph stores no W
+        raise ValueError(
+            f"online='paper' needs the morph's matrix W, which it cannot give ({error}); "
+            "use online='projection' (the default), which needs only its adjoint"
+        ) from error
     columns = getattr(morph, "weight_columns", None)
     columns = torch.arange(num_inputs) if columns is None else torch.as_tensor(columns).long()
     if not isinstance(weights, Tensor) or tuple(weights.shape) != (num_reduced, columns.numel()):
