@@ -24,9 +24,9 @@ and gives the worst error over it.
 Everything runs on one thread (torch and numba). Run
 ``python benchmarks/adaptive.py`` (the first run longer: meshing); ``--cases A C`` for
 fewer cases, ``--tolerances 0.01`` to leave out 0.1 %. Measured on 2 shared cores: case A
-takes seconds; case C about 3 minutes without 0.1 % (which needs most of its boundary
-nodes and ran over 15 minutes); case B's equal-count run (4,922 controls) alone took 27
-minutes, and its 1 % and 0.1 % rows more than that.
+takes seconds; case C about 3 minutes (its 0.1 % row 2 minutes: it needs most of its
+boundary nodes); case B's equal-count run (4,922 controls) 5 minutes, its 1 % row 1
+minute, and its 0.1 % row 13 minutes.
 """
 
 from __future__ import annotations
