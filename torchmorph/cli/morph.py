@@ -25,6 +25,7 @@ from torchmorph.cli._common import (
     _Stages,
     _warn,
 )
+from torchmorph.cli._ffd import ffd_rows
 from torchmorph.cli._methods import add_method_arguments, method_options, method_summary
 from torchmorph.cli._selection import (
     _adaptive_plan,
@@ -62,9 +63,16 @@ def add_parser(commands, common: argparse.ArgumentParser) -> None:
     morph.add_argument(
         "--displacement",
         "-d",
-        required=True,
         metavar="FILE",
-        help="displacement file (.npy, .npz, .csv, .txt, .dat); accepted shapes below",
+        help="displacement file (.npy, .npz, .csv, .txt, .dat); accepted shapes below "
+        "(this or --ffd)",
+    )
+    morph.add_argument(
+        "--ffd",
+        metavar="LATTICE",
+        help="move the boundary by a free-form deformation lattice instead of -d: a .npz "
+        "with origin (D,), lengths (D,), displacements (n_1, ..., n_D, D) and optionally "
+        "basis, degree, rotation; nodes outside the box stay",
     )
     morph.add_argument(
         "--output",
@@ -146,6 +154,8 @@ examples:
       -o out.vtu
 (regions that share nodes, here the profiles where root and tip meet the sides,
 need --overlap first or --overlap share)
+  torchmorph morph wing.vtu --moving upper lower --ffd lattice.npz -o out.vtu
+(the lattice moves the wing's surfaces inside its box, IDW the volume)
   torchmorph morph wing.vtu --moving tip -d tip.npy --select 0.05 --method rbf \\
       --kernel wendland_c2 --support-radius 2.0 -o out.vtu
 (radial basis functions from the selected controls; a Wendland kernel's support
@@ -190,6 +200,13 @@ def run(args: argparse.Namespace) -> int:
             f"argument --output/-o: a {output_format.name} output needs a {output_format.name} "
             "input (torchmorph writes those back moved, it does not write new ones)"
         )
+    if (args.displacement is None) == (args.ffd is None):
+        args.parser.error(
+            "argument --displacement/-d: give a displacement file (-d) or an FFD lattice "
+            "(--ffd), one of the two"
+        )
+    if args.ffd is not None and args.batch_index is not None:
+        args.parser.error("argument --batch-index: picks a field of a -d file, not of --ffd")
     if args.max_controls is not None and args.adaptive is None:
         args.parser.error("argument --max-controls: needs --adaptive")
     if args.enrich and args.select is None and not args.region and args.adaptive is None:
@@ -213,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with stages.step("reading mesh"):
             mesh, _, _ = _read(args.mesh)
-            array = _load_displacement(args.displacement)
+            array = None if args.ffd else _load_displacement(args.displacement)
         mesh_cpu = mesh
         boundary = mesh.boundary_nodes.cpu().numpy()
         moving_nodes = None
@@ -234,16 +251,20 @@ def run(args: argparse.Namespace) -> int:
         if args.enrich:
             _check_names(mesh, _split_names(args.enrich) or [], "--enrich")
         moving_label = ", ".join(moving) if moving else ""
-        rows, layout, dropped = _boundary_rows(
-            array,
-            source=args.displacement,
-            num_nodes=mesh.num_nodes,
-            boundary_nodes=boundary,
-            moving_nodes=moving_nodes,
-            moving_label=moving_label,
-            batch_index=args.batch_index,
-            dim=mesh.dim,
-        )
+        if args.ffd is not None:
+            rows, layout = ffd_rows(args.ffd, mesh.points.cpu().numpy(), boundary, moving_nodes)
+            dropped = 0.0
+        else:
+            rows, layout, dropped = _boundary_rows(
+                array,
+                source=args.displacement,
+                num_nodes=mesh.num_nodes,
+                boundary_nodes=boundary,
+                moving_nodes=moving_nodes,
+                moving_label=moving_label,
+                batch_index=args.batch_index,
+                dim=mesh.dim,
+            )
         if dropped > 0:
             _warn(
                 "morph",
@@ -351,10 +372,14 @@ def run(args: argparse.Namespace) -> int:
             f"{boundary.size - moving_nodes.size} boundary nodes are fixed",
         )
     else:
-        _line("moving", "every boundary node, as given in the file")
+        _line(
+            "moving",
+            "every boundary node, as "
+            + ("the lattice moves it" if args.ffd else "given in the file"),
+        )
     _line(
         "displacement",
-        f"{args.displacement}: {layout}; max |d| on the boundary "
+        f"{args.displacement or args.ffd}: {layout}; max |d| on the boundary "
         f"{float(np.abs(rows).max()) if rows.size else 0.0:.4g}",
     )
     _line("method", method)
