@@ -53,7 +53,7 @@ def test_the_lattice_moves_the_boundary_and_idw_the_volume(tmp_path, cube, capsy
 
 
 def test_moving_sets_limit_the_lattice(tmp_path, cube):
-    path, mesh, lattice = cube
+    path, mesh, _ = cube
     code, field = run(tmp_path, path, "--ffd", str(tmp_path / "lattice.npz"), "--moving", "z1")
     assert code == EXIT_OK
     top = mesh.node_set("z1").numpy()
@@ -86,7 +86,7 @@ def test_moving_sets_limit_the_lattice(tmp_path, cube):
                 "scale": 2.0,
             },
             "unknown array(s) scale",
-        ),  # fmt: skip
+        ),
     ],
 )
 def test_bad_lattices(tmp_path, cube, capsys, arrays, message):
