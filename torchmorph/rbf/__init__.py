@@ -4,7 +4,9 @@ kernels and Wendland's compactly supported ones, with a polynomial tail.
 The kernels and the matrices built from them (:mod:`torchmorph.rbf.kernels`), the
 factorised interpolation system (:mod:`torchmorph.rbf.system`), the functional core
 (:mod:`torchmorph.rbf.functional`: :func:`rbf_interpolate`), the :class:`RBF` module
-(:mod:`torchmorph.rbf.module`) over them, and greedy reduction
+(:mod:`torchmorph.rbf.module`) over them, the partition-of-unity :class:`PartitionRBF`
+for many controls (:mod:`torchmorph.rbf.partition`, :func:`build_rbf` choosing it or
+the dense fit), and greedy reduction
 (:mod:`torchmorph.rbf.greedy`: :class:`RBFErrorOracle`, the oracle of
 :func:`torchmorph.selection.greedy.greedy_selection` for RBF interpolation).
 """
@@ -17,15 +19,19 @@ from torchmorph.rbf.functional import (
 from torchmorph.rbf.greedy import RBFErrorOracle
 from torchmorph.rbf.kernels import KERNELS, MIN_DEGREE, SCALE_INVARIANT, WENDLAND
 from torchmorph.rbf.module import RBF
+from torchmorph.rbf.partition import PARTITION_CONTROLS, PartitionRBF, build_rbf
 
 __all__ = [
     "DEFAULT_BLOCK_BYTES",
     "DEFAULT_CUDA_BLOCK_BYTES",
     "KERNELS",
     "MIN_DEGREE",
+    "PARTITION_CONTROLS",
     "RBF",
     "SCALE_INVARIANT",
     "WENDLAND",
+    "PartitionRBF",
     "RBFErrorOracle",
+    "build_rbf",
     "rbf_interpolate",
 ]
