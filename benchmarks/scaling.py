@@ -28,6 +28,18 @@ O(N log N) guide lines (docs/scaling_<device>.png).
 
     python benchmarks/scaling.py                         # CPU, 10^4 -> 10^6
     python benchmarks/scaling.py --device cuda --quick   # GPU, ~3 minutes on an H100
+    python benchmarks/scaling.py --tree                  # exact against tree, CPU
+
+``--tree`` sweeps instead the tree-approximated IDW (``torchmorph.idw.tree.TreeIDW``,
+sampled error control) against the exact fused sum on the clouds of
+``benchmarks/tree.py`` (N_c = N_t / 10 controls on a sphere, targets graded towards it),
+N_t from 10^4 (``--tree-sizes``), tolerances 1e-3, 1e-4 and 1e-6, CPU only (the tree has
+no CUDA kernels), one thread: the exact sum's time (on ``--exact-limit`` targets and
+scaled beyond), the tree's build and the better of its second and third calls (the first
+calibrates the threshold), the measured error at 2,000 targets against float64 exact sums,
+the peak memory of the build and the calls per mesh node (N_t + N_c), fitted exponents
+and the largest mesh in 24 GB extrapolated from that memory; plot
+docs/scaling_tree_cpu.png (``--png``).
 
 Needs matplotlib for the plot (``--no-plot`` without it); never meshio or gmsh.
 """
@@ -311,6 +323,161 @@ def measure_sharded(side: int, world: int, dtype_name: str) -> float:
 
 
 # --------------------------------------------------------------------------- #
+# the tree-approximated IDW against the exact sum (--tree)
+# --------------------------------------------------------------------------- #
+TREE_TOLERANCES = (1e-3, 1e-4, 1e-6)
+
+
+def measure_tree_size(n_targets: int, tolerances, exact_limit: int) -> dict:
+    """Times, errors and peak memory of the exact fused sum and of the tree at one size."""
+    from tree import fibonacci_sphere, field, graded_ball
+
+    from torchmorph.idw import idw_apply
+    from torchmorph.idw.tree import TreeIDW
+
+    n_controls = n_targets // 10
+    controls64, targets64 = fibonacci_sphere(n_controls), graded_ball(n_targets, 1)
+    controls, targets = controls64.float(), targets64.float()
+    displacements = field(controls64).float()
+    row: dict = {"targets": n_targets, "controls": n_controls, "nodes": n_targets + n_controls}
+    row.update(time={}, memory={}, error={})
+    measured = min(n_targets, exact_limit)
+    subset = targets[:: max(1, n_targets // measured)][:measured]
+    idw_apply(controls=controls, targets=subset[:100], displacements=displacements)
+    with Memory(torch.device("cpu")) as memory:
+        start = time.perf_counter()
+        idw_apply(controls=controls, targets=subset, displacements=displacements)
+        row["time"]["exact"] = (time.perf_counter() - start) * n_targets / subset.shape[0]
+    if measured == n_targets:
+        row["memory"]["exact"] = memory.peak
+    row["exact_scaled"] = measured != n_targets
+    sample = torch.linspace(0, n_targets - 1, min(2000, n_targets)).long()
+    reference = idw_apply(
+        controls=controls.double(), targets=targets.double()[sample],
+        displacements=displacements.double(),
+    )  # fmt: skip
+    for tolerance in tolerances:
+        key = f"tree {tolerance:g}"
+        with Memory(torch.device("cpu")) as memory:
+            start = time.perf_counter()
+            module = TreeIDW(controls, targets, tolerance=tolerance, error_control="sampled")
+            row["time"][f"{key} build"] = time.perf_counter() - start
+            module(displacements)
+            calls = []
+            for _ in range(2):  # the better of two calibrated calls (shared cores)
+                start = time.perf_counter()
+                result = module(displacements)
+                calls.append(time.perf_counter() - start)
+            row["time"][key] = min(calls)
+        row["memory"][key] = memory.peak
+        row["error"][key] = float((result[sample].double() - reference).norm() / reference.norm())
+        del module, result
+        print(
+            f"[scaling --tree] N_t={n_targets:,} {key}: build {row['time'][key + ' build']:.3g} s, "
+            f"call {row['time'][key]:.3g} s (exact {row['time']['exact']:.3g} s), "
+            f"error {row['error'][key]:.2e}, peak {memory.peak / 1e6:.0f} MB",
+            flush=True,
+        )
+    return row
+
+
+def summarise_tree(rows: list[dict], tolerances) -> tuple[str, dict]:
+    sizes = [r["targets"] for r in rows]
+    header = [
+        "configuration", *[f"N_t={n:,}" for n in sizes], "exponent k", "bytes/node at max N",
+        "largest N in 24 GB RAM",
+    ]  # fmt: skip
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    fits = {}
+    keys = ["exact"] + [f"tree {t:g}" for t in tolerances]
+    for key in keys:
+        k, _ = power_fit(sizes, [r["time"][key] for r in rows])
+        fits[key] = k
+        cells = []
+        for r in rows:
+            cell = seconds(r["time"][key])
+            if key == "exact" and r["exact_scaled"]:
+                cell += " (scaled)"
+            elif key != "exact":
+                cell += f", {r['time']['exact'] / r['time'][key]:.1f}×, err {r['error'][key]:.1e}"
+            cells.append(cell)
+        memory = [(r["nodes"], r["memory"][key]) for r in rows if key in r["memory"]]
+        per_node = memory[-1][1] / memory[-1][0] if memory else float("nan")
+        biggest = largest_nodes(*zip(*memory, strict=True), CPU_MEMORY) if memory else math.nan
+        label = (
+            "exact fused sum" if key == "exact" else f"tree, sampled {key[5:]} (calibrated call)"
+        )
+        lines.append(
+            f"| {label} | " + " | ".join(cells)
+            + f" | {k:.2f} | {per_node:,.0f} | {biggest:.2g} |"
+        )  # fmt: skip
+    for tolerance in tolerances:
+        key = f"tree {tolerance:g} build"
+        k, _ = power_fit(sizes, [r["time"][key] for r in rows])
+        cells = [seconds(r["time"][key]) for r in rows]
+        lines.append(
+            f"| tree build ({tolerance:g}) | " + " | ".join(cells) + f" | {k:.2f} | – | – |"
+        )
+    return "\n".join(lines), fits
+
+
+def plot_tree(rows: list[dict], fits: dict, tolerances, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(7.5, 5.5))
+    sizes = [r["targets"] for r in rows]
+    for key in ["exact"] + [f"tree {t:g}" for t in tolerances]:
+        label = "exact fused sum" if key == "exact" else f"tree, sampled {key[5:]}"
+        axes.loglog(
+            sizes, [r["time"][key] for r in rows], "o-", label=f"{label} (k={fits[key]:.2f})"
+        )
+    n0, t0 = sizes[0], rows[0]["time"]["tree 0.0001"] if "tree 0.0001" in rows[0]["time"] else 1.0
+    axes.loglog(
+        sizes, [t0 * n * math.log(n) / (n0 * math.log(n0)) for n in sizes], "k-.",
+        label="O(N log N) guide",
+    )  # fmt: skip
+    axes.loglog(
+        sizes, [rows[0]["time"]["exact"] * (n / n0) ** 2 for n in sizes], "k:",
+        label="O(N_t·N_c) guide",
+    )  # fmt: skip
+    axes.set_xlabel("targets N_t (N_c = N_t / 10)")
+    axes.set_ylabel("seconds")
+    axes.set_title("tree-approximated IDW against the exact sum (CPU, float32, one thread)")
+    axes.grid(True, which="both", alpha=0.3)
+    axes.legend(fontsize=7)
+    figure.tight_layout()
+    from torchmorph._atomic import atomic_output
+
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=120, format="png")
+    plt.close(figure)
+
+
+def tree_main(args) -> int:
+    tolerances = args.tree_tolerances
+    rows = []
+    for size in args.tree_sizes:
+        rows.append(measure_tree_size(int(size), tolerances, args.exact_limit))
+    table, fits = summarise_tree(rows, tolerances)
+    print(f"\n## Scaling: tree against exact (CPU, {os.cpu_count()} cores, 1 thread, float32)")
+    print(f"\n{table}\n")
+    if args.json:
+        args.json.write_text(json.dumps({"rows": rows, "fits": fits}, indent=1))
+    if not args.no_plot:
+        path = args.png or ROOT / "docs" / "scaling_tree_cpu.png"
+        try:
+            plot_tree(rows, fits, tolerances, path)
+        except ImportError as error:
+            print(f"no plot ({error}); pip install matplotlib, or pass --no-plot")
+        else:
+            print(f"plot: {path}")
+    return 0
+
+
+# --------------------------------------------------------------------------- #
 # fits, table, plot
 # --------------------------------------------------------------------------- #
 def power_fit(sizes: list[float], values: list[float]) -> tuple[float, float]:
@@ -487,7 +654,23 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--no-plot", action="store_true")
     parser.add_argument("--json", type=Path, default=None, help="also write the raw results")
+    parser.add_argument("--tree", action="store_true", help="the tree against the exact sum")
+    parser.add_argument(
+        "--tree-sizes", type=float, nargs="+", default=[1e4, 3e4, 1e5, 3e5, 1e6],
+        help="--tree: target counts N_t (N_c = N_t / 10)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--tree-tolerances", type=float, nargs="+", default=list(TREE_TOLERANCES),
+        help="--tree: tolerances of the tree",
+    )  # fmt: skip
+    parser.add_argument(
+        "--exact-limit", type=int, default=100_000,
+        help="--tree: the exact sum is timed on this many targets at most and scaled",
+    )  # fmt: skip
     args = parser.parse_args(argv)
+    if args.tree:
+        torch.set_num_threads(1)
+        return tree_main(args)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: no CUDA device")
