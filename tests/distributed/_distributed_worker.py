@@ -180,6 +180,12 @@ def _equivalence(rank: int, outdir: str, results: dict) -> None:
                 results[f"pod/{split}/gathered"] = pod.gather(pod(displacements))
                 snapshots = sharded(training(controls))
                 results[f"basis/{split}"] = sharded_pod_basis(snapshots, num_modes=4)
+        # tree mode: each rank's tree on its own targets; adjoint and POD through it
+        sharded = ShardedIDW(controls, targets[rows], mode="tree")
+        results[f"idw/{split}/tree/gathered"] = sharded.gather(sharded(displacements), dst=None)
+        results[f"idw/{split}/tree/adjoint"] = sharded.adjoint(weights[:, rows])
+        pod = ShardedPOD(num_modes=4).fit(sharded, training(controls))
+        results[f"pod/{split}/tree/forward"] = pod.gather(pod(displacements))
 
     mesh, boundary, node_weights = mesh_data()
     for layout in ("default", "interleaved", "empty"):

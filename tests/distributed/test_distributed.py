@@ -63,6 +63,28 @@ def test_sharded_idw_forward_equals_single_process(ranks, split, mode):
     assert torch.equal(results[0][f"idw/{split}/{mode}/forward"][:, 3], displacements[:, 5])
 
 
+@pytest.mark.parametrize("split", list(worker.SPLITS))
+@pytest.mark.slow  # two spawned processes
+def test_sharded_idw_in_tree_mode_is_within_tolerance_of_the_exact_map(ranks, split):
+    """mode='tree' on every rank (each rank's tree on its own targets): the gathered
+    result, the ranks' adjoints summed and a ShardedPOD fitted through them, against the
+    exact dense IDW (so small a cloud is summed exactly by the tree: this checks the
+    plumbing; the tree's accuracy is tested in tests/idw)."""
+    results, _ = ranks
+    controls, targets, displacements, weights = worker.idw_data()
+    exact = IDW(controls, targets, mode="dense")
+    reference = exact(displacements)
+    adjoint = sum(result[f"idw/{split}/tree/adjoint"] for result in results)
+    expected = exact.weights_matrix().mT @ weights
+    pod = PODReducer(num_modes=4).fit(exact, worker.training(controls))
+    for result in results:
+        gathered = result[f"idw/{split}/tree/gathered"]
+        assert float((gathered - reference).norm() / reference.norm()) <= 1e-4
+        projected = result[f"pod/{split}/tree/forward"]
+        assert projected is None or torch.allclose(projected, pod(displacements), atol=1e-6)
+    assert float((adjoint - expected).norm() / expected.norm()) <= 1e-4
+
+
 @pytest.mark.parametrize("mode", ["dense", "matrix_free"])
 @pytest.mark.parametrize("split", list(worker.SPLITS))
 @pytest.mark.slow  # two spawned processes

@@ -64,6 +64,8 @@ def _local_transpose(idw: IDW, fields: Tensor) -> Tensor:
     if isinstance(weights, Tensor):
         columns = fields.permute(1, 0, 2).reshape(count, batch * dim)
         return (columns.mT @ weights).reshape(batch, dim, -1).mT.contiguous()
+    if idw.mode == "tree":  # the tree's own transpose at its tolerance's threshold
+        return idw.transposed(fields)
     with torch.enable_grad():
         probe = fields.new_zeros(batch, idw.num_controls, dim, requires_grad=True)
         (result,) = torch.autograd.grad(idw(probe), probe, grad_outputs=fields)

@@ -61,9 +61,9 @@ order), measured against exact float64 sums of the fused kernels, is below
 :data:`SAMPLED_LOOSEN`). That is an estimate of the error over all targets, not a bound: it
 holds on the clouds of the tests (uniform; surface controls with targets filling the
 volume; graded by 10^4) and of the benchmark, where the error at 2,000 targets came out
-1.7-7 times below the tolerance (1e-3 to 1e-6), but a field whose error concentrates on a few targets
-missed by the sample can exceed it. ``last_bound_`` still reports the certified bound
-of the result.
+1.5-3 times below the tolerance (1e-3 to 1e-6), but a field whose error concentrates on
+a few targets missed by the sample can exceed it. ``last_bound_`` still reports the
+certified bound of the result.
 
 Exactness and gradients
 -----------------------
