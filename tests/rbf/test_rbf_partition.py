@@ -167,7 +167,7 @@ def test_the_parallel_fused_pass_equals_the_one_thread_pass():
     points, centres = shell(700), sphere(90)
     weights = torch.from_numpy(np.random.default_rng(3).normal(size=(90, 4)))
     torch.testing.assert_close(
-        tps_apply_parallel(points, centres, 1.3, weights),
+        tps_apply_parallel(points, centres, 1.3, weights, 2),
         _numba.tps_apply(points, centres, 1.3, weights),
         rtol=1e-13,
         atol=1e-13,

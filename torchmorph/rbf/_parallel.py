@@ -8,6 +8,9 @@ targets dominate a morph. The per-target passes are :mod:`torchmorph.rbf._numba`
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -15,11 +18,12 @@ from torch import Tensor
 from torchmorph.rbf import _numba
 
 try:
+    import numba
     from numba import njit, prange
 except ImportError:  # pragma: no cover - exercised where numba is missing
     njit = prange = None  # type: ignore[assignment,misc]
 
-__all__ = ["CHUNK_TARGETS", "tps_apply_parallel"]
+__all__ = ["CHUNK_TARGETS", "one_torch_thread", "tps_apply_parallel"]
 
 #: Targets per ``prange`` iteration (one scratch row per chunk).
 CHUNK_TARGETS = 256
@@ -50,14 +54,49 @@ if njit is not None:
     )(_apply_chunks)
 
 
-def tps_apply_parallel(points: Tensor, centres: Tensor, scale: float, weights: Tensor) -> Tensor:
+@contextlib.contextmanager
+def one_torch_thread() -> Iterator[None]:
+    """torch on one thread for a loop of small operations (a patch's solve: on a machine
+    shared with other work, each parallel region of a small operation waits for a
+    descheduled sibling thread, measured 50 ms instead of 0.5 ms for a 314-control solve
+    on two threads); its count restored after."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+@contextlib.contextmanager
+def _numba_threads(threads: int) -> Iterator[None]:
+    """numba's thread count for one call, its chunks handed out one at a time (a thread
+    slowed by a competing process takes fewer); torch's count restored last (the two may
+    share one OpenMP runtime)."""
+    torch_threads = torch.get_num_threads()
+    previous, chunk = numba.get_num_threads(), numba.get_parallel_chunksize()
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
+    numba.set_parallel_chunksize(1)
+    try:
+        yield
+    finally:
+        numba.set_parallel_chunksize(chunk)
+        numba.set_num_threads(previous)
+        if torch.get_num_threads() != torch_threads:
+            torch.set_num_threads(torch_threads)
+
+
+def tps_apply_parallel(
+    points: Tensor, centres: Tensor, scale: float, weights: Tensor, threads: int
+) -> Tensor:
     """``Σ_j φ(scale · |points_i − centres_j|) weights_j``, shape (N, S), float64 CPU, the
-    thin-plate spline ``φ(r) = r² log r``, on numba's threads."""
+    thin-plate spline ``φ(r) = r² log r``, on ``threads`` of numba's threads."""
     out = torch.empty(points.shape[0], weights.shape[1], dtype=torch.float64)
     if not points.shape[0]:
         return out
     weights_t = np.ascontiguousarray(weights.detach().numpy().T)
     tx, ty, tz = _numba._axes(points)
     cx, cy, cz = _numba._axes(centres)
-    _apply_chunks(tx, ty, tz, cx, cy, cz, scale * scale, weights_t, out.numpy(), CHUNK_TARGETS)
+    with _numba_threads(threads):
+        _apply_chunks(tx, ty, tz, cx, cy, cz, scale * scale, weights_t, out.numpy(), CHUNK_TARGETS)
     return out

@@ -50,8 +50,8 @@ __all__ = [
     "build_rbf",
 ]
 
-#: Controls per cell of the patches' kd-split (a patch holds about 2-4 times as many).
-DEFAULT_PATCH_SIZE = 400
+#: Most controls in a cell of the patches' kd-split (a patch holds about 3 times as many).
+DEFAULT_PATCH_SIZE = 100
 #: A patch's radius over the distance from its cell's centre to the cell's farthest control.
 DEFAULT_OVERLAP = 1.5
 #: Controls of the global coarse fit.
@@ -74,27 +74,36 @@ class _ParallelFused(torch.autograd.Function):
     threads, differentiable in the weights (the backward pass swaps the point sets)."""
 
     @staticmethod
-    def forward(ctx, points, centres, scale, weights):  # type: ignore[override]
+    def forward(ctx, points, centres, scale, weights, threads):  # type: ignore[override]
         ctx.save_for_backward(points, centres)
-        ctx.scale = scale
-        return _parallel.tps_apply_parallel(points, centres, scale, weights)
+        ctx.scale, ctx.threads = scale, threads
+        return _parallel.tps_apply_parallel(points, centres, scale, weights, threads)
 
     @staticmethod
     def backward(ctx, grad):  # type: ignore[override]
         points, centres = ctx.saved_tensors
         weights_grad = None
         if ctx.needs_input_grad[3]:
-            weights_grad = _parallel.tps_apply_parallel(centres, points, ctx.scale, grad)
-        return None, None, None, weights_grad
+            weights_grad = _parallel.tps_apply_parallel(
+                centres, points, ctx.scale, grad, ctx.threads
+            )
+        return None, None, None, weights_grad, None
 
 
 def kernel_sum(
-    points: Tensor, centres: Tensor, weights: Tensor, kernel: str, scale: float, block_bytes
+    points: Tensor,
+    centres: Tensor,
+    weights: Tensor,
+    kernel: str,
+    scale: float,
+    block_bytes: int | None,
+    threads: int,
 ) -> Tensor:
     """``Σ_k weights_k φ(scale |x − centres_k|)`` at ``points`` (float64), shape (N, S):
-    the fused parallel pass for the thin-plate spline on the CPU, torch blocks otherwise."""
+    the fused pass on ``threads`` of numba's threads for the thin-plate spline on the
+    CPU, torch blocks otherwise."""
     if fused(kernel, centres) and points.shape[0]:
-        return _ParallelFused.apply(points, centres, scale, weights)
+        return _ParallelFused.apply(points, centres, scale, weights, threads)
     empty = weights.new_zeros(0, weights.shape[1])
     return evaluate(
         points,
@@ -274,12 +283,13 @@ class PartitionRBF(nn.Module):
         count = 0 if patches is None else patches.centres.shape[0]
         kinds: list[int] = []
         packed: dict[str, list[Tensor]] = {name: [] for name in FACTOR_NAMES}
-        for index in range(count):
-            assert patches is not None
-            kind, local = self._local_factors(patches, index, work)
-            kinds.append(_SOLVERS.index(kind))
-            for name in FACTOR_NAMES:
-                packed[name].append(local[name])
+        with _parallel.one_torch_thread():
+            for index in range(count):
+                assert patches is not None
+                kind, local = self._local_factors(patches, index, work)
+                kinds.append(_SOLVERS.index(kind))
+                for name in FACTOR_NAMES:
+                    packed[name].append(local[name])
         for name in FACTOR_NAMES:
             flat, shapes, offsets = _pack(packed[name], work)
             if name == "pivots":
@@ -431,21 +441,26 @@ class PartitionRBF(nn.Module):
         kind = _SOLVERS[int(self.coarse_solver)]
         factors = {name: self._buffers[f"coarse_{name}"] for name in FACTOR_NAMES}
         weights, tail = solve(kind, factors, values[self.coarse_indices])  # type: ignore[arg-type]
-        result = self._coarse_value(targets, coarse, weights, tail)
+        threads = torch.get_num_threads()
+        result = self._coarse_value(targets, coarse, weights, tail, threads)
         if self.num_patches:
-            residual = values - self._coarse_value(controls, coarse, weights, tail)
-            result = result + self._blend(residual, controls, targets)
+            residual = values - self._coarse_value(controls, coarse, weights, tail, threads)
+            with _parallel.one_torch_thread():
+                result = result + self._blend(residual, controls, targets, threads)
         return from_columns(result.to(displacements.dtype), displacements)
 
-    def _coarse_value(self, points: Tensor, coarse: Tensor, weights, tail) -> Tensor:
-        value = kernel_sum(points, coarse, weights, self.kernel, self.scale, self.block_bytes)
+    def _coarse_value(self, points: Tensor, coarse: Tensor, weights, tail, threads) -> Tensor:
+        value = kernel_sum(
+            points, coarse, weights, self.kernel, self.scale, self.block_bytes, threads
+        )
         if self.powers:
             poly = polynomial_matrix(points, self.powers, self.coarse_shift, self.coarse_scale)
             value = value + poly @ tail
         return value
 
-    def _blend(self, residual: Tensor, controls: Tensor, targets: Tensor) -> Tensor:
-        """Σ_j ŵ_j s_j at the targets, s_j the local fit of the residual in patch j."""
+    def _blend(self, residual: Tensor, controls: Tensor, targets: Tensor, threads: int) -> Tensor:
+        """Σ_j ŵ_j s_j at the targets, s_j the local fit of the residual in patch j (the
+        kernel sums on ``threads`` of numba's threads)."""
         layout = {
             name: (
                 self._buffers[f"patch_{name}_shapes"].tolist(),  # type: ignore[union-attr]
@@ -471,14 +486,20 @@ class PartitionRBF(nn.Module):
             local_controls = (controls[held] - centre) @ frame
             local_targets = (targets[chosen] - centre) @ frame
             value = kernel_sum(
-                local_targets, local_controls, weights, self.kernel, self.scale, self.block_bytes
+                local_targets,
+                local_controls,
+                weights,
+                self.kernel,
+                self.scale,
+                self.block_bytes,
+                threads,
             )
             powers = self._local_powers(flat_axes[index])
             if powers:
                 zero = centre.new_zeros(centre.shape[0])
                 spread = self.patch_spreads[index]
                 value = value + polynomial_matrix(local_targets, powers, zero, spread) @ tail
-            out = out.index_add(0, chosen, value * self.blend_weights[begin:end, None])
+            out.index_add_(0, chosen, value * self.blend_weights[begin:end, None])
         return out
 
     def extra_repr(self) -> str:
