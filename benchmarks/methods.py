@@ -55,7 +55,7 @@ section, wing twist) for RBF kernels beyond the thin-plate spline: the first ang
 an inverted cell, to 0.5°.
 
 Everything on one thread (torch, numba, BLAS), float64. Run
-``python benchmarks/methods.py --pygem /path/to/PyGeM`` (paper size, about 10 minutes
+``python benchmarks/methods.py --pygem /path/to/PyGeM`` (paper size, about 13 minutes
 on one core); ``--cases A --size small`` for a quick run; ``--no-sweep`` without the
 rotation sweep.
 """
@@ -668,7 +668,7 @@ METHOD_HEADER = (
     "cond₁ | note |\n|---|---|---|---:|---:|---:|---:|---:|---:|---|"
 )
 REFERENCE_HEADER = (
-    "| case | method | reference | max |Δ| / max |d| | reference fit | reference per morph | "
+    "| case | method | reference | max ‖Δ‖ / max ‖d‖ | reference fit | reference per morph | "
     "ours fit + morph | reference / ours (fit + morph) | reference per morph / ours per "
     "morph | note |\n|---|---|---|---:|---:|---:|---:|---:|---:|---|"
 )
@@ -825,7 +825,7 @@ def main(argv=None) -> None:
 
     print("### The cases\n")
     print(
-        "| case | nodes | cells | boundary (controls) | interior | max |d| | bbox diagonal | "
+        "| case | nodes | cells | boundary (controls) | interior | max ‖d‖ | bbox diagonal | "
         "h (median control spacing) | reference min SJ / max Q |"
     )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
