@@ -252,3 +252,22 @@ def test_build_rbf_picks_by_the_control_count(monkeypatch):
     assert type(build_rbf(controls, targets, solver="dense", mode="dense")) is RBF
     with pytest.raises(ValueError, match="^solver must be one of"):
         build_rbf(controls, targets, solver="sparse")
+
+
+@pytest.mark.slow
+def test_close_to_the_global_fit_with_walls():
+    """A sphere of 3,000 controls moving inside a box of 2,400 fixed wall controls,
+    targets in the box: the relative 2-norm error against the global fit 6.5e-4 measured
+    with 2,000 coarse controls (1.4e-3 with 1,000), exact at the controls."""
+    controls = torch.cat([sphere(3000), box_walls(20)])
+    rng = np.random.default_rng(5)
+    targets = torch.from_numpy(rng.uniform(-2.5, 2.5, size=(6000, 3)))
+    targets = torch.cat([targets[targets.norm(dim=1) > 1.05], controls[::50]])
+    values = smooth_field(controls)
+    values[3000:] = 0
+    reference = RBF(controls, targets)(values)
+    module = PartitionRBF(controls, targets, coarse_size=2000)
+    moved = module(values)
+    error = float((moved - reference).norm() / reference.norm())
+    assert error < 1e-3
+    torch.testing.assert_close(moved[-108:], values[::50], rtol=0, atol=1e-10)

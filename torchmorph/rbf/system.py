@@ -110,13 +110,22 @@ def projected_blocks(
     return trailing, coupling
 
 
+#: Order from which a float64 CPU Cholesky factorisation is scipy's rather than torch's:
+#: below it torch's runs on torch's thread count (one in the partition-of-unity RBF's
+#: loop over its patches), where OpenBLAS's own threads, waiting for a descheduled sibling
+#: on a loaded machine, took 0.2 s instead of 2 ms at n = 314.
+LAPACK_CHOLESKY_ORDER = 1000
+
+
 def cholesky(matrix: Tensor, *, overwrite: bool = False) -> tuple[Tensor, int]:
     """The lower Cholesky factor of a symmetric matrix and LAPACK's ``info`` (0: positive
-    definite). float64 on the CPU: scipy's LAPACK ``dpotrf`` in place on a contiguous
-    copy (measured 1.75-1.80 s against 2.1-2.5 s for ``torch.linalg.cholesky_ex`` at
-    n = 4,996, one thread, AMD EPYC: scipy's OpenBLAS against torch's MKL); otherwise
-    torch's. ``overwrite``: a contiguous ``matrix`` may be factorised in place."""
-    if matrix.device.type == "cpu" and matrix.dtype == torch.float64:
+    definite). float64 on the CPU from :data:`LAPACK_CHOLESKY_ORDER` on: scipy's LAPACK
+    ``dpotrf`` in place on a contiguous copy (measured 1.75-1.80 s against 2.1-2.5 s for
+    ``torch.linalg.cholesky_ex`` at n = 4,996, one thread, AMD EPYC: scipy's OpenBLAS
+    against torch's MKL); otherwise torch's. ``overwrite``: a contiguous ``matrix`` may be
+    factorised in place."""
+    large = matrix.shape[0] >= LAPACK_CHOLESKY_ORDER
+    if matrix.device.type == "cpu" and matrix.dtype == torch.float64 and large:
         if matrix.is_contiguous():
             copy = matrix if overwrite else matrix.clone()
         else:
