@@ -104,6 +104,12 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--no-case-a", dest="case_a", action="store_false", help="skip the case-A table"
     )
+    parser.add_argument(
+        "--pygem",
+        metavar="PATH",
+        help="folder holding mathLab's pygem package (a checkout of github.com/mathLab/PyGeM; "
+        "not on PyPI): time its RBF on the same clouds (one call, tens of seconds)",
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     controls, targets = sphere(args.controls), shell(args.targets)
@@ -157,6 +163,8 @@ def main(argv=None) -> None:
             f"scipy {scipy_cpu:.2f} s, ours {ours:.2f} s for fit + first morph "
             f"(**{scipy_cpu / ours:.2f}x**)"
         )
+    if args.pygem:
+        pygem_table(args.pygem, controls, targets, values, reference, rows)
     greedy_table(tensors[0], tensors[2], args.tolerances)
     if args.case_a:
         case_a_table((1e-2, 5e-3, 1e-3))
@@ -182,6 +190,38 @@ def greedy_table(points: torch.Tensor, values: torch.Tensor, tolerances) -> None
         print(
             f"| {tolerance:g} | {chosen.numel():,} | {seconds(elapsed)} | {result.rounds} | "
             f"{result.error:.2e} | {error:.2e} |"
+        )
+
+
+def pygem_table(path, controls, targets, values, reference, rows) -> None:
+    """mathLab's PyGeM RBF (thin-plate spline, radius 1, its linear polynomial) on the same
+    clouds: one call (PyGeM solves the system again on every call), against ours."""
+    import importlib
+    import sys
+
+    sys.path.insert(0, path)
+    try:
+        pygem = importlib.import_module("pygem")
+        if not hasattr(pygem, "RBF"):
+            raise ImportError(f"{pygem.__file__} is not mathLab's PyGeM")
+    except ImportError as error:
+        print(f"\nPyGeM: not available ({error})")
+        return
+    start = time.perf_counter()
+    model = pygem.RBF(controls, controls + values, func="thin_plate_spline", radius=1.0)
+    moved = model(targets) - targets
+    call = time.perf_counter() - start
+    difference = float(np.abs(moved - reference).max())
+    print(
+        f"\nPyGeM's RBF, one call (it fits on every call): {seconds(call)}, max diff. from "
+        f"scipy {difference:.1e}\n"
+    )
+    print("| ours | fit + first morph | PyGeM / ours | later morph | PyGeM / ours |")
+    print("|---|---:|---:|---:|---:|")
+    for mode, _, build, first, later, _ in rows:
+        print(
+            f"| {mode} | {seconds(build + first)} | **{call / (build + first):.1f}x** | "
+            f"{seconds(later)} | **{call / later:.0f}x** |"
         )
 
 
