@@ -94,29 +94,15 @@ def build_interpolant(
     """The interpolation from ``controls`` (N_c, D) to ``targets`` (N_t, D) of ``method``,
     with the options of :func:`check_method_options` (IDW with near-wall stiffening,
     :class:`~torchmorph.idw.StiffenedIDW`, when ``stiffening_length`` is given)."""
+    kind: type[IDW] | type[StiffenedIDW] | type[RBF] = RBF
     if method == "idw":
         options = dict(options)
         length, steep = options.pop("stiffening_length"), options.pop("stiffening_power")
+        kind = IDW
         if length is not None:
-            return StiffenedIDW(
-                controls,
-                targets,
-                stiffening_length=length,
-                stiffening_power=steep,
-                mode=mode,
-                block_bytes=block_bytes,
-                dense_bytes=dense_bytes,
-                **options,
-            )
-        return IDW(
-            controls,
-            targets,
-            mode=mode,  # type: ignore[arg-type]
-            block_bytes=block_bytes,
-            dense_bytes=dense_bytes,
-            **options,
-        )
-    return RBF(
+            kind = StiffenedIDW
+            options.update(stiffening_length=length, stiffening_power=steep)
+    return kind(
         controls,
         targets,
         mode=mode,  # type: ignore[arg-type]
