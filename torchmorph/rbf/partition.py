@@ -54,10 +54,13 @@ __all__ = [
 DEFAULT_PATCH_SIZE = 100
 #: A patch's radius over the distance from its cell's centre to the cell's farthest control.
 DEFAULT_OVERLAP = 1.5
-#: Controls of the global coarse fit.
-DEFAULT_COARSE_SIZE = 3000
+#: Controls of the global coarse fit (it sets the error against the global fit: 2.5e-3 at
+#: 10⁴ controls, 4.2e-3 at 3·10⁴ in ``benchmarks/rbf_scale.py``; 10⁵ × 10⁶ in 38 s).
+DEFAULT_COARSE_SIZE = 6000
 #: :func:`build_rbf` with ``solver="auto"`` fits the dense :class:`~torchmorph.rbf.RBF`
-#: up to this many controls, the :class:`PartitionRBF` beyond.
+#: up to this many controls, the :class:`PartitionRBF` beyond. Measured on two cores
+#: (``benchmarks/rbf_scale.py``): the dense fit took 8.7 s at 10⁴ controls and 368 s at
+#: 3·10⁴ (O(N³), 7.2 GB of kernel matrix), the partition 9-13 s at either.
 PARTITION_CONTROLS = 20_000
 
 Solver = Literal["auto", "dense", "partition"]
@@ -206,13 +209,15 @@ class PartitionRBF(nn.Module):
     The geometry is built on the CPU (NumPy, scipy's ``cKDTree``) and the fit and the
     solves are in float64; the forward pass is torch (any device once moved) with the
     thin-plate spline's float64 CPU sums in numba on ``torch.get_num_threads()`` threads.
-    The patches' factorisations and solves run on one torch thread (small operations);
-    scipy's LAPACK (the Cholesky factorisations) uses OpenBLAS's own thread count: set
-    ``OPENBLAS_NUM_THREADS=1`` on a machine shared with other work (a patch's
-    factorisation took 0.2 s instead of 2 ms with two OpenBLAS threads on a loaded
-    machine). Gradients flow to the displacements, not to the positions (the geometry is
-    fixed: build another module for moved points); the Wendland kernels' compact support
-    is not exploited (dense local systems). :meth:`state_dict` holds the whole fit; a
+    The patches' factorisations (torch's Cholesky below order 1,000,
+    :data:`~torchmorph.rbf.system.LAPACK_CHOLESKY_ORDER`) and solves run on one torch
+    thread: small operations on two threads of a loaded machine wait for a descheduled
+    sibling (0.2 s instead of 2 ms per patch). The coarse factorisation is scipy's LAPACK
+    on OpenBLAS's own thread count (``OPENBLAS_NUM_THREADS``).
+
+    Gradients flow to the displacements, not to the positions (the geometry is fixed:
+    build another module for moved points). The Wendland kernels' compact support is not
+    exploited (dense local systems). :meth:`state_dict` holds the whole fit; a
     state loads into a module built with the same hyper-parameters (any points),
     otherwise loading raises naming the field.
     """
@@ -540,8 +545,10 @@ def build_rbf(
 ) -> RBF | PartitionRBF:
     """An RBF morph of ``targets`` by ``controls``: the dense :class:`~torchmorph.rbf.RBF`
     (``solver="dense"``) or the :class:`PartitionRBF` (``"partition"``); ``"auto"``: dense
-    up to :data:`PARTITION_CONTROLS` controls, partition beyond. ``options`` go to the
-    chosen class (``ValueError``/``TypeError`` for one it does not take)."""
+    up to :data:`PARTITION_CONTROLS` controls, partition beyond (exact at the controls,
+    a few 1e-3 of relative 2-norm from the global fit over volume targets, see
+    :class:`PartitionRBF`'s notes). ``options`` go to the chosen class (``TypeError`` for
+    one it does not take)."""
     check_choice(solver, "solver", ("auto", "dense", "partition"))
     count = len(controls)
     if solver == "auto":
