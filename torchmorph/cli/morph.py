@@ -251,7 +251,7 @@ def run(args: argparse.Namespace) -> int:
         if args.enrich:
             _check_names(mesh, _split_names(args.enrich) or [], "--enrich")
         moving_label = ", ".join(moving) if moving else ""
-        if args.ffd is not None:
+        if array is None:  # --ffd
             rows, layout = ffd_rows(args.ffd, mesh.points.cpu().numpy(), boundary, moving_nodes)
             dropped = 0.0
         else:
