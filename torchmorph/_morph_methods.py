@@ -37,6 +37,8 @@ IDW_OPTIONS: dict[str, Any] = {
     "coincidence_tolerance": DEFAULT_COINCIDENCE_TOLERANCE,
     "stiffening_length": None,
     "stiffening_power": None,
+    "tolerance": None,
+    "error_control": None,
 }
 #: Options that only RBF takes, with their defaults (epsilon and support_radius: RBF's).
 RBF_OPTIONS: dict[str, Any] = {
@@ -102,6 +104,8 @@ def build_interpolant(
         if length is not None:
             kind = StiffenedIDW
             options.update(stiffening_length=length, stiffening_power=steep)
+            for name in ("tolerance", "error_control"):  # tree mode only, refused above
+                options.pop(name)
     return kind(
         controls,
         targets,

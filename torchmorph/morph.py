@@ -89,6 +89,9 @@ class MeshMorph(nn.Module):
     mode : {"auto", "dense", "matrix_free", "tree"}
         Passed to :class:`~torchmorph.idw.IDW` or :class:`~torchmorph.rbf.RBF`
         (``"tree"`` is IDW's only).
+    tolerance, error_control : optional
+        ``mode="tree"`` only: passed to :class:`~torchmorph.idw.IDW` (the tree's relative
+        error, default 1e-4, and ``"certified"`` or the faster ``"sampled"``).
     generator : torch.Generator, optional
         Randomness of the selection (random start points and strategy).
     block_bytes, dense_bytes : int, optional
@@ -179,6 +182,8 @@ class MeshMorph(nn.Module):
         dense_bytes: int | None = DEFAULT_DENSE_BYTES,
         implementation: Implementation | None = None,
         coincidence_tolerance: float | None = None,
+        tolerance: float | None = None,
+        error_control: str | None = None,
     ) -> None:
         super().__init__()
         if not isinstance(mesh, Mesh):
@@ -194,6 +199,8 @@ class MeshMorph(nn.Module):
                 "stiffening_power": stiffening_power,
                 "implementation": implementation,
                 "coincidence_tolerance": coincidence_tolerance,
+                "tolerance": tolerance,
+                "error_control": error_control,
                 "kernel": kernel,
                 "epsilon": epsilon,
                 "degree": degree,

@@ -252,3 +252,28 @@ def test_pod_offline_phase_on_a_tree_mode_morph():
     assert relative_error(reduced(probe), expected(probe)) <= DEFAULT_TOLERANCE
     with pytest.raises(ValueError, match=r"^online='paper' needs the morph's matrix W"):
         PODReducer(num_modes=3, online="paper").fit(tree, training)
+
+
+def test_error_control_is_passed_saved_and_checked():
+    mesh = box_mesh(6)
+    generator = torch.Generator().manual_seed(0)
+    boundary = 0.05 * torch.randn(len(mesh.boundary_nodes), 3, generator=generator)
+    boundary = boundary.to(mesh.points.dtype)
+    sampled = MeshMorph(mesh, mode="tree", tolerance=1e-3, error_control="sampled")
+    assert sampled.idw.error_control == "sampled"
+    assert sampled.idw._tree.operator(sampled.idw.controls, sampled.idw.targets).error_control == (
+        "sampled"
+    )
+    exact = MeshMorph(mesh)(boundary)
+    error = float((sampled(boundary) - exact).norm() / exact.norm())
+    assert error <= 1e-3
+    certified = MeshMorph(mesh, mode="tree", tolerance=1e-3)
+    assert certified.idw.error_control == "certified"
+    with pytest.raises(ValueError, match="error_control: the state was saved with"):
+        certified.load_state_dict(sampled.state_dict())
+    twin = MeshMorph(mesh, mode="tree", tolerance=1e-3, error_control="sampled")
+    twin.load_state_dict(sampled.state_dict())
+    with pytest.raises(ValueError, match="error_control: only mode='tree' takes error_control"):
+        MeshMorph(mesh, error_control="sampled")
+    with pytest.raises(ValueError, match="error_control must be 'certified' or 'sampled'"):
+        MeshMorph(mesh, mode="tree", error_control="bound")

@@ -24,6 +24,8 @@ class TreeOperator:
     tolerance : float, optional
         The relative error of :class:`~torchmorph.idw.tree.TreeIDW`; ``None`` for its
         default, :data:`~torchmorph.idw.tree.DEFAULT_TOLERANCE`.
+    error_control : {"certified", "sampled"}, optional
+        TreeIDW's (default ``"certified"``).
 
     Notes
     -----
@@ -31,12 +33,23 @@ class TreeOperator:
     the module's state (and its keys) are those of the exact modes.
     """
 
-    def __init__(self, power: float, coincidence_tolerance: float, tolerance: float | None) -> None:
+    def __init__(
+        self,
+        power: float,
+        coincidence_tolerance: float,
+        tolerance: float | None,
+        error_control: str | None = None,
+    ) -> None:
         from torchmorph.idw.tree import DEFAULT_TOLERANCE, _check_tolerance
 
         self.power = power
         self.coincidence_tolerance = coincidence_tolerance
         self.tolerance = _check_tolerance(DEFAULT_TOLERANCE if tolerance is None else tolerance)
+        self.error_control = "certified" if error_control is None else error_control
+        if self.error_control not in ("certified", "sampled"):
+            raise ValueError(
+                f"error_control must be 'certified' or 'sampled', got {error_control!r}"
+            )
         self._cache: tuple[tuple, TreeIDW] | None = None
 
     def operator(self, controls: Tensor, targets: Tensor) -> TreeIDW:
@@ -79,6 +92,7 @@ class TreeOperator:
                 power=self.power,
                 tolerance=self.tolerance,
                 coincidence_tolerance=self.coincidence_tolerance,
+                error_control=self.error_control,  # type: ignore[arg-type]
             )
             self._cache = (key, tree)
         return self._cache[1]

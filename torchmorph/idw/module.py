@@ -109,7 +109,14 @@ class IDW(nn.Module):
     tolerance : float, optional
         ``mode="tree"`` only (default :data:`~torchmorph.idw.tree.DEFAULT_TOLERANCE`,
         1e-4): the relative error ``‖u_tree - u‖ / ‖u‖`` (2-norm over the targets, per
-        displacement field) that the tree's certified bound keeps.
+        displacement field) that the tree keeps.
+    error_control : {"certified", "sampled"}, optional
+        ``mode="tree"`` only: how the tree keeps ``tolerance``
+        (:class:`~torchmorph.idw.tree.TreeIDW`). ``"certified"`` (default) by a worst-case
+        bound — slower than the exact sum at the sizes measured; ``"sampled"`` by exact
+        float64 sums at sampled targets — an estimate (measured 1.5–3× below the
+        tolerance on graded clouds), and the fast one: 12–14.5× the exact sum at 10^6 ×
+        10^5, 1e-4, one thread.
     block_bytes : int, optional
         Byte budget of one block of pairwise temporaries of the torch
         implementation (default: 4 MiB on the CPU, 256 MiB on CUDA).
@@ -194,17 +201,19 @@ class IDW(nn.Module):
         coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
         implementation: Implementation = "auto",
         tolerance: float | None = None,
+        error_control: str | None = None,
     ) -> None:
         super().__init__()
         controls = as_points(controls, "controls", dim=dim_of(controls))
         targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True)
         check_same_device_dtype(controls, "controls", targets, "targets")
         check_choice(mode, "mode", ("auto", "dense", "matrix_free", "tree"))
-        if tolerance is not None and mode != "tree":
-            raise ValueError(
-                f"tolerance: only mode='tree' takes a tolerance (the other modes are exact), "
-                f"got mode={mode!r}"
-            )
+        for name, value in (("tolerance", tolerance), ("error_control", error_control)):
+            if value is not None and mode != "tree":
+                raise ValueError(
+                    f"{name}: only mode='tree' takes {name} (the other modes are exact), "
+                    f"got mode={mode!r}"
+                )
         self.power = check_power(power)
         self.block_bytes = (
             None if block_bytes is None else int(check_positive(block_bytes, "block_bytes"))
@@ -240,10 +249,14 @@ class IDW(nn.Module):
         self.assembly_time = 0.0
         self._fused_cache: tuple | None = None
         self.tolerance: float | None = None
+        self.error_control: str | None = None
         self._tree: TreeOperator | None = None
         if mode == "tree":
-            self._tree = TreeOperator(self.power, self.coincidence_tolerance, tolerance)
+            self._tree = TreeOperator(
+                self.power, self.coincidence_tolerance, tolerance, error_control
+            )
             self.tolerance = self._tree.tolerance
+            self.error_control = self._tree.error_control
             start = time.perf_counter()
             self._tree.operator(self.controls, self.targets)
             self.assembly_time = time.perf_counter() - start
@@ -309,7 +322,9 @@ class IDW(nn.Module):
             "coincidence_tolerance": self.coincidence_tolerance,
             "mode": self.mode,
         }
-        return state if self.tolerance is None else {**state, "tolerance": self.tolerance}
+        if self.tolerance is None:
+            return state
+        return {**state, "tolerance": self.tolerance, "error_control": self.error_control}
 
     def set_extra_state(self, state: dict) -> None:
         self._check_saved(state)
@@ -321,7 +336,9 @@ class IDW(nn.Module):
         """The load rule; ``tolerance`` is compared between two tree states only."""
         check_saved_hyperparameters("IDW", state, self._hyperparameters())
         if self.mode == "tree" and state.get("mode") == "tree":
-            check_saved_hyperparameters("IDW", state, {"tolerance": self.tolerance})
+            saved = {"error_control": "certified", **state}  # states before it: certified
+            current = {"tolerance": self.tolerance, "error_control": self.error_control}
+            check_saved_hyperparameters("IDW", saved, current)
 
     def _load_from_state_dict(
         self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
