@@ -335,3 +335,19 @@ def test_a_state_of_version_2_loads_as_idw():
     torch.testing.assert_close(copy(boundary), morph(boundary), rtol=0, atol=0)
     with pytest.raises(ValueError, match="method: the state was saved with method='idw'"):
         MeshMorph(mesh, method="rbf").load_state_dict(state)
+
+
+@pytest.mark.parametrize("mode", ["dense", "matrix_free"])
+def test_to_float32_keeps_the_factorisation_in_float64(mode):
+    mesh = box_mesh(4)
+    morph = MeshMorph(mesh, method="rbf", mode=mode)
+    generator = torch.Generator().manual_seed(2)
+    d = 0.05 * torch.randn(morph.num_boundary, 3, generator=generator, dtype=torch.float64)
+    reference = morph(d)
+    single = morph.to(torch.float32)
+    assert single.rbf.factor.dtype == torch.float64
+    assert single.rbf.shift.dtype == torch.float64
+    assert single.rbf.controls.dtype == torch.float32
+    out = single(d.float())
+    assert out.dtype == torch.float32
+    assert float((out.double() - reference).abs().max()) <= 1e-5 * float(d.abs().max())

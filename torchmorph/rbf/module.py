@@ -213,6 +213,18 @@ class RBF(nn.Module):
     def _factors(self) -> dict[str, Tensor]:
         return {name: self._buffers[name] for name in FACTOR_NAMES}  # type: ignore[misc]
 
+    def _apply(self, fn, recurse=True):
+        """``.to``, ``.cuda``, ``.float()`` …: the factorisation and the polynomial's
+        scaling move with the module but stay float64 (see the class notes); the points
+        and the evaluation matrix take the new dtype."""
+        kept = {name: self._buffers[name] for name in (*FACTOR_NAMES, "shift", "poly_scale")}
+        super()._apply(fn, recurse)
+        for name, before in kept.items():
+            after = self._buffers[name]
+            if before is not None and after is not None and after.dtype != before.dtype:
+                self._buffers[name] = before.to(device=after.device)
+        return self
+
     def _assemble(self) -> Tensor:
         """The evaluation matrix [Φ_tc P_t], in blocks, in the points' dtype."""
         start = time.perf_counter()
