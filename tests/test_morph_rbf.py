@@ -351,3 +351,40 @@ def test_to_float32_keeps_the_factorisation_in_float64(mode):
     out = single(d.float())
     assert out.dtype == torch.float32
     assert float((out.double() - reference).abs().max()) <= 1e-5 * float(d.abs().max())
+
+
+def test_partition_of_unity_solver(monkeypatch):
+    from torchmorph import PODReducer
+    from torchmorph.rbf import PartitionRBF, partition
+
+    monkeypatch.setattr(partition, "DEFAULT_COARSE_SIZE", 60)
+    monkeypatch.setattr(partition, "DEFAULT_PATCH_SIZE", 24)
+    mesh = box_mesh(6)
+    morph = MeshMorph(mesh, method="rbf", solver="partition")
+    assert isinstance(morph.rbf, PartitionRBF) and morph.rbf.num_patches > 1
+    points = mesh.points[morph.boundary_nodes]
+    d = 0.05 * torch.stack(
+        [torch.sin(3 * points[:, 1]), points[:, 0] * points[:, 2], 0 * points[:, 0]], 1
+    )
+    dense = MeshMorph(mesh, method="rbf")(d)
+    out = morph(d)
+    assert torch.equal(out[morph.boundary_nodes], d)
+    assert float((out - dense).norm() / dense.norm()) < 2e-2
+    family = torch.stack([d, d.flip(0), 0.5 * d + 0.01])
+    reducer = PODReducer(num_modes=3).fit(morph, family)
+    assert torch.allclose(reducer(family), morph(family), atol=1e-12, rtol=0)
+    g = torch.randn(1, mesh.num_nodes, 3, dtype=d.dtype, generator=torch.Generator().manual_seed(1))
+    left = float((morph(d[None]) * g).sum())
+    right = float((d[None] * morph.adjoint(g)).sum())
+    assert left == pytest.approx(right, rel=1e-12)
+    twin = MeshMorph(mesh, method="rbf", solver="partition")
+    twin.load_state_dict(morph.state_dict())
+    assert torch.equal(twin(d), out)
+    with pytest.raises(ValueError, match="solver: the state was saved with the partition"):
+        MeshMorph(mesh, method="rbf").load_state_dict(morph.state_dict())
+    with pytest.raises(ValueError, match="points: the partition-of-unity RBF"):
+        morph(d, points=mesh.points)
+    with pytest.raises(ValueError, match="mode: solver='partition'"):
+        MeshMorph(mesh, method="rbf", solver="partition", mode="dense")
+    with pytest.raises(ValueError, match="solver: an option of method='rbf'"):
+        MeshMorph(mesh, solver="partition")

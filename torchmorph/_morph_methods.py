@@ -14,7 +14,9 @@ from torchmorph._checks import check_choice
 from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE
 from torchmorph.idw.module import IDW
 from torchmorph.idw.stiffened import StiffenedIDW
+from torchmorph.rbf import partition
 from torchmorph.rbf.module import RBF
+from torchmorph.rbf.partition import PARTITION_CONTROLS, PartitionRBF
 
 __all__ = [
     "IDW_OPTIONS",
@@ -46,6 +48,7 @@ RBF_OPTIONS: dict[str, Any] = {
     "epsilon": None,
     "degree": 1,
     "support_radius": None,
+    "solver": None,
 }
 #: The storage modes of each method.
 MODES = {"idw": ("auto", "dense", "matrix_free", "tree"), "rbf": ("auto", "dense", "matrix_free")}
@@ -75,6 +78,14 @@ def check_method_options(method: str, mode: str, options: dict[str, Any]) -> dic
             "stiffening_power: near-wall stiffening needs stiffening_length (the thickness "
             "of the layer that moves rigidly); give both, or neither for plain IDW"
         )
+    solver = options.get("solver")
+    if solver is not None:
+        check_choice(solver, "solver", ("auto", "dense", "partition"))
+        if solver != "dense" and mode != "auto":
+            raise ValueError(
+                f"mode: solver={solver!r} may fit the partition-of-unity RBF, which has no "
+                f"dense or matrix-free choice; leave mode='auto' (got {mode!r})"
+            )
     if options.get("stiffening_length") is not None and mode == "tree":
         raise ValueError("mode: near-wall stiffening (stiffening_length) has no tree mode")
     return {
@@ -92,11 +103,27 @@ def build_interpolant(
     block_bytes: int | None,
     dense_bytes: int | None,
     options: dict[str, Any],
-) -> IDW | StiffenedIDW | RBF:
+) -> IDW | StiffenedIDW | RBF | PartitionRBF:
     """The interpolation from ``controls`` (N_c, D) to ``targets`` (N_t, D) of ``method``,
     with the options of :func:`check_method_options` (IDW with near-wall stiffening,
-    :class:`~torchmorph.idw.StiffenedIDW`, when ``stiffening_length`` is given)."""
+    :class:`~torchmorph.idw.StiffenedIDW`, when ``stiffening_length`` is given; RBF by a
+    partition of unity, :class:`~torchmorph.rbf.PartitionRBF`, with ``solver="partition"``,
+    or ``"auto"`` beyond :data:`~torchmorph.rbf.PARTITION_CONTROLS` controls)."""
     kind: type[IDW] | type[StiffenedIDW] | type[RBF] = RBF
+    if method == "rbf":
+        options = dict(options)
+        solver = options.pop("solver") or "dense"
+        if solver == "auto" and controls.shape[0] > PARTITION_CONTROLS:
+            solver = "partition"
+        if solver == "partition":  # the module's defaults, read now
+            return PartitionRBF(
+                controls,
+                targets,
+                block_bytes=block_bytes,
+                patch_size=partition.DEFAULT_PATCH_SIZE,
+                coarse_size=partition.DEFAULT_COARSE_SIZE,
+                **options,
+            )
     if method == "idw":
         options = dict(options)
         length, steep = options.pop("stiffening_length"), options.pop("stiffening_power")

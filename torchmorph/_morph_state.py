@@ -12,7 +12,13 @@ from torchmorph._state import check_saved_hyperparameters
 from torchmorph.mesh.cells import cell_kind
 from torchmorph.rbf.module import RBF
 
-__all__ = ["STATE_VERSION", "check_interpolant_state", "check_morph_state", "upgraded_state"]
+__all__ = [
+    "STATE_VERSION",
+    "check_interpolant_state",
+    "check_morph_state",
+    "check_variant",
+    "upgraded_state",
+]
 
 #: The version of MeshMorph's extra state. 1: tetrahedra only, a "tets" buffer; 2: cell
 #: blocks, IDW only; 3: the method ("idw" or "rbf") in the extra state. All still load.
@@ -193,3 +199,23 @@ def check_interpolant_state(state_dict, prefix: str, interpolant: nn.Module) -> 
         "support_radius": interpolant.support_radius,
     }
     check_saved_hyperparameters("RBF", extra, current)
+
+
+def check_variant(extra: dict[str, Any], stiffening: list[float] | None, partition: bool) -> None:
+    """Raise ``ValueError`` naming the argument if a MeshMorph state was saved with
+    another near-wall stiffening (``[stiffening_power, stiffening_length]`` or None) or
+    another RBF solver (the partition of unity or the dense fit) than the morph it loads
+    into. States saved before these existed are plain IDW and dense RBF."""
+    if bool(extra.get("partition", False)) != partition:
+        saved, current = ("a dense", "the partition") if partition else ("the partition", "a dense")
+        raise ValueError(
+            f"solver: the state was saved with {saved} RBF fit but this MeshMorph has "
+            f"{current} one; build the morph with the saved solver"
+        )
+    saved_stiffening = extra.get("stiffening")
+    if saved_stiffening != stiffening:
+        raise ValueError(
+            f"stiffening: the state was saved with near-wall stiffening {saved_stiffening!r} "
+            f"([stiffening_power, stiffening_length], None: none) but this MeshMorph has "
+            f"{stiffening!r}; build the morph with the saved values"
+        )

@@ -32,6 +32,7 @@ from torchmorph._morph_state import (
     STATE_VERSION,
     check_interpolant_state,
     check_morph_state,
+    check_variant,
     upgraded_state,
 )
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
@@ -41,6 +42,7 @@ from torchmorph.mesh.cells import cell_kind
 from torchmorph.mesh.model import CellBlock, Mesh
 from torchmorph.mesh.quality import inverted_cells
 from torchmorph.rbf.module import RBF
+from torchmorph.rbf.partition import PartitionRBF
 
 if TYPE_CHECKING:
     from torchmorph.selection.plan import AdaptivePlan, SelectionPlan
@@ -86,6 +88,12 @@ class MeshMorph(nn.Module):
     kernel, epsilon, degree, support_radius
         RBF only: passed to :class:`~torchmorph.rbf.RBF` (defaults: the thin-plate
         spline, degree 1; epsilon and support_radius as RBF requires for the kernel).
+    solver : {"dense", "partition", "auto"}, optional
+        RBF only: the dense fit (default), the partition of unity
+        (:class:`~torchmorph.rbf.PartitionRBF`: a coarse global fit plus local patches,
+        for more controls than a dense factorisation affords; a few 1e-3 from the global
+        fit far from the controls; no moved ``points`` in :meth:`forward`), or the
+        partition beyond :data:`~torchmorph.rbf.PARTITION_CONTROLS` controls.
     mode : {"auto", "dense", "matrix_free", "tree"}
         Passed to :class:`~torchmorph.idw.IDW` or :class:`~torchmorph.rbf.RBF`
         (``"tree"`` is IDW's only).
@@ -176,6 +184,7 @@ class MeshMorph(nn.Module):
         epsilon: float | None = None,
         degree: int | None = None,
         support_radius: float | None = None,
+        solver: str | None = None,
         mode: Mode = "auto",
         generator: torch.Generator | None = None,
         block_bytes: int | None = None,
@@ -205,6 +214,7 @@ class MeshMorph(nn.Module):
                 "epsilon": epsilon,
                 "degree": degree,
                 "support_radius": support_radius,
+                "solver": solver,
             },
         )
         self.method: str = method
@@ -246,7 +256,7 @@ class MeshMorph(nn.Module):
             self.assembly_time = interpolant.assembly_time
         else:
             self.rbf = interpolant
-            self.assembly_time = interpolant.fit_time + interpolant.evaluation_time
+            self.assembly_time = interpolant.fit_time + getattr(interpolant, "evaluation_time", 0.0)
 
     def _stiffening(self) -> list[float] | None:
         idw = self._modules.get("idw")
@@ -255,7 +265,7 @@ class MeshMorph(nn.Module):
         return None
 
     @property
-    def interpolant(self) -> IDW | StiffenedIDW | RBF:
+    def interpolant(self) -> IDW | StiffenedIDW | RBF | PartitionRBF:
         """The interpolation from the control points to the interior nodes: :attr:`idw`
         or :attr:`rbf`."""
         return self._modules[self.method]  # type: ignore[return-value]
@@ -291,6 +301,7 @@ class MeshMorph(nn.Module):
             "version": self._STATE_VERSION,
             "method": self.method,
             "stiffening": self._stiffening(),
+            "partition": isinstance(self._modules.get("rbf"), PartitionRBF),
             "node_set_names": list(self._node_set_names),
             "cell_blocks": [list(block) for block in self._cell_blocks],
         }
@@ -305,13 +316,7 @@ class MeshMorph(nn.Module):
         extra = state_dict.get(prefix + "_extra_state")
         if extra is not None:  # before anything is loaded
             check_saved_hyperparameters("MeshMorph", extra, {"method": self.method})
-            saved = extra.get("stiffening")  # states before stiffening: plain IDW
-            if saved != self._stiffening():
-                raise ValueError(
-                    f"stiffening: the state was saved with near-wall stiffening {saved!r} "
-                    f"([stiffening_power, stiffening_length], None: none) but this MeshMorph "
-                    f"has {self._stiffening()!r}; build the morph with the saved values"
-                )
+            check_variant(extra, self._stiffening(), isinstance(self.interpolant, PartitionRBF))
         check_interpolant_state(state_dict, prefix + self.method + ".", self.interpolant)
         resize_buffers_for_load(self, state_dict, prefix, self._STATE_BUFFERS)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
@@ -492,6 +497,11 @@ class MeshMorph(nn.Module):
             )
             return self.assemble(boundary_displacement, interior)
         controls = self.controls_from_boundary(boundary_displacement)
+        if points is not None and isinstance(self.interpolant, PartitionRBF):
+            raise ValueError(
+                "points: the partition-of-unity RBF (solver='partition') is fitted to the "
+                "reference positions once; moved points need solver='dense' or method='idw'"
+            )
         if points is None:
             interior = self.interpolant(controls)
         else:
@@ -583,7 +593,7 @@ class MeshMorph(nn.Module):
         return (
             f"num_nodes={self.num_nodes}, num_boundary={self.num_boundary}, "
             f"num_interior={self.num_interior}, num_controls={self.num_controls}, "
-            f"method={self.method!r}, mode={self.interpolant.mode!r}"
+            f"method={self.method!r}, mode={getattr(self.interpolant, 'mode', 'partition')!r}"
         )
 
 
