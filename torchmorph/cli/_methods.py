@@ -76,10 +76,26 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--mode",
-        choices=("auto", "dense", "matrix_free"),
+        choices=("auto", "dense", "matrix_free", "tree"),
         default="auto",
         help="store W (dense; RBF: its evaluation matrix), recompute it in tiles "
-        "(matrix_free), or choose by size (auto)",
+        "(matrix_free), choose by size (auto), or (IDW, CPU, large meshes) sum far "
+        "controls by clusters to --tree-tolerance (tree)",
+    )
+    group.add_argument(
+        "--tree-tolerance",
+        type=_positive_float,
+        default=None,
+        metavar="TOL",
+        help="with --mode tree: the relative error of the morph (default 1e-4), kept by "
+        "exact sums at sampled nodes (the library's error_control='sampled')",
+    )
+    group.add_argument(
+        "--rbf-solver",
+        choices=("dense", "partition", "auto"),
+        default=None,
+        help="with --method rbf: the dense fit (default), the partition of unity for "
+        "10^4 controls and more (a coarse global fit plus local patches), or auto",
     )
     group.add_argument(
         "--kernel",
@@ -119,12 +135,20 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
     """MeshMorph's method keyword arguments from the options; ``args.parser.error`` (exit
     code 2) for a combination that does not go together."""
     error = args.parser.error
+    if args.tree_tolerance is not None and args.mode != "tree":
+        error("argument --tree-tolerance: needs --mode tree")
+    if args.method == "idw" and args.rbf_solver is not None:
+        error("argument --rbf-solver: an RBF option; needs --method rbf")
     if args.method == "idw":
         for flag, name in RBF_FLAGS.items():
             if getattr(args, name if name != "epsilon" else "shape_parameter") is not None:
                 error(f"argument {flag}: an RBF option; needs --method rbf")
         power = DEFAULT_POWER if args.power is None else args.power
         options: dict[str, Any] = {"method": "idw", "power": power}
+        if args.mode == "tree":
+            if args.stiffening is not None:
+                error("argument --stiffening: near-wall stiffening has no --mode tree")
+            options.update(tolerance=args.tree_tolerance or 1e-4, error_control="sampled")
         if args.stiffening_power is not None and args.stiffening is None:
             error("argument --stiffening-power: needs --stiffening LENGTH")
         if args.stiffening is not None:
@@ -135,6 +159,13 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
         return options
     if args.power is not None:
         error("argument --power: the IDW exponent; --method rbf takes --kernel and its options")
+    if args.mode == "tree":
+        error("argument --mode: tree is IDW's; --method rbf takes auto, dense or matrix_free")
+    if args.rbf_solver not in (None, "dense") and args.mode != "auto":
+        error(
+            f"argument --mode: --rbf-solver {args.rbf_solver} may fit the partition of unity, "
+            "which has no storage mode; leave --mode auto"
+        )
     if args.stiffening is not None or args.stiffening_power is not None:
         flag = "--stiffening" if args.stiffening is not None else "--stiffening-power"
         error(f"argument {flag}: near-wall stiffening of IDW weights; not with --method rbf")
@@ -169,6 +200,7 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
         "epsilon": args.shape_parameter,
         "support_radius": args.support_radius,
         "degree": 1 if args.degree is None else args.degree,
+        "solver": args.rbf_solver,
     }
 
 
@@ -184,9 +216,10 @@ def method_summary(morph: Any) -> str:
             )
         return f"IDW, p={idw.power:g}"
     rbf = morph.rbf
+    fit = "" if getattr(rbf, "num_patches", None) is None else f", {rbf.num_patches} patches"
     scale = (
         f"support radius {rbf.support_radius:g}"
         if rbf.support_radius is not None
         else f"shape parameter {rbf.epsilon:g}"
     )
-    return f"RBF {rbf.kernel}, {scale}, polynomial degree {rbf.degree}"
+    return f"RBF {rbf.kernel}, {scale}, polynomial degree {rbf.degree}{fit}"

@@ -400,18 +400,17 @@ def run(args: argparse.Namespace) -> int:
             )
     _line("selection", _seconds(morph.selection_time))
     if morph.method == "idw":
-        storage = (
-            "matrix-free: weights recomputed at every morph"
-            if morph.idw.mode == "matrix_free"
-            else "dense, stored"
-        )
+        storage = {
+            "matrix_free": "matrix-free: weights recomputed at every morph",
+            "tree": f"tree: far controls by clusters, tolerance {morph.idw.tolerance}",
+        }.get(morph.idw.mode, "dense, stored")
         built = f"W {morph.num_interior} x {morph.num_controls}, {storage}"
     else:
-        storage = (
-            "kernel evaluated at every morph"
-            if morph.rbf.mode == "matrix_free"
-            else f"evaluation matrix {morph.num_interior} rows, stored"
-        )
+        mode = getattr(morph.rbf, "mode", "partition")
+        storage = {
+            "matrix_free": "kernel evaluated at every morph",
+            "partition": "partition of unity: a coarse global fit and local patches",
+        }.get(mode, f"evaluation matrix {morph.num_interior} rows, stored")
         built = f"system of {morph.num_controls} controls factorised, {storage}"
     _line("assembly", f"{_seconds(morph.assembly_time)} ({built}; {args.dtype} on {device})")
     how = ["rotation-aware"] if args.rotations else []

@@ -1,0 +1,73 @@
+"""``torchmorph morph --mode tree [--tree-tolerance TOL]`` and ``--method rbf --rbf-solver
+partition``: the command's tree-approximated IDW and partition-of-unity RBF against the
+library, and the combinations that do not go together."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import structured_cube
+
+from torchmorph import MeshMorph
+from torchmorph.cli import EXIT_OK, EXIT_USAGE, main
+from torchmorph.mesh.io import read_mesh, write_mesh
+
+
+@pytest.fixture
+def case(tmp_path):
+    path = tmp_path / "cube.vtu"
+    write_mesh(path, structured_cube(5))
+    mesh = read_mesh(path)
+    points = mesh.points.numpy()[mesh.boundary_nodes.numpy()]
+    x, y, z = points.T
+    boundary = 0.05 * np.stack([np.sin(3 * y) * z, np.cos(2 * x) * y, x * y * z], 1)
+    np.save(tmp_path / "d.npy", boundary)
+    return path, mesh, torch.as_tensor(boundary)
+
+
+def run(tmp_path, path, *options):
+    out = tmp_path / "out.vtu"
+    argv = ["morph", str(path), "-d", str(tmp_path / "d.npy"), "-o", str(out), "--no-progress"]
+    code = main([*argv, *options])
+    field = read_mesh(out, return_data=True)[1]["displacement"].numpy() if code == 0 else None
+    return code, field
+
+
+def test_tree_mode_keeps_its_tolerance(tmp_path, case, capsys):
+    path, mesh, boundary = case
+    code, field = run(tmp_path, path, "--mode", "tree", "--tree-tolerance", "1e-3")
+    assert code == EXIT_OK
+    assert "tree: far controls by clusters, tolerance 0.001" in capsys.readouterr().out
+    exact = MeshMorph(mesh)(boundary).numpy()
+    assert np.linalg.norm(field - exact) <= 1e-3 * np.linalg.norm(exact)
+    np.testing.assert_array_equal(field[mesh.boundary_nodes.numpy()], boundary.numpy())
+
+
+def test_partition_solver_equals_the_library(tmp_path, case, capsys):
+    path, mesh, boundary = case
+    code, field = run(tmp_path, path, "--method", "rbf", "--rbf-solver", "partition")
+    assert code == EXIT_OK
+    assert "partition of unity" in capsys.readouterr().out
+    expected = MeshMorph(mesh, method="rbf", solver="partition")(boundary).numpy()
+    np.testing.assert_allclose(field, expected, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--tree-tolerance", "1e-3"], "--tree-tolerance: needs --mode tree"),
+        (["--rbf-solver", "partition"], "--rbf-solver: an RBF option"),
+        (["--method", "rbf", "--mode", "tree"], "--mode: tree is IDW's"),
+        (
+            ["--method", "rbf", "--rbf-solver", "partition", "--mode", "dense"],
+            "--mode: --rbf-solver partition may fit the partition of unity",
+        ),
+        (["--mode", "tree", "--stiffening", "0.1"], "--stiffening: near-wall stiffening has no"),
+    ],
+)
+def test_bad_combinations(tmp_path, case, capsys, options, message):
+    path, _, _ = case
+    code, _ = run(tmp_path, path, *options)
+    assert code == EXIT_USAGE
+    assert message in capsys.readouterr().err
