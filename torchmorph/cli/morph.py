@@ -402,7 +402,8 @@ def run(args: argparse.Namespace) -> int:
     if morph.method == "idw":
         storage = {
             "matrix_free": "matrix-free: weights recomputed at every morph",
-            "tree": f"tree: far controls by clusters, tolerance {morph.idw.tolerance}",
+            "tree": "tree: far controls by clusters, tolerance "
+            f"{getattr(morph.idw, 'tolerance', None)}",
         }.get(morph.idw.mode, "dense, stored")
         built = f"W {morph.num_interior} x {morph.num_controls}, {storage}"
     else:
