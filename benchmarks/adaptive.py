@@ -40,6 +40,7 @@ import argparse
 import time
 
 import torch
+from _timing import median_time
 
 from torchmorph.idw import idw_apply
 from torchmorph.paper import get_case, load_mesh
@@ -61,7 +62,7 @@ class Case:
         self.interior_points = mesh.points[self.interior]
         self.displacement = self.family(torch.tensor(self.spec.mu_star, dtype=mesh.dtype))
         self.reference = self.apply(torch.arange(len(self.boundary)), self.displacement)
-        self.full_s = median_seconds(
+        self.full_s = median_time(
             lambda: self.apply(torch.arange(len(self.boundary)), self.displacement), 3
         )
 
@@ -116,16 +117,6 @@ class Case:
         seconds = time.perf_counter() - start
         rows = plan.rows_ = self.rows(nodes)
         return len(rows), self.error(rows), seconds, plan
-
-
-def median_seconds(function, repeats: int) -> float:
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return sorted(times)[len(times) // 2]
 
 
 def fewest(points: list[tuple[int, float, float]], tolerance: float) -> str:

@@ -17,23 +17,12 @@ from __future__ import annotations
 
 import argparse
 import platform
-import statistics
-import time
 
 import torch
+from _timing import median_time
 from scipy.spatial.distance import cdist
 
 from torchmorph.idw import IDW, idw_apply
-
-
-def median(function, repeats: int) -> float:
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def cloud(n_controls: int, n_targets: int, dtype: torch.dtype, seed: int = 0):
@@ -63,16 +52,16 @@ def main() -> None:
     cached = IDW(controls, targets, mode="matrix_free")
     dense = IDW(controls, targets, mode="dense")
     rows = {
-        "NumPy (cdist, D**-4, normalise, w @ d)": median(numpy_version, args.repeats),
-        f"IDW(c, t)(d), default (mode {IDW(controls, targets).mode!r})": median(
+        "NumPy (cdist, D**-4, normalise, w @ d)": median_time(numpy_version, args.repeats),
+        f"IDW(c, t)(d), default (mode {IDW(controls, targets).mode!r})": median_time(
             lambda: IDW(controls, targets)(d), args.repeats
         ),
-        "idw_apply, one shot": median(
+        "idw_apply, one shot": median_time(
             lambda: idw_apply(controls=controls, targets=targets, displacements=d), args.repeats
         ),
-        "cached matrix-free call": median(lambda: cached(d), args.repeats),
-        "stored dense W, one product": median(lambda: dense(d), args.repeats),
-        "IDW(c, t, mode='dense')(d): assembly + product": median(
+        "cached matrix-free call": median_time(lambda: cached(d), args.repeats),
+        "stored dense W, one product": median_time(lambda: dense(d), args.repeats),
+        "IDW(c, t, mode='dense')(d): assembly + product": median_time(
             lambda: IDW(controls, targets, mode="dense")(d), args.repeats
         ),
     }
@@ -86,11 +75,11 @@ def main() -> None:
     cached = IDW(controls, targets, mode="matrix_free")
     repeats = max(1, args.repeats // 2)
     rows = {
-        "cached matrix-free call": median(lambda: cached(d), repeats),
-        "idw_apply, one shot": median(
+        "cached matrix-free call": median_time(lambda: cached(d), repeats),
+        "idw_apply, one shot": median_time(
             lambda: idw_apply(controls=controls, targets=targets, displacements=d), repeats
         ),
-        f"IDW(c, t)(d), default (mode {IDW(controls, targets).mode!r})": median(
+        f"IDW(c, t)(d), default (mode {IDW(controls, targets).mode!r})": median_time(
             lambda: IDW(controls, targets)(d), repeats
         ),
     }

@@ -170,6 +170,15 @@ def main(argv=None) -> None:
         case_a_table((1e-2, 5e-3, 1e-3))
 
 
+def greedy_rbf(points: torch.Tensor, values: torch.Tensor, tolerance: float):
+    """(the greedy selection's result, its seconds): the selection loop with the RBF
+    oracle over ``points`` (thin-plate spline, degree 1), from the polynomial's anchors."""
+    start = time.perf_counter()
+    oracle = RBFErrorOracle(points, values)
+    result = greedy_selection(oracle, tolerance=tolerance, initial=oracle.anchors)
+    return result, time.perf_counter() - start
+
+
 def greedy_table(points: torch.Tensor, values: torch.Tensor, tolerances) -> None:
     """Greedy reduction of the controls: the selection loop with the RBF oracle, and the
     error of a thin-plate RBF refitted on the selected controls (at every candidate)."""
@@ -180,10 +189,7 @@ def greedy_table(points: torch.Tensor, values: torch.Tensor, tolerances) -> None
     print("| tolerance | controls | loop time | scorings | error (oracle) | error (refit) |")
     print("|---:|---:|---:|---:|---:|---:|")
     for tolerance in tolerances:
-        start = time.perf_counter()
-        oracle = RBFErrorOracle(points, values)
-        result = greedy_selection(oracle, tolerance=tolerance, initial=oracle.anchors)
-        elapsed = time.perf_counter() - start
+        result, elapsed = greedy_rbf(points, values, tolerance)
         chosen = result.indices
         refit = RBF(points[chosen], points)(values[chosen])
         error = float((refit - values).norm(dim=-1).max() / values.norm(dim=-1).max())
@@ -252,10 +258,7 @@ def case_a_table(tolerances) -> None:
     print("| tolerance | controls | share of boundary nodes | selection | nodal error |")
     print("|---:|---:|---:|---:|---:|")
     for tolerance in tolerances:
-        start = time.perf_counter()
-        oracle = RBFErrorOracle(controls, displacement)
-        result = greedy_selection(oracle, tolerance=tolerance, initial=oracle.anchors)
-        elapsed = time.perf_counter() - start
+        result, elapsed = greedy_rbf(controls, displacement, tolerance)
         chosen = result.indices
         reduced = RBF(controls[chosen], targets)(displacement[chosen])
         error = float(torch.sqrt((reduced - full).square().sum() / norm))

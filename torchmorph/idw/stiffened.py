@@ -177,8 +177,6 @@ class StiffenedIDW(nn.Module):
         )
         self.far = IDW(controls, targets, power=power, **options)  # type: ignore[arg-type]
         self.near = IDW(controls, targets, power=stiffening_power, **options)  # type: ignore[arg-type]
-        self.power = float(power)
-        self.stiffening_power = float(stiffening_power)
         self.stiffening_length = float(stiffening_length)
         start = time.perf_counter()
         self.register_buffer("blend", self._blend(self.far.controls, self.far.targets))
@@ -193,6 +191,16 @@ class StiffenedIDW(nn.Module):
             stiffening_length=self.stiffening_length,
             coincidence_tolerance=self.far.coincidence_tolerance,
         )
+
+    @property
+    def power(self) -> float:
+        """p, the far morph's exponent."""
+        return self.far.power
+
+    @property
+    def stiffening_power(self) -> float:
+        """q, the near morph's exponent."""
+        return self.near.power
 
     @property
     def num_controls(self) -> int:

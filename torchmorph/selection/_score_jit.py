@@ -29,6 +29,17 @@ def available(weights_t: Tensor) -> bool:
     )
 
 
+@njit(**_OPTIONS)
+def _reduce(ratio, columns, count, out):
+    """out[k] = Σ_i ratio[i] columns[k, i] over the first ``count`` entries."""
+    for k in range(columns.shape[0]):
+        column = columns[k]
+        total = 0.0
+        for i in range(count):
+            total += ratio[i] * column[i]
+        out[k] = total
+
+
 @njit(parallel=True, **_OPTIONS)
 def _score_rows(weights_t, count, sums, linear, square, first, second):
     rows = weights_t.shape[0]
@@ -38,20 +49,10 @@ def _score_rows(weights_t, count, sums, linear, square, first, second):
         ratio = np.empty(count, dtype=sums.dtype)
         for i in range(count):
             ratio[i] = row[i] / max(sums[i] + row[i], tiny)
-        for k in range(linear.shape[0]):
-            column = linear[k]
-            total = 0.0
-            for i in range(count):
-                total += ratio[i] * column[i]
-            first[j, k] = total
+        _reduce(ratio, linear, count, first[j])
         for i in range(count):
             ratio[i] *= ratio[i]
-        for k in range(square.shape[0]):
-            column = square[k]
-            total = 0.0
-            for i in range(count):
-                total += ratio[i] * column[i]
-            second[j, k] = total
+        _reduce(ratio, square, count, second[j])
 
 
 def score_rows(
