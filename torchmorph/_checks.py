@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Sequence
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -25,12 +25,22 @@ __all__ = [
     "check_positive",
     "check_same_device_dtype",
     "check_vectors",
+    "dim_of",
     "is_traced",
     "plain_tensor",
 ]
 
 Choice = TypeVar("Choice", bound=str)
 """A choice of :func:`check_choice`: a string, or one of a ``Literal`` of strings."""
+
+
+def dim_of(points: Any) -> int:
+    """The dimension D that a point array of shape (N, D) claims (3 when it has no such
+    shape), so that :func:`as_points` reports a bad shape against it."""
+    shape = getattr(points, "shape", None)
+    if shape is not None and len(shape) == 2 and shape[1] >= 1:
+        return int(shape[1])
+    return 3
 
 
 def as_points(

@@ -16,6 +16,7 @@ from torchmorph._checks import (
     check_finite,
     check_positive,
     check_same_device_dtype,
+    dim_of,
     is_traced,
 )
 
@@ -147,13 +148,6 @@ def prepare(targets, controls, power, coincidence_tolerance):
         targets, controls, check_tolerance(coincidence_tolerance)
     )
     return targets, controls, power, radius2
-
-
-def dim_of(points) -> int:
-    shape = getattr(points, "shape", None)
-    if shape is not None and len(shape) == 2 and shape[1] >= 1:
-        return int(shape[1])
-    return 3
 
 
 def warn_duplicate_controls(controls: Tensor, tolerance: float, targets: Tensor) -> None:

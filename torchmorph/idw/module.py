@@ -17,6 +17,7 @@ from torchmorph._checks import (
     check_positive,
     check_same_device_dtype,
     check_vectors,
+    dim_of,
 )
 from torchmorph._memory import free_memory
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
@@ -31,7 +32,6 @@ from torchmorph.idw._dispatch import check_implementation as _check_implementati
 from torchmorph.idw._geometry import (
     check_power,
     check_tolerance,
-    dim_of,
     prepare,
     warn_duplicate_controls,
 )

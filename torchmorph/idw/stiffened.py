@@ -38,9 +38,9 @@ import time
 import torch
 from torch import Tensor, nn
 
-from torchmorph._checks import as_points, check_positive, check_same_device_dtype
+from torchmorph._checks import as_points, check_positive, check_same_device_dtype, dim_of
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
-from torchmorph.idw._geometry import check_power, check_tolerance, dim_of
+from torchmorph.idw._geometry import check_power, check_tolerance
 from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE, Implementation
 from torchmorph.idw.module import DEFAULT_DENSE_BYTES, IDW
 

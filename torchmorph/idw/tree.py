@@ -99,6 +99,7 @@ from torchmorph._checks import (
     as_points,
     check_same_device_dtype,
     check_vectors,
+    dim_of,
 )
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph.idw._geometry import check_tolerance, normalise
@@ -238,7 +239,7 @@ class TreeIDW(nn.Module):
         super().__init__()
         if not available():
             raise RuntimeError("TreeIDW needs numba: pip install numba")
-        controls = as_points(controls, "controls", dim=_dim(controls))
+        controls = as_points(controls, "controls", dim=dim_of(controls))
         targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True)
         check_same_device_dtype(controls, "controls", targets, "targets")
         _check_cpu(controls, "controls")
@@ -492,13 +493,6 @@ def _sampled(result: Tensor, exact: Tensor, dim: int) -> list[float]:
         float(d / n) if n > 0 else (0.0 if d == 0 else math.inf)
         for d, n in zip(difference, norms, strict=True)
     ]
-
-
-def _dim(points) -> int:
-    shape = getattr(points, "shape", None)
-    if shape is not None and len(shape) == 2 and shape[1] >= 1:
-        return int(shape[1])
-    return 3
 
 
 def idw_tree_apply(

@@ -60,12 +60,11 @@ pull the same targets (see benchmarks/adaptive.py).
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import torch
 from torch import Tensor
 
-from torchmorph._checks import as_points, check_float_dtype, check_positive
+from torchmorph._checks import as_points, check_float_dtype, check_positive, dim_of
 from torchmorph.idw.functional import idw_apply, idw_weights
 from torchmorph.selection import _score_jit
 from torchmorph.selection.greedy import (
@@ -162,7 +161,7 @@ class IDWErrorOracle:
         sample: Tensor | None = None,
         sample_scale: Tensor | None = None,
     ) -> None:
-        candidates = as_points(candidates, "candidates", dim=_dim(candidates))
+        candidates = as_points(candidates, "candidates", dim=dim_of(candidates))
         dim = candidates.shape[1]
         targets = as_points(targets, "targets", dim=dim)
         targets = targets.to(candidates.dtype)
@@ -533,13 +532,6 @@ def _distinct_up_to_scale(family: Tensor) -> Tensor:
         if not bool(parallel[member, kept].any()):
             kept.append(member)
     return torch.tensor(kept, dtype=torch.int64, device=family.device)
-
-
-def _dim(points: Any) -> int:
-    shape = getattr(points, "shape", None)
-    if shape is not None and len(shape) == 2 and shape[1] >= 1:
-        return int(shape[1])
-    return 3
 
 
 def _family(displacements: Tensor, count: int, dim: int) -> Tensor:
