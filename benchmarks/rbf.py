@@ -6,8 +6,10 @@ Fibonacci lattice, the surface of a body); targets: N_t points uniform in the sh
 1.05 <= |x| <= 3 around it (the volume mesh); displacements a smooth field on the sphere.
 Default N_c = 5,000 and N_t = 50,000 (the issue's counts).
 
-Printed (markdown), wall times, each step timed once (a fit takes seconds) except the later morphs
-(median of ``--repeats``):
+Printed (markdown), wall times: the fits and first morphs timed once per round, in
+``--rounds`` rounds (scipy, then ours matrix-free, then dense; medians over the rounds),
+each configuration after a 256 MB buffer is written and freed (:func:`settle`); the later
+morphs the median of ``--repeats``:
 
 * scipy: ``RBFInterpolator(controls, d)`` (fit) and one evaluation at the targets;
 * torchmorph, dense and matrix-free: building the module (the factorisation; in dense
@@ -46,6 +48,7 @@ for _variable in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import math  # noqa: E402
 import platform  # noqa: E402
+import statistics  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -56,6 +59,8 @@ from scipy.interpolate import RBFInterpolator  # noqa: E402
 
 from torchmorph.rbf import RBF, RBFErrorOracle  # noqa: E402
 from torchmorph.selection.greedy import greedy_selection  # noqa: E402
+
+MODES = ("matrix_free", "dense")
 
 
 def sphere(count: int) -> np.ndarray:
@@ -86,6 +91,14 @@ def field(points: np.ndarray) -> np.ndarray:
 CPU_TIMES: dict[str, float] = {}
 
 
+def settle() -> None:
+    """Write and free 256 MB. After a large release (the dense module's 2 GB evaluation
+    matrix, scipy's evaluation blocks) the next fresh allocation's page faults were slower
+    for a while (a 200 MB system matrix: 0.5 s instead of 0.1 s); this takes that cost
+    outside the timings, for every configuration alike."""
+    np.ones(2**25).sum()
+
+
 def timed(function, label: str = ""):
     """(result, wall seconds); the process's CPU seconds kept under ``label``."""
     start, cpu = time.perf_counter(), time.process_time()
@@ -100,6 +113,9 @@ def main(argv=None) -> None:
     parser.add_argument("--controls", type=int, default=5000)
     parser.add_argument("--targets", type=int, default=50000)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument(
+        "--rounds", type=int, default=3, help="rounds of the fits (medians reported)"
+    )
     parser.add_argument("--tolerances", type=float, nargs="*", default=[1e-2, 1e-3, 1e-4])
     parser.add_argument(
         "--no-case-a", dest="case_a", action="store_false", help="skip the case-A table"
@@ -124,44 +140,74 @@ def main(argv=None) -> None:
     RBF(torch.from_numpy(controls[:20]), torch.from_numpy(targets[:5]))(
         torch.zeros(20, 3, dtype=torch.float64)
     )
-    interpolant, scipy_fit = timed(lambda: RBFInterpolator(controls, values), "scipy fit")
-    reference, scipy_eval = timed(lambda: interpolant(targets), "scipy eval")
-    scipy_total = scipy_fit + scipy_eval
-    rows = []
     tensors = [torch.from_numpy(array) for array in (controls, targets, values)]
-    for mode in ("dense", "matrix_free"):
-        morph, build = timed(
-            lambda mode=mode: RBF(tensors[0], tensors[1], mode=mode), f"{mode} fit"
+    # rounds of scipy, then each of our modes (the fits take seconds: each is timed once
+    # per round, the medians over the rounds reported); every configuration starts after
+    # settle(), so that none pays for the memory the one before it released
+    runs: dict[str, list] = {name: [] for name in ("scipy", *MODES)}
+    for _ in range(args.rounds):
+        settle()
+        interpolant, scipy_fit = timed(lambda: RBFInterpolator(controls, values), "scipy fit")
+        reference, scipy_eval = timed(
+            lambda interpolant=interpolant: interpolant(targets), "scipy eval"
         )
-        moved, first = timed(lambda morph=morph: morph(tensors[2]), f"{mode} first")
-        later = median_time(lambda morph=morph: morph(tensors[2]), args.repeats, warmup=0)
-        difference = float(np.abs(moved.numpy() - reference).max())
-        rows.append((mode, morph, build, first, later, difference))
+        runs["scipy"].append(
+            (scipy_fit, scipy_eval, CPU_TIMES["scipy fit"] + CPU_TIMES["scipy eval"])
+        )
+        del interpolant
+        for mode in MODES:
+            settle()
+            morph, build = timed(
+                lambda mode=mode: RBF(tensors[0], tensors[1], mode=mode), f"{mode} fit"
+            )
+            moved, first = timed(lambda morph=morph: morph(tensors[2]), f"{mode} first")
+            cpu = CPU_TIMES[f"{mode} fit"] + CPU_TIMES[f"{mode} first"]
+            runs[mode].append((build, first, cpu, morph.fit_time, morph.solver, moved))
+            del morph
+    scipy_fit, scipy_eval, scipy_cpu = (
+        statistics.median(run[k] for run in runs["scipy"]) for k in range(3)
+    )
+    scipy_total = statistics.median(run[0] + run[1] for run in runs["scipy"])
+    rows = []
+    for mode in MODES:
+        settle()
+        morph = RBF(tensors[0], tensors[1], mode=mode)
+        later = median_time(lambda morph=morph: morph(tensors[2]), args.repeats)
+        build, first, cpu, factorising = (
+            statistics.median(run[k] for run in runs[mode]) for k in range(4)
+        )
+        total = statistics.median(run[0] + run[1] for run in runs[mode])
+        difference = float(np.abs(runs[mode][-1][5].numpy() - reference).max())
+        rows.append(
+            (mode, runs[mode][-1][4], build, first, total, cpu, factorising, later, difference)
+        )
         del morph
+    print(
+        f"Medians over {args.rounds} rounds (scipy, then each of ours, fit and first "
+        "morph timed once per round):\n"
+    )
     print("| | fit | first morph | fit + first morph | later morph | max diff. from scipy |")
     print("|---|---:|---:|---:|---:|---:|")
     print(
         f"| scipy `RBFInterpolator` | {seconds(scipy_fit)} | {seconds(scipy_eval)} | "
         f"{seconds(scipy_total)} | {seconds(scipy_eval)} | — |"
     )
-    for mode, morph, build, first, later, difference in rows:
-        fit = f"{seconds(build)} ({seconds(morph.fit_time)} factorising)"
+    for mode, solver, build, first, total, _, factorising, later, difference in rows:
+        fit = f"{seconds(build)} ({seconds(factorising)} factorising)"
         print(
-            f"| torchmorph `RBF`, {mode} ({morph.solver}) | {fit} | {seconds(first)} | "
-            f"{seconds(build + first)} (**{scipy_total / (build + first):.2f}x**) | "
+            f"| torchmorph `RBF`, {mode} ({solver}) | {fit} | {seconds(first)} | "
+            f"{seconds(total)} (**{scipy_total / total:.2f}x**) | "
             f"{seconds(later)} (**{scipy_eval / later:.1f}x**) | {difference:.1e} |"
         )
     print(
         "\nRatios: scipy's fit + evaluation over ours (fit + first morph), scipy's "
         "evaluation over one later morph."
     )
-    scipy_cpu = CPU_TIMES["scipy fit"] + CPU_TIMES["scipy eval"]
-    for mode in ("dense", "matrix_free"):
-        ours = CPU_TIMES[f"{mode} fit"] + CPU_TIMES[f"{mode} first"]
+    for mode, *_, cpu, _, _, _ in rows:
         print(
             f"CPU time (the process's, insensitive to other load on the machine), {mode}: "
-            f"scipy {scipy_cpu:.2f} s, ours {ours:.2f} s for fit + first morph "
-            f"(**{scipy_cpu / ours:.2f}x**)"
+            f"scipy {scipy_cpu:.2f} s, ours {cpu:.2f} s for fit + first morph "
+            f"(**{scipy_cpu / cpu:.2f}x**)"
         )
     if args.pygem:
         pygem_table(args.pygem, controls, targets, values, reference, rows)
@@ -224,9 +270,9 @@ def pygem_table(path, controls, targets, values, reference, rows) -> None:
     )
     print("| ours | fit + first morph | PyGeM / ours | later morph | PyGeM / ours |")
     print("|---|---:|---:|---:|---:|")
-    for mode, _, build, first, later, _ in rows:
+    for mode, _, _, _, total, _, _, later, _ in rows:
         print(
-            f"| {mode} | {seconds(build + first)} | **{call / (build + first):.1f}x** | "
+            f"| {mode} | {seconds(total)} | **{call / total:.1f}x** | "
             f"{seconds(later)} | **{call / later:.0f}x** |"
         )
 

@@ -232,28 +232,75 @@ def test_in_place_blocks_equal_the_masked_kernels(kernel):
     torch.testing.assert_close(slow.detach(), fast, rtol=1e-13, atol=1e-14)
 
 
-@pytest.mark.parametrize("degree", [0, 1, 2])
-def test_the_projected_blocks_equal_lapack_ormqr(degree):
+@pytest.mark.parametrize(
+    ("kernel", "epsilon", "degree"),
+    [("thin_plate_spline", None, 1), ("cubic", None, 2), ("gaussian", 12.0, -1)],
+)
+def test_equals_scipy_where_lapack_factorises(kernel, epsilon, degree):
+    # from LAPACK_CHOLESKY_ORDER controls on, one triangle of the system is assembled and
+    # factorised (with and without the polynomial's projection)
+    controls, targets = cloud(1_050), cloud(300, seed=1)
+    values = np.random.default_rng(2).normal(size=(1_050, 3))
+    reference, scipy_error = scipy_reference(controls, values, targets, kernel, epsilon, degree)
+    morph = RBF(
+        torch.from_numpy(controls),
+        torch.from_numpy(np.concatenate([targets, controls])),
+        kernel=kernel,
+        epsilon=epsilon,
+        degree=degree,
+    )
+    assert morph.solver == "cholesky"
+    result = morph(torch.from_numpy(values)).numpy()
+    scale = np.abs(reference).max()
+    assert np.abs(result[:300] - reference).max() <= max(10 * scipy_error, 1e-9 * scale)
+    assert np.abs(result[300:] - values).max() <= max(10 * scipy_error, 1e-9)
+
+
+@pytest.mark.parametrize(
+    ("degree", "kernel", "size"),
+    [
+        (0, "cubic", 50),
+        (1, "cubic", 50),
+        (2, "cubic", 50),
+        # from LAPACK_CHOLESKY_ORDER on: one triangle by the BLAS (the fused thin-plate
+        # spline writes only that one, the torch blocks of the cubic the whole matrix)
+        (1, "thin_plate_spline", 1_004),
+        (1, "cubic", 1_004),
+    ],
+)
+def test_the_projected_blocks_equal_lapack_ormqr(degree, kernel, size):
     from torchmorph.rbf.kernels import (
         kernel_matrix,
         monomial_powers,
         polynomial_matrix,
         polynomial_scaling,
     )
-    from torchmorph.rbf.system import projected_blocks
+    from torchmorph.rbf.system import LAPACK_CHOLESKY_ORDER, cholesky, projected_blocks
 
-    controls = torch.from_numpy(cloud(50))
+    controls = torch.from_numpy(cloud(size))
     shift, scale = polynomial_scaling(controls)
     poly = polynomial_matrix(controls, monomial_powers(3, degree), shift, scale)
     qr, tau = torch.geqrf(poly)
-    matrix = kernel_matrix(controls, controls, "cubic", 1.0)
+    matrix = kernel_matrix(controls, controls, kernel, 1.0)
     left = torch.ormqr(qr, tau, matrix, left=True, transpose=True)
     expected = torch.ormqr(qr, tau, left, left=False, transpose=False)
-    trailing, coupling = projected_blocks(controls, "cubic", 1.0, qr, tau)
+    trailing, coupling = projected_blocks(controls, kernel, 1.0, qr, tau)
     count = poly.shape[1]
     assert trailing.is_contiguous()
-    torch.testing.assert_close(trailing, expected[count:, count:], rtol=0, atol=1e-12)
-    torch.testing.assert_close(coupling, expected[:count, count:], rtol=0, atol=1e-12)
+    tolerance = 1e-12 * float(matrix.abs().max())
+    if size - count >= LAPACK_CHOLESKY_ORDER:  # the triangle LAPACK reads
+        upper = torch.ones_like(trailing, dtype=torch.bool).triu()
+        torch.testing.assert_close(
+            trailing[upper], expected[count:, count:][upper], rtol=0, atol=tolerance
+        )
+        factor, info = cholesky(trailing.clone())
+        assert info == 0
+        torch.testing.assert_close(
+            factor @ factor.T, expected[count:, count:], rtol=0, atol=1e3 * tolerance
+        )
+    else:
+        torch.testing.assert_close(trailing, expected[count:, count:], rtol=0, atol=tolerance)
+    torch.testing.assert_close(coupling, expected[:count, count:], rtol=0, atol=tolerance)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

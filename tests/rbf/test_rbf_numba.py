@@ -43,14 +43,19 @@ def test_the_logarithm_over_the_range():
     np.testing.assert_allclose(values, expected, rtol=1e-15, atol=0)
 
 
-def test_apply_equals_rows_times_weights():
-    targets, controls = points(50), points(40, seed=1)
-    weights = points(40, seed=2)[:, :2].contiguous()
-    poly = torch.zeros(0, 2, dtype=torch.float64)
+@pytest.mark.parametrize("count", [40, 512, 1_100])  # one chunk, exactly one, three
+@pytest.mark.parametrize("columns", [1, 2, 3, 6])  # 3: the one-pass branch
+def test_apply_equals_rows_times_weights(count, columns):
+    targets, controls = points(50), points(count, seed=1)
+    weights = points(count, dim=columns, seed=2)
+    poly = torch.zeros(0, columns, dtype=torch.float64)
     options = {"kernel": "thin_plate_spline", "scale": 0.7, "powers": [], "shift": None}
     fused = evaluate(targets, controls, weights, poly, poly_scale=None, **options)
     matrix = kernels.kernel_matrix(targets, controls, "thin_plate_spline", 0.7)
-    torch.testing.assert_close(fused, matrix @ weights, rtol=0, atol=1e-13)
+    # summation order differs: the bound is a few roundings of the sum of |terms|
+    bound = 1e-15 * count * (matrix.abs() @ weights.abs())
+    assert fused.shape == (50, columns)
+    assert bool(((fused - matrix @ weights).abs() <= bound).all())
 
 
 def test_a_strided_evaluation_matrix_is_written_in_place():
@@ -85,3 +90,13 @@ def test_the_fused_pass_is_differentiable_in_the_weights():
     morph = RBF(controls, targets, mode="matrix_free")
     values = points(9, seed=3).requires_grad_()
     assert gradcheck(morph, (values,))
+
+
+def test_the_upper_triangle_alone():
+    cloud = points(70)
+    full = kernels.kernel_matrix(cloud, cloud, "thin_plate_spline", 1.3)
+    out = torch.full((70, 70), float("nan"), dtype=torch.float64)
+    _numba.tps_upper(cloud, 1.3, out)
+    upper = torch.ones(70, 70, dtype=torch.bool).triu()
+    torch.testing.assert_close(out[upper], full[upper], rtol=0, atol=0)
+    assert bool(out[~upper].isnan().all())  # below the diagonal: not written

@@ -1,9 +1,10 @@
 """The fused thin-plate pass of :mod:`torchmorph.rbf._numba` over several threads (numba
 ``prange`` over chunks of targets, ``numba.get_num_threads()`` of them), for the
 partition-of-unity RBF (:mod:`torchmorph.rbf.partition`), whose evaluations at 10⁶
-targets dominate a morph. The per-target passes are :mod:`torchmorph.rbf._numba`'s
-(squared distances, ``s log(s) / 2``, one dot product per value column); the one-thread
-:func:`torchmorph.rbf._numba.tps_apply` is their twin (the tests compare them).
+targets dominate a morph. The per-target sums are :mod:`torchmorph.rbf._numba`'s
+(squared distances, ``s log(s) / 2`` and the dot products with the value columns, by
+chunks of controls); the one-thread :func:`torchmorph.rbf._numba.tps_apply` runs the same
+sums (the tests compare them).
 """
 
 from __future__ import annotations
@@ -30,22 +31,26 @@ CHUNK_TARGETS = 256
 
 
 def _apply_chunks(tx, ty, tz, cx, cy, cz, scale2, weights_t, out, chunk):
-    count = cx.shape[0]
     total = tx.shape[0]
     chunks = (total + chunk - 1) // chunk
-    for index in prange(chunks):  # one chunk of targets per iteration
-        row = np.empty(count)
-        exponent = np.empty(count)
-        mantissa_bits = np.empty(count, dtype=np.int64)
+    for index in prange(chunks):  # one chunk of targets per iteration, its own scratch
+        row, exponent, mantissa_bits, totals = _numba.scratch(weights_t.shape[0])
         for i in range(index * chunk, min(total, (index + 1) * chunk)):
-            _numba._squared_row(tx[i], ty[i], tz[i], cx, cy, cz, scale2, row)
-            _numba._tps_row(row, exponent, mantissa_bits)
-            for column in range(weights_t.shape[0]):
-                weights = weights_t[column]
-                value = 0.0
-                for j in range(count):
-                    value += row[j] * weights[j]
-                out[i, column] = value
+            _numba._target_sums(
+                tx[i],
+                ty[i],
+                tz[i],
+                cx,
+                cy,
+                cz,
+                scale2,
+                weights_t,
+                row,
+                exponent,
+                mantissa_bits,
+                totals,
+            )
+            out[i, :] = totals
 
 
 if njit is not None:
