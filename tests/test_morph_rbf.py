@@ -164,7 +164,7 @@ def test_weights_matrix_and_adjoint_are_those_of_the_morph(mesh):
 
 def test_an_adaptive_plan_selects_for_either_method(mesh):
     displacement = MeshMorph(mesh).boundary_displacement("z1", smooth_field)
-    plan = AdaptivePlan(0.05, displacement)
+    plan = AdaptivePlan(0.05, displacement, method="idw")  # IDW's error for either
     idw = MeshMorph(mesh, plan)
     rbf = MeshMorph(mesh, plan, method="rbf")
     assert torch.equal(idw.control_nodes, rbf.control_nodes)
@@ -175,6 +175,10 @@ def test_an_adaptive_plan_selects_for_either_method(mesh):
     np.testing.assert_allclose(
         rbf(displacement)[rbf.interior_nodes].numpy(), reference, rtol=0, atol=1e-12
     )
+    # without a method of its own the plan follows the morph: the RBF's error
+    following = AdaptivePlan(0.05, displacement)
+    MeshMorph(mesh, following, method="rbf")
+    assert following.method_ == "rbf" and following.result_.error <= 0.05
 
 
 def test_a_planar_mesh():

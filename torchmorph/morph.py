@@ -71,8 +71,9 @@ class MeshMorph(nn.Module):
         nodes, and the others interior nodes.
     plan : SelectionPlan or AdaptivePlan, optional
         Control-point selection: SIDW/ESIDW, or error-driven (AdaptivePlan). None: all
-        boundary nodes. Either method interpolates from the controls it selects (an
-        AdaptivePlan measures IDW's error whatever the method).
+        boundary nodes. Either method interpolates from the controls it selects; an
+        AdaptivePlan measures the error of this morph's method (its RBF options
+        included) unless its own ``method`` says otherwise.
     method : {"idw", "rbf"}
         How the interior follows the controls: inverse distance weighting (the paper's
         eq. 2, default) or radial basis functions (:class:`~torchmorph.rbf.RBF`, exact at
@@ -221,7 +222,7 @@ class MeshMorph(nn.Module):
         boundary = mesh.boundary_nodes
         interior = mesh.interior_nodes
         start = time.perf_counter()
-        control_nodes = select_controls(mesh, plan, generator)
+        control_nodes = select_controls(mesh, plan, generator, (method, options))
         self.selection_time = time.perf_counter() - start
         selected = boundary_rows(boundary, control_nodes)
         points = mesh.points
@@ -598,13 +599,21 @@ class MeshMorph(nn.Module):
 
 
 def select_controls(
-    mesh: Mesh, plan: SelectionPlan | AdaptivePlan | None, generator: torch.Generator | None
+    mesh: Mesh,
+    plan: SelectionPlan | AdaptivePlan | None,
+    generator: torch.Generator | None,
+    morph: tuple[str, dict[str, Any]] | None = None,
 ) -> Tensor:
     """The control points of Algorithm 2's selection phase: every boundary node without a
-    plan, else the plan's selection (SIDW/ESIDW); sorted unique global node ids."""
+    plan, else the plan's selection (SIDW/ESIDW, or error-driven for the interpolation
+    ``morph``, its method and options); sorted unique global node ids."""
+    from torchmorph.selection.plan import AdaptivePlan
+
     if plan is None:
         return mesh.boundary_nodes
-    return torch.as_tensor(plan.select(mesh, generator=generator), dtype=torch.long).unique()
+    follows = {"morph": morph} if isinstance(plan, AdaptivePlan) else {}
+    nodes = plan.select(mesh, generator=generator, **follows)
+    return torch.as_tensor(nodes, dtype=torch.long).unique()
 
 
 def boundary_rows(boundary: Tensor, control_nodes: Tensor) -> Tensor:

@@ -133,3 +133,31 @@ def test_a_zero_displacement_is_refused_by_name(tmp_path, cube_file, capsys):
     err = capsys.readouterr().err
     assert "--adaptive: displacements: member 0 of the family has a zero reference" in err
     assert "Traceback" not in err
+
+
+def test_adaptive_with_rbf_reduces_the_rbf(tmp_path, cube_file, capsys):
+    from torchmorph.rbf import RBF
+
+    code, out, rows = _morph(
+        tmp_path, cube_file, "--adaptive", "0.02", "--method", "rbf", "--kernel", "cubic"
+    )
+    assert code == EXIT_OK
+    text = capsys.readouterr().out
+    assert "adaptive: RBF error at the boundary nodes <= 0.02, from no control" in text
+    assert "boundary error  " in text and "nodal error" not in text.split("adaptive")[1]
+    point_data = read_mesh(out, return_data=True)[1]
+    flags = point_data["control_point"].bool()
+    assert 4 <= int(flags.sum()) < 98
+    # the boundary error, measured here: the cubic RBF of the kept controls at every
+    # boundary node against the boundary displacement
+    mesh = read_mesh(cube_file)
+    boundary = mesh.boundary_nodes
+    probe = MeshMorph(mesh)
+    values = probe.boundary_displacement("x1", lambda x: torch.from_numpy(rows))
+    kept = torch.nonzero(flags[boundary]).flatten()
+    points = mesh.points[boundary]
+    fitted = RBF(points[kept], points, kernel="cubic")(values[kept])
+    error = (fitted - values).norm(dim=1).max() / values.norm(dim=1).max()
+    assert float(error) <= 0.02
+    line = next(line for line in text.splitlines() if line.startswith("boundary error"))
+    assert line.split()[2] == f"{float(error):.4g}:"  # the error the selection measured

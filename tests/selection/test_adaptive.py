@@ -386,3 +386,94 @@ def test_a_sampled_selection_is_checked_on_every_target():
     assert error == pytest.approx(plan.result_.error, rel=1e-9)
     assert error <= tolerance and plan.result_.converged
     assert plan.result_.rounds > 1 and plan.result_.history[0][0] == 0  # every run counted
+
+
+# ---------------------------------------------------------------- driven by the RBF error
+
+
+def rbf_boundary_error(mesh, displacement, nodes, kernel="thin_plate_spline", **options):
+    """max |s − d| / max |d| over the boundary nodes of the RBF fitted at ``nodes``, in
+    NumPy (φ(r) = r² log r or r³ with the linear polynomial: the saddle system solved)."""
+    boundary = mesh.boundary_nodes.numpy()
+    points = mesh.points.numpy()[boundary]
+    rows = np.searchsorted(boundary, np.asarray(nodes))
+    d = displacement.numpy()
+
+    def phi(a, b):
+        r = np.sqrt(((a[:, None] - b[None]) ** 2).sum(-1))
+        if kernel == "cubic":
+            return r**3
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(r > 0, r**2 * np.log(r), 0.0)
+
+    centres = points[rows]
+    poly = np.hstack([np.ones((len(rows), 1)), centres])
+    system = np.block([[phi(centres, centres), poly], [poly.T, np.zeros((4, 4))]])
+    coefficients = np.linalg.solve(system, np.vstack([d[rows], np.zeros((4, 3))]))
+    fitted = np.hstack([phi(points, centres), np.ones((len(points), 1)), points]) @ coefficients
+    return np.linalg.norm(fitted - d, axis=1).max() / np.linalg.norm(d, axis=1).max()
+
+
+@pytest.mark.parametrize("kernel", ["thin_plate_spline", "cubic"])
+def test_an_rbf_morph_selects_by_the_rbf_error(kernel):
+    from torchmorph.rbf import RBFErrorOracle
+    from torchmorph.selection.greedy import greedy_selection
+
+    mesh, displacement = bent_box()
+    plan = AdaptivePlan(0.01, displacement)
+    morph = MeshMorph(mesh, plan, method="rbf", kernel=kernel)
+    assert plan.method_ == "rbf" and plan.sampled_targets_ == 0
+    nodes = morph.control_nodes
+    assert rbf_boundary_error(mesh, displacement, nodes, kernel) <= 0.01
+    assert plan.result_.error == pytest.approx(
+        rbf_boundary_error(mesh, displacement, nodes, kernel), rel=1e-8
+    )
+    assert len(nodes) < len(mesh.boundary_nodes)
+    # the same as the selection loop with the RBF oracle, from the polynomial's anchors
+    oracle = RBFErrorOracle(mesh.points[mesh.boundary_nodes], displacement, kernel=kernel)
+    direct = greedy_selection(oracle, tolerance=0.01, initial=oracle.anchors)
+    expected = torch.sort(mesh.boundary_nodes[direct.indices]).values
+    assert torch.equal(nodes, expected)
+
+
+def test_the_plan_method_overrides_the_morph():
+    mesh, displacement = bent_box()
+    idw_driven = AdaptivePlan(0.02, displacement, method="idw")
+    MeshMorph(mesh, idw_driven, method="rbf")
+    assert idw_driven.method_ == "idw"
+    alone = AdaptivePlan(0.02, displacement).select(mesh)
+    assert torch.equal(torch.sort(idw_driven.select(mesh)).values, alone)
+    # the plan's own RBF options win over the morph's; alone, RBF's defaults
+    own = AdaptivePlan(0.01, displacement, method="rbf", kernel="cubic")
+    morph = MeshMorph(mesh, own, method="rbf", kernel="thin_plate_spline")
+    assert rbf_boundary_error(mesh, displacement, morph.control_nodes, "cubic") <= 0.01
+    default = AdaptivePlan(0.01, displacement, method="rbf").select(mesh)
+    assert rbf_boundary_error(mesh, displacement, default) <= 0.01
+
+
+def test_an_rbf_selection_keeps_its_start_and_the_anchors():
+    mesh, displacement = bent_box()
+    start = SelectionPlan([Region("(boundary)", 0.9)])
+    boxed = mesh.with_node_sets({"(boundary)": mesh.boundary_nodes})
+    plan = AdaptivePlan(0.01, displacement, start=start, method="rbf")
+    nodes = plan.select(boxed, generator=torch.Generator().manual_seed(0))
+    first = start.select(boxed, generator=torch.Generator().manual_seed(0))
+    assert bool(torch.isin(first, nodes).all())
+    assert rbf_boundary_error(mesh, displacement, nodes) <= 0.01
+
+
+@pytest.mark.parametrize(
+    ("keywords", "message"),
+    [
+        ({"method": "spline"}, "method"),
+        ({"method": "idw", "kernel": "cubic"}, "kernel: an option of method='rbf'"),
+        ({"method": "rbf", "weights": torch.ones(343)}, "weights: the RBF error"),
+        ({"method": "rbf", "num_samples": 10}, "num_samples: the RBF error"),
+        ({"method": "rbf", "max_controls": 2}, "max_controls (2) is smaller than the 4"),
+        ({"method": "rbf", "kernel": "cubic", "degree": 0}, "degree must be at least 1"),
+    ],
+)
+def test_bad_rbf_plans(keywords, message):
+    mesh, displacement = bent_box()
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        AdaptivePlan(0.01, displacement, **keywords).select(mesh)

@@ -112,8 +112,10 @@ def add_selection_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="TOL",
         help="error-driven selection: add boundary nodes to the controls, those that lower "
         "the error most first, until the morph's relative nodal error against full IDW "
-        "(every boundary node a control) is at most TOL (e.g. 0.01); a --select, --region "
-        "or --enrich selection is where it starts (the error is IDW's whatever --method)",
+        "(every boundary node a control) is at most TOL (e.g. 0.01); with --method rbf, "
+        "until the RBF's error at the boundary nodes, max |s - d| / max |d|, is (greedy RBF "
+        "reduction with the --kernel given); a --select, --region or --enrich selection is "
+        "where it starts",
     )
     selection.add_argument(
         "--max-controls",
@@ -201,7 +203,8 @@ def _adaptive_plan(
         origin = f"from the enrichment sets {', '.join(enrich)}"
     else:
         origin = "from " + method
-    return plan, f"adaptive: nodal error <= {args.adaptive:g}{budget}, {origin}"
+    measure = "RBF error at the boundary nodes" if args.method == "rbf" else "nodal error"
+    return plan, f"adaptive: {measure} <= {args.adaptive:g}{budget}, {origin}"
 
 
 def _uncovered_message(mesh: Mesh, error: UncoveredNodesError) -> str:

@@ -386,18 +386,24 @@ def run(args: argparse.Namespace) -> int:
     _line("interpolation", method_summary(morph))
     _line("controls", f"{morph.num_controls} of {morph.num_boundary} boundary nodes")
     result = getattr(plan, "result_", None)
-    if result is not None:
+    if result is not None and plan.method_ == "rbf":
+        _line(
+            "boundary error",
+            f"{result.error:.4g}: max |s - d| / max |d| of the RBF at the boundary nodes "
+            f"({result.reason}, {result.rounds} scorings)",
+        )
+    elif result is not None:
         _line(
             "nodal error",
             f"{result.error:.4g} against full IDW ({result.reason}, {result.rounds} scorings; "
             f"estimated on {plan.sampled_targets_} of {morph.num_interior} interior nodes)",
         )
-        if not result.converged:
-            _warn(
-                "morph",
-                f"--adaptive {args.adaptive:g} not reached: the error is {result.error:.4g} "
-                f"with {morph.num_controls} controls ({result.reason}); raise --max-controls",
-            )
+    if result is not None and not result.converged:
+        _warn(
+            "morph",
+            f"--adaptive {args.adaptive:g} not reached: the error is {result.error:.4g} "
+            f"with {morph.num_controls} controls ({result.reason}); raise --max-controls",
+        )
     _line("selection", _seconds(morph.selection_time))
     if morph.method == "idw":
         storage = {

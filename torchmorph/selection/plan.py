@@ -33,7 +33,7 @@ from torchmorph.selection.adaptive import (
     GreedySelection,
     _checked_selection,
 )
-from torchmorph.selection.greedy import check_budget
+from torchmorph.selection.greedy import check_budget, greedy_selection
 from torchmorph.selection.sidw import (
     DEFAULT_SEED,
     STRATEGIES,
@@ -42,6 +42,9 @@ from torchmorph.selection.sidw import (
     _check_strategy,
     select_control_points,
 )
+
+#: The RBF options an :class:`AdaptivePlan` with ``method="rbf"`` takes (None: the morph's).
+_RBF_OPTIONS = ("kernel", "epsilon", "degree", "support_radius")
 
 __all__ = [
     "DEFAULT_SEED",
@@ -414,7 +417,14 @@ class AdaptivePlan:
     power : float, default 4
         The IDW exponent; use the morph's.
     num_samples, sample_bytes, score_samples, min_batch, spacing
-        As :func:`select_adaptive`.
+        As :func:`select_adaptive` (the first three: IDW's error only).
+    method : {"idw", "rbf"}, optional
+        The interpolation whose error drives the selection. Default: the morph's when the
+        plan is given to :class:`~torchmorph.morph.MeshMorph` (its ``method`` and RBF
+        options), IDW when :meth:`select` is called alone.
+    kernel, epsilon, degree, support_radius : optional
+        ``method="rbf"``: the RBF, as :class:`~torchmorph.rbf.RBF`; default the morph's
+        (else RBF's defaults: the thin-plate spline with the linear polynomial).
 
     Attributes
     ----------
@@ -429,6 +439,13 @@ class AdaptivePlan:
     reduction and its state are the same as for any plan. The error is estimated on a
     sample of the interior nodes when they are many (see :class:`IDWErrorOracle`);
     check the final morph with ``torchmorph.mesh.norms.relative_nodal_error``.
+
+    With ``method="rbf"`` the error is the RBF's interpolation error at the boundary
+    nodes, ``max |s(x) − d(x)| / max |d|`` (the worst over the family), and the
+    controls with the largest one are added (greedy RBF reduction, with the
+    factorisation grown by bordered updates: :class:`~torchmorph.rbf.RBFErrorOracle`);
+    the selection starts with the nodes that carry the polynomial. Node ``weights`` and
+    the target sample do not apply there.
     """
 
     tolerance: float
@@ -442,8 +459,14 @@ class AdaptivePlan:
     score_samples: int | None = DEFAULT_SCORE_SAMPLES
     min_batch: int = 8
     spacing: float = 0.5
+    method: str | None = None
+    kernel: str | None = None
+    epsilon: float | None = None
+    degree: int | None = None
+    support_radius: float | None = None
     result_: GreedySelection | None = field(default=None, init=False, repr=False)
     sampled_targets_: int = field(default=0, init=False, repr=False)
+    method_: str = field(default="idw", init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.tolerance = check_positive(self.tolerance, "tolerance")
@@ -458,8 +481,19 @@ class AdaptivePlan:
             raise TypeError(
                 f"start must be a SelectionPlan (or None), got {type(self.start).__name__}"
             )
+        if self.method is not None:
+            check_choice(self.method, "method", ("idw", "rbf"))
+        rbf_given = [name for name in _RBF_OPTIONS if getattr(self, name) is not None]
+        if self.method == "idw" and rbf_given:
+            raise ValueError(f"{rbf_given[0]}: an option of method='rbf', not of method='idw'")
 
-    def select(self, mesh: Any, *, generator: torch.Generator | None = None) -> Tensor:
+    def select(
+        self,
+        mesh: Any,
+        *,
+        generator: torch.Generator | None = None,
+        morph: tuple[str, Mapping[str, Any]] | None = None,
+    ) -> Tensor:
         """The control points: sorted unique global node ids, on the mesh's device.
 
         Parameters
@@ -469,7 +503,13 @@ class AdaptivePlan:
         generator : torch.Generator, optional
             Randomness of the ``start`` plan (the target sample is seeded with
             ``DEFAULT_SEED``: the same mesh and family give the same selection).
+        morph : (str, mapping), optional
+            The morph's method and options (``MeshMorph`` passes them): what ``method``
+            and the RBF options left at None follow.
         """
+        method = self.method or (morph[0] if morph is not None else "idw")
+        check_choice(method, "method", ("idw", "rbf"))
+        self.method_ = method
         boundary, interior = mesh.boundary_nodes, mesh.interior_nodes
         if interior.numel() == 0:
             raise ValueError("mesh has no interior node: there is no error to drive a selection")
@@ -498,6 +538,11 @@ class AdaptivePlan:
         if self.start is not None:
             chosen = torch.as_tensor(self.start.select(mesh, generator=generator)).to(boundary)
             initial = torch.searchsorted(boundary, chosen.unique()).cpu()
+        if method == "rbf":
+            options = dict(morph[1]) if morph is not None and morph[0] == "rbf" else {}
+            result = self._rbf_selection(boundary_points, family, initial, options)
+            self.result_, self.sampled_targets_ = result, 0
+            return torch.sort(boundary[result.indices.to(boundary.device)]).values
         result, measured = _checked_selection(
             boundary_points,
             points[interior],
@@ -517,3 +562,45 @@ class AdaptivePlan:
         )
         self.result_, self.sampled_targets_ = result, measured
         return torch.sort(boundary[result.indices.to(boundary.device)]).values
+
+    def _rbf_selection(
+        self, points: Tensor, family: Tensor, initial: Tensor | None, options: dict[str, Any]
+    ) -> GreedySelection:
+        """Greedy RBF reduction of the boundary nodes ``points`` for ``family``, from
+        the polynomial's anchors and ``initial``; the RBF from this plan's options, else
+        the morph's ``options``."""
+        from torchmorph.rbf.greedy import RBFErrorOracle
+
+        for name, value in (
+            ("weights", self.weights),
+            ("num_samples", self.num_samples),
+            ("score_samples", self.score_samples),
+        ):
+            if value is not None:
+                raise ValueError(
+                    f"{name}: the RBF error is measured at every boundary node, with no node "
+                    "weights and no sample of targets; leave it None with method='rbf'"
+                )
+        for name in _RBF_OPTIONS:
+            if getattr(self, name) is not None:
+                options[name] = getattr(self, name)
+        kernel_options = {name: options[name] for name in _RBF_OPTIONS if name in options}
+        oracle = RBFErrorOracle(points, family, **kernel_options)
+        anchors = oracle.anchors.cpu()
+        if initial is not None:
+            initial = torch.cat([anchors, initial[~torch.isin(initial, anchors)]])
+        else:
+            initial = anchors
+        if self.max_controls is not None and self.max_controls < len(initial):
+            raise ValueError(
+                f"max_controls ({self.max_controls}) is smaller than the {len(initial)} "
+                "nodes the selection starts with (the polynomial's anchors and the start plan)"
+            )
+        return greedy_selection(
+            oracle,
+            tolerance=self.tolerance,
+            max_controls=self.max_controls,
+            initial=initial,
+            min_batch=self.min_batch,
+            spacing=self.spacing,
+        )
