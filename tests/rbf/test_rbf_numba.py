@@ -100,3 +100,23 @@ def test_the_upper_triangle_alone():
     upper = torch.ones(70, 70, dtype=torch.bool).triu()
     torch.testing.assert_close(out[upper], full[upper], rtol=0, atol=0)
     assert bool(out[~upper].isnan().all())  # below the diagonal: not written
+
+
+@pytest.mark.parametrize("rows", [0, 1, 5, 1_001])  # whole blocks of four rows, and not
+@pytest.mark.parametrize("columns", [2, 3, 4, 7])
+def test_the_dense_product_reads_three_columns_a_pass(rows, columns):
+    matrix, values = points(rows, dim=37), points(37, dim=columns, seed=1)
+    product = _numba.dense_product(matrix, values)
+    assert product.shape == (rows, columns)
+    torch.testing.assert_close(product, matrix @ values, rtol=1e-13, atol=1e-13)
+
+
+def test_a_dense_morph_is_differentiable_through_the_fused_product():
+    from torch.autograd import gradcheck
+
+    controls, targets = points(15), points(11, seed=1)
+    morph = RBF(controls, targets, mode="dense")
+    displacements = points(15, seed=2).requires_grad_()
+    assert gradcheck(morph, (displacements,))
+    batch = points(15, seed=3).reshape(1, 15, 3).repeat(2, 1, 1)  # six columns
+    torch.testing.assert_close(morph(batch)[1], morph(batch[1]), rtol=0, atol=1e-13)
