@@ -43,6 +43,8 @@ SHARED = (
     "torchmorph._atomic",
     "torchmorph._timing",
     "torchmorph._memory",
+    "torchmorph._dense",
+    "torchmorph._threads",
 )
 
 

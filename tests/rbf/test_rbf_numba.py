@@ -102,15 +102,6 @@ def test_the_upper_triangle_alone():
     assert bool(out[~upper].isnan().all())  # below the diagonal: not written
 
 
-@pytest.mark.parametrize("rows", [0, 1, 5, 1_001])  # whole blocks of four rows, and not
-@pytest.mark.parametrize("columns", [2, 3, 4, 7])
-def test_the_dense_product_reads_three_columns_a_pass(rows, columns):
-    matrix, values = points(rows, dim=37), points(37, dim=columns, seed=1)
-    product = _numba.dense_product(matrix, values)
-    assert product.shape == (rows, columns)
-    torch.testing.assert_close(product, matrix @ values, rtol=1e-13, atol=1e-13)
-
-
 def test_a_dense_morph_is_differentiable_through_the_fused_product():
     from torch.autograd import gradcheck
 

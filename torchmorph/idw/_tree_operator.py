@@ -12,9 +12,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchmorph._threads import numba_threads
 from torchmorph.idw.backends._protocol import power_code
 from torchmorph.idw.backends.numba import _tree_jit
-from torchmorph.idw.backends.numba.kernels import _threads
 
 __all__ = ["TARGET_BLOCK"]
 
@@ -102,7 +102,7 @@ class _TreeOperator:
         n_targets, n_controls = self.targets.shape[0], self.controls.shape[0]
         columns, dim = values.shape[1], self.controls.shape[1]
         nodes = self.starts.shape[0]
-        with _threads():
+        with numba_threads():
             groups = _tree_jit.numba_threads()
             if transpose:
                 node_zeroth = np.zeros((groups, nodes, columns))

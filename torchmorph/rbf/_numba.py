@@ -28,7 +28,7 @@ try:  # numba is optional: without it the torch blocks run
 except ImportError:  # pragma: no cover - exercised where numba is missing
     njit = None  # type: ignore[assignment]
 
-__all__ = ["available", "dense_product", "tps_apply", "tps_rows", "tps_upper"]
+__all__ = ["available", "tps_apply", "tps_rows", "tps_upper"]
 
 _LN2_HIGH = 6.93147180369123816490e-01  # fdlibm's split of log(2): high bits exact
 _LN2_LOW = 1.90821492927058770002e-10
@@ -162,52 +162,6 @@ def _apply(tx, ty, tz, cx, cy, cz, scale2, weights_t, out):
         out[i, :] = totals
 
 
-def _dense_three(matrix, columns_t, out):
-    """out[:, :3] = matrix @ columns_t.T for three columns, four rows at a time (each
-    column entry loaded once for four rows: the pass runs at the memory's speed)."""
-    rows, width = matrix.shape
-    first, second, third = columns_t[0], columns_t[1], columns_t[2]
-    for i in range(0, rows, 4):
-        last = min(i + 4, rows)
-        if last - i == 4:
-            r0, r1, r2, r3 = matrix[i], matrix[i + 1], matrix[i + 2], matrix[i + 3]
-            a0 = a1 = a2 = a3 = 0.0
-            b0 = b1 = b2 = b3 = 0.0
-            c0 = c1 = c2 = c3 = 0.0
-            for j in range(width):
-                x, y, z = first[j], second[j], third[j]
-                v = r0[j]
-                a0 += v * x
-                b0 += v * y
-                c0 += v * z
-                v = r1[j]
-                a1 += v * x
-                b1 += v * y
-                c1 += v * z
-                v = r2[j]
-                a2 += v * x
-                b2 += v * y
-                c2 += v * z
-                v = r3[j]
-                a3 += v * x
-                b3 += v * y
-                c3 += v * z
-            out[i, 0], out[i, 1], out[i, 2] = a0, b0, c0
-            out[i + 1, 0], out[i + 1, 1], out[i + 1, 2] = a1, b1, c1
-            out[i + 2, 0], out[i + 2, 1], out[i + 2, 2] = a2, b2, c2
-            out[i + 3, 0], out[i + 3, 1], out[i + 3, 2] = a3, b3, c3
-        else:
-            for k in range(i, last):
-                row = matrix[k]
-                a = b = c = 0.0
-                for j in range(width):
-                    v = row[j]
-                    a += v * first[j]
-                    b += v * second[j]
-                    c += v * third[j]
-                out[k, 0], out[k, 1], out[k, 2] = a, b, c
-
-
 if njit is not None:
     _compile = njit(fastmath=_FLAGS, error_model="numpy", cache=True)
     _squared_row = _compile(_squared_row)
@@ -217,7 +171,6 @@ if njit is not None:
     _target_sums = _compile(_target_sums)
     scratch = _compile(scratch)
     _apply = _compile(_apply)
-    _dense_three = _compile(_dense_three)
 
 
 def _axes(points: Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -245,23 +198,6 @@ def tps_upper(points: Tensor, scale: float, out: Tensor) -> Tensor:
     tx, ty, tz = _axes(points)
     _upper_rows(tx, ty, tz, scale * scale, out.numpy())
     return out
-
-
-def dense_product(matrix: Tensor, values: Tensor) -> Tensor:
-    """``matrix @ values`` for a contiguous float64 CPU ``matrix`` (N, M) and ``values``
-    (M, S), S >= 2: three columns per pass over the matrix, read once each (a stored
-    evaluation matrix is GBs; measured at 50,000 × 5,004, one thread: 0.105 s for three
-    columns against 0.35 s for torch's ``mm``, which reads it as a general product)."""
-    columns = values.shape[1]
-    padded = -(-columns // 3) * 3
-    columns_t = np.zeros((padded, values.shape[0]))
-    columns_t[:columns] = values.detach().numpy().T
-    out = np.empty((padded // 3, matrix.shape[0], 3))
-    array = matrix.numpy()
-    for group in range(padded // 3):
-        _dense_three(array, columns_t[3 * group : 3 * group + 3], out[group])
-    joined = out.transpose(1, 0, 2).reshape(matrix.shape[0], padded)  # rows, then groups
-    return torch.from_numpy(np.ascontiguousarray(joined[:, :columns]))
 
 
 def tps_apply(points: Tensor, centres: Tensor, scale: float, weights: Tensor) -> Tensor:

@@ -16,10 +16,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchmorph._threads import numba_threads
 from torchmorph.rbf import _numba
 
 try:
-    import numba
     from numba import njit, prange
 except ImportError:  # pragma: no cover - exercised where numba is missing
     njit = prange = None  # type: ignore[assignment,misc]
@@ -73,24 +73,6 @@ def one_torch_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-@contextlib.contextmanager
-def _numba_threads(threads: int) -> Iterator[None]:
-    """numba's thread count for one call, its chunks handed out one at a time (a thread
-    slowed by a competing process takes fewer); torch's count restored last (the two may
-    share one OpenMP runtime)."""
-    torch_threads = torch.get_num_threads()
-    previous, chunk = numba.get_num_threads(), numba.get_parallel_chunksize()
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
-    numba.set_parallel_chunksize(1)
-    try:
-        yield
-    finally:
-        numba.set_parallel_chunksize(chunk)
-        numba.set_num_threads(previous)
-        if torch.get_num_threads() != torch_threads:
-            torch.set_num_threads(torch_threads)
-
-
 def tps_apply_parallel(
     points: Tensor, centres: Tensor, scale: float, weights: Tensor, threads: int
 ) -> Tensor:
@@ -102,6 +84,6 @@ def tps_apply_parallel(
     weights_t = np.ascontiguousarray(weights.detach().numpy().T)
     tx, ty, tz = _numba._axes(points)
     cx, cy, cz = _numba._axes(centres)
-    with _numba_threads(threads):
+    with numba_threads(threads):
         _apply_chunks(tx, ty, tz, cx, cy, cz, scale * scale, weights_t, out.numpy(), CHUNK_TARGETS)
     return out

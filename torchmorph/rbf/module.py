@@ -10,6 +10,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from torchmorph import _dense as dense
 from torchmorph._checks import (
     as_points,
     check_choice,
@@ -19,7 +20,7 @@ from torchmorph._checks import (
 )
 from torchmorph._memory import free_memory
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
-from torchmorph.rbf import _numba
+from torchmorph._threads import numba_threads
 from torchmorph.rbf.functional import (
     check_distinct,
     check_options,
@@ -392,34 +393,12 @@ class RBF(nn.Module):
         )
 
 
-class _DenseProduct(torch.autograd.Function):
-    """``matrix @ values`` by :func:`torchmorph.rbf._numba.dense_product` (the matrix a
-    buffer without gradient); backward: ``matrixᵀ grad``."""
-
-    @staticmethod
-    def forward(ctx, matrix, values):  # type: ignore[override]
-        ctx.save_for_backward(matrix)
-        return _numba.dense_product(matrix, values)
-
-    @staticmethod
-    def backward(ctx, grad):  # type: ignore[override]
-        (matrix,) = ctx.saved_tensors
-        return None, matrix.mT @ grad
-
-
 def _evaluation_product(matrix: Tensor, values: Tensor) -> Tensor:
-    """The stored evaluation matrix times the coefficients (N_c + M, S): for 2 to 9
-    columns of a float64 CPU matrix the fused pass that reads it once per three columns
-    (torch's ``mm`` took 3.4× as long for three columns at 50,000 × 5,004; one column is
-    torch's matrix-vector product, as fast), otherwise torch's product."""
-    fused = (
-        2 <= values.shape[1] <= 9
-        and matrix.device.type == "cpu"
-        and matrix.dtype == torch.float64
-        and matrix.is_contiguous()
-        and not matrix.requires_grad
-        and _numba.available()
-    )
-    if fused:
-        return _DenseProduct.apply(matrix, values)
+    """The stored evaluation matrix times the coefficients (N_c + M, S): the pass of
+    :mod:`torchmorph._dense` that reads the matrix once per three columns where it applies
+    (torch's ``mm`` took 3.4× as long for three columns at 50,000 × 5,004), on torch's
+    thread count; otherwise torch's product."""
+    if dense.applies(matrix, values):
+        with numba_threads():
+            return dense.dense_product(matrix, values)
     return matrix @ values

@@ -319,24 +319,3 @@ def _weights_kernel(targets, controls_t, params, mode, largest, out):
             values = out[row]
             for k in range(n_controls):
                 values[k] = values[k] * scale
-
-
-@njit(parallel=True, **_OPTIONS)
-def _dense_apply_kernel(weights, values_t, zero, out):
-    """out = weights @ values, reading each row of W once (K dot products per chunk)."""
-    n_rows, n_columns = weights.shape[0], weights.shape[1]
-    columns = values_t.shape[0]
-    blocks = (n_rows + ROWS - 1) // ROWS
-    for block in prange(blocks):
-        first = block * ROWS
-        last = min(first + ROWS, n_rows)
-        accumulated = np.zeros(columns, np.float64)
-        for row in range(first, last):
-            accumulated[:] = 0.0
-            for start in range(0, n_columns, CHUNK):
-                stop = min(start + CHUNK, n_columns)
-                chunk = weights[row, start:stop]
-                for column in range(columns):
-                    accumulated[column] += _dot(chunk, values_t[column, start:stop], zero[0])
-            for column in range(columns):
-                out[row, column] = accumulated[column]
