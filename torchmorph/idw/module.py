@@ -64,13 +64,16 @@ def auto_mode(
     """What ``mode="auto"`` resolves to: ``"dense"`` or ``"matrix_free"``.
 
     Matrix-free when W (num_targets × num_controls) would take more than ``dense_bytes``
-    (default: half the device's free memory), in float32 (a stored float32 W is applied
-    by float32 BLAS, 5–17× less accurate than the fused kernels, measured against float64
-    sums), and on the CPU where the fused numba kernels run: there one matrix-free call
-    costs about a dense product (1.0–1.15×, case C's counts, one thread) while a stored
-    W first costs its assembly — ``IDW(controls, targets)(d)`` at 3,322 × 3,864 in float64
-    took 13.6× less than a NumPy ``cdist`` version matrix-free against 2.3× dense, and a
-    matrix-free module's first call finds the nearest distances within its one pass.
+    (default: half the device's free memory), in float32 (on a GPU a stored float32 W is
+    applied by float32 BLAS, 5–17× less accurate than the fused kernels, measured against
+    float64 sums; on the CPU the stored-W pass of :mod:`torchmorph._dense` sums in float64,
+    as accurate as they are), and on the CPU where the fused numba kernels run: there a
+    stored W first costs its assembly, which a later morph repays only by the difference
+    of one matrix-free call and one stored-W product (12.1 ms against 8.5 ms at case C's
+    counts, float64, one thread) — ``IDW(controls, targets)(d)`` at 3,322 × 3,864 in
+    float64 took 13.6× less than a NumPy ``cdist`` version matrix-free against 2.3×
+    dense, and a matrix-free module's first call finds the nearest distances within its
+    one pass. Pass ``mode="dense"`` for thousands of morphs of one geometry.
     Dense otherwise (a GPU in float64, the torch implementation), where a stored W is
     applied by one GEMM.
     """
@@ -100,12 +103,13 @@ class IDW(nn.Module):
         :class:`~torchmorph.idw.tree.TreeIDW` built once (far clusters of controls summed
         by a quadrupole expansion, to the relative error ``tolerance``; CPU only, never
         chosen by ``auto``); ``auto`` picks between the two exact modes
-        (:func:`auto_mode`): matrix-free where the fused CPU kernels run (one fused
-        pass costs about a dense product, so storing W only delays the first call)
-        and in float32 (a float32 W sums in float32 BLAS, 5–17× less accurately than
-        the kernels' float64 partial sums); elsewhere dense when W takes at most
-        ``dense_bytes``. Pass ``mode="dense"`` for W itself (``torch.compile``,
-        repeated large batches on a GPU).
+        (:func:`auto_mode`): matrix-free where the fused CPU kernels run (a fused
+        pass costs about 1.4× a stored-W product, so W repays its assembly only over
+        many morphs) and in float32 (on a GPU a float32 W sums in float32 BLAS, 5–17×
+        less accurately than the kernels' float64 partial sums); elsewhere dense when W
+        takes at most ``dense_bytes``. Pass ``mode="dense"`` for W itself
+        (``torch.compile``, thousands of morphs of one geometry, repeated large batches
+        on a GPU).
     tolerance : float, optional
         ``mode="tree"`` only (default :data:`~torchmorph.idw.tree.DEFAULT_TOLERANCE`,
         1e-4): the relative error ``‖u_tree - u‖ / ‖u‖`` (2-norm over the targets, per
