@@ -6,8 +6,8 @@ columns (D = 2 or 3 per displacement field). The BLAS reads M as a general matri
 product and reaches a fraction of the memory bandwidth there: measured on one thread
 (AMD EPYC, float64), torch's ``mm`` took 0.35 s for 50,000 × 5,004 and three columns,
 where one pass that reads M once, four rows at a time with the three columns' entries
-loaded once for the four, took 0.105 s (18 ms against 6.3 ms at 3,322 × 3,864, case C's
-W; 375 ms against 111 ms at 19,852 × 13,616, case B's). Sums are kept in float64,
+loaded once for the four, took 0.105 s; at case C's W (3,322 × 3,864) 6.3 ms against
+18 ms, at case B's (19,852 × 13,616) 111 ms against 375 ms. Sums are kept in float64,
 also for a float32 matrix (one rounding of the result instead of a float32 BLAS sum).
 
 :func:`dense_product` is that pass (numba, ``prange`` over blocks of rows on numba's
