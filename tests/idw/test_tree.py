@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -266,3 +267,30 @@ def test_transposed_bad_values_are_named():
         module.transposed(torch.zeros(400, 3, dtype=torch.float64))
     with pytest.raises(ValueError, match="^values"):
         module.transposed(torch.full((1500, 3), math.nan, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("count", [1, 7, 8, 9, 1_000, 4_099])
+def test_the_kd_tree_splits_at_the_median_of_the_widest_axis(count):
+    from torchmorph.idw._tree_operator import _kd_tree
+
+    rng = np.random.default_rng(count)
+    points = rng.normal(size=(count, 3)) * [1.0, 3.0, 0.5]
+    points[: count // 3, 0] = 0.25  # ties along an axis
+    order, starts, stops, children = _kd_tree(points, 8)
+    assert sorted(order.tolist()) == list(range(count))
+    assert starts[0] == 0 and stops[0] == count
+    for node in range(len(starts)):
+        left, right = children[node]
+        start, stop = starts[node], stops[node]
+        if left < 0:
+            assert right < 0 and stop - start <= 8
+            continue
+        assert left == node + 1  # depth-first preorder
+        half = (stop - start) // 2
+        assert (starts[left], stops[left]) == (start, start + half)
+        assert (starts[right], stops[right]) == (start + half, stop)
+        members = points[order[start:stop]]
+        axis = int(np.argmax(members.max(0) - members.min(0)))
+        lower = points[order[start : start + half], axis]
+        upper = points[order[start + half : stop], axis]
+        assert lower.max() <= upper.min()

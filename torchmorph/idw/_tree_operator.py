@@ -21,38 +21,27 @@ __all__ = ["TARGET_BLOCK"]
 TARGET_BLOCK = 32
 """Targets per block (a leaf of the target tree): a block shares one traversal."""
 
+REFERENCE_REACH = 0.01
+"""How far (times the controls' bounding-box diagonal) a block's reference distance is
+searched for (see ``_TreeOperator._references``)."""
+
 
 def _kd_tree(points: np.ndarray, leaf_size: int):
     """(order, starts, stops, children) of a kd-tree of median splits on the widest axis,
-    nodes in depth-first preorder, each node the range ``order[start:stop]``."""
-    order = np.arange(points.shape[0])
-    starts: list[int] = []
-    stops: list[int] = []
-    children: list[list[int]] = []
-    pending = [(0, points.shape[0], -1, 0)]  # (start, stop, parent, side)
-    while pending:
-        start, stop, parent, side = pending.pop()
-        node = len(starts)
-        starts.append(start)
-        stops.append(stop)
-        children.append([-1, -1])
-        if parent >= 0:
-            children[parent][side] = node
-        if stop - start <= leaf_size:
-            continue
-        members = points[order[start:stop]]
-        axis = int(np.argmax(members.max(axis=0) - members.min(axis=0)))
-        half = (stop - start) // 2
-        split = np.argpartition(members[:, axis], half)
-        order[start:stop] = order[start:stop][split]
-        pending.append((start + half, stop, node, 1))
-        pending.append((start, start + half, node, 0))
-    return (
-        order,
-        np.asarray(starts, np.int64),
-        np.asarray(stops, np.int64),
-        np.asarray(children, np.int64).reshape(-1, 2),
+    nodes in depth-first preorder, each node the range ``order[start:stop]``
+    (:func:`torchmorph.idw.backends.numba._tree_jit.kd_tree`: 1.9 s for the two trees of
+    3·10^6 targets and 3·10^5 controls, where a loop over the nodes in Python with
+    NumPy's ``argpartition`` took 8.4 s)."""
+    count = points.shape[0]
+    size = _tree_jit.max_nodes(count, leaf_size)
+    order = np.arange(count, dtype=np.int64)
+    starts = np.empty(size, np.int64)
+    stops = np.empty(size, np.int64)
+    children = np.empty((size, 2), np.int64)
+    nodes = _tree_jit.kd_tree(
+        np.ascontiguousarray(points, dtype=np.float64), leaf_size, order, starts, stops, children
     )
+    return order, starts[:nodes].copy(), stops[:nodes].copy(), children[:nodes].copy()
 
 
 class _TreeOperator:
@@ -86,7 +75,14 @@ class _TreeOperator:
         self.references = self._references(cKDTree(self.controls))
 
     def _references(self, searcher) -> np.ndarray:
-        """Per block: a distance below its targets' nearest (their weights stay <= ~1)."""
+        """Per block: a distance below its targets' nearest control, so that their weights
+        (reference / d)^p stay <= 1 (the traversal's scale; any lower bound serves).
+
+        The nearest control is searched within :data:`REFERENCE_REACH` of the controls'
+        bounding-box diagonal only, and a block beyond takes that reach: a nearest
+        neighbour search from deep inside a closed surface of controls visits nearly all
+        of them (1.55 s for 31,250 block centres among 10^5 controls on a sphere, 26.6 s
+        at 3·10^5: quadratic growth), the bounded search 0.03 s and 0.3 s."""
         blocks = self.block_starts.shape[0] - 1
         if blocks <= 0:
             return np.zeros(0)
@@ -95,7 +91,13 @@ class _TreeOperator:
         centres /= counts[:, None]
         spread = np.linalg.norm(self.targets - np.repeat(centres, counts, axis=0), axis=1)
         radius = np.maximum.reduceat(spread, self.block_starts[:-1])
-        nearest, _ = searcher.query(centres, k=1)
+        extent = self.controls.max(axis=0) - self.controls.min(axis=0)
+        reach = REFERENCE_REACH * float(np.linalg.norm(extent))
+        if reach > 0:
+            nearest, _ = searcher.query(centres, k=1, distance_upper_bound=reach)
+            nearest = np.minimum(nearest, reach)  # beyond the reach: the reach, a lower bound
+        else:  # every control at one point: the exact search is cheap
+            nearest, _ = searcher.query(centres, k=1)
         return np.maximum(nearest - radius, math.sqrt(self.radius2))
 
     def _run(self, values, scaled, eta, transpose, coincident=None):
