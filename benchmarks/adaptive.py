@@ -6,10 +6,11 @@ mesh against full IDW (every boundary node a control; the measure of the paper's
 tables):
 
 1. ESIDW as the reproduction runs it (``CaseSpec.plan``, seed 0): controls, error,
-   selection time; then the adaptive selection (:class:`torchmorph.selection.AdaptivePlan`,
-   from no control) with ESIDW's error as its tolerance: controls and selection time,
-   also in units of one full IDW evaluation (matrix-free, fused kernels, every boundary
-   node to every interior node, one displacement: the median of 3).
+   selection time; then the adaptive selection (:class:`torchmorph.selection.AdaptivePlan`
+   with its defaults: the stratified start) with ESIDW's error as its tolerance:
+   controls and selection time (the median of 3 runs), also in units of one full IDW
+   evaluation (matrix-free, fused kernels, every boundary node to every interior node,
+   one displacement: the median of 3).
 2. Error at equal control counts: the adaptive selection with ESIDW's count as its
    budget (and a tolerance it cannot reach).
 3. Controls needed for 1 % and 0.1 % nodal error: SIDW and ESIDW from a sweep of the
@@ -23,7 +24,8 @@ and gives the worst error over it.
 
 Everything runs on one thread (torch and numba). Run
 ``python benchmarks/adaptive.py`` (the first run longer: meshing); ``--cases A C`` for
-fewer cases, ``--tolerances 0.01`` to leave out 0.1 %. Measured on 2 shared cores: case A
+fewer cases, ``--tolerances 0.01`` to leave out 0.1 %, ``--start empty`` for the selection
+from no control (``AdaptivePlan(start=None)``). Measured on 2 shared cores: case A
 takes seconds; case C about 3 minutes (its 0.1 % row 2 minutes: it needs most of its
 boundary nodes); case B's equal-count run (4,922 controls) 5 minutes, its 1 % row 1
 minute, and its 0.1 % row 13 minutes.
@@ -44,8 +46,9 @@ from _timing import median_time
 
 from torchmorph.idw import idw_apply
 from torchmorph.paper import get_case, load_mesh
-from torchmorph.selection import AdaptivePlan, IDWErrorOracle
+from torchmorph.selection import AdaptivePlan, select_adaptive
 
+START: str | None = "stratified"  # AdaptivePlan's start ("empty": None), set by --start
 SWEEP_FACTORS = (4.0, 2.83, 2.0, 1.41, 1.0, 0.71, 0.5, 0.35, 0.25, 0.18, 0.125, 0.088, 0.0625)
 
 
@@ -107,14 +110,17 @@ class Case:
         rows = self.rows(nodes)
         return len(rows), self.error(rows), seconds
 
-    def adaptive(self, tolerance: float, budget: int | None = None, family=None):
-        """(controls, error at μ*, selection seconds, plan) of the adaptive selection;
-        the rows it selected are ``plan.rows_``."""
+    def adaptive(self, tolerance: float, budget: int | None = None, family=None, repeats=1):
+        """(controls, error at μ*, selection seconds, plan) of the adaptive selection
+        (the median time of ``repeats`` runs); the rows it selected are ``plan.rows_``."""
         family = self.displacement if family is None else family
-        plan = AdaptivePlan(tolerance, family, max_controls=budget)
-        start = time.perf_counter()
-        nodes = plan.select(self.mesh)
-        seconds = time.perf_counter() - start
+        plan = AdaptivePlan(tolerance, family, max_controls=budget, start=START)
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            nodes = plan.select(self.mesh)
+            times.append(time.perf_counter() - start)
+        seconds = sorted(times)[len(times) // 2]
         rows = plan.rows_ = self.rows(nodes)
         return len(rows), self.error(rows), seconds, plan
 
@@ -125,12 +131,15 @@ def fewest(points: list[tuple[int, float, float]], tolerance: float) -> str:
 
 
 def warm_up(case: Case) -> None:
-    """Load the kernels an oracle uses (numba's cache) before anything is timed."""
-    rows = torch.arange(0, len(case.boundary), max(1, len(case.boundary) // 50))
-    oracle = IDWErrorOracle(
-        case.boundary_points[rows], case.interior_points[:50], case.displacement[rows]
+    """Load the kernels a selection uses (numba's cache: the weights, scores, picks,
+    sums and the curve's keys) before anything is timed."""
+    rows = torch.arange(0, len(case.boundary), max(1, len(case.boundary) // 200))
+    select_adaptive(
+        case.boundary_points[rows],
+        case.interior_points[:100],
+        case.displacement[rows],
+        tolerance=0.01,
     )
-    oracle.scores(torch.arange(3))
 
 
 def main() -> None:
@@ -146,7 +155,15 @@ def main() -> None:
     parser.add_argument(
         "--no-family", action="store_true", help="skip case C driven by its training family"
     )
+    parser.add_argument(
+        "--start",
+        choices=["stratified", "empty"],
+        default="stratified",
+        help="the adaptive selection's start (default: the stratified start)",
+    )
     args = parser.parse_args()
+    global START
+    START = "stratified" if args.start == "stratified" else None
     torch.set_num_threads(1)
     try:
         import numba
@@ -162,7 +179,7 @@ def main() -> None:
         warm_up(case)
         n_b, n_i = len(case.boundary), len(case.interior)
         controls, error, esidw_s = case.geometric(1.0, enrich=True)
-        a_controls, a_error, a_s, plan = case.adaptive(error)
+        a_controls, a_error, a_s, plan = case.adaptive(error, repeats=3)
         first.append(
             f"| {letter} | {n_b:,} / {n_i:,} | {case.full_s * 1e3:,.1f} ms | {controls:,} | "
             f"{100 * error:.2f} % | {esidw_s:.2f} s | {a_controls:,} "
@@ -181,7 +198,9 @@ def main() -> None:
             for enrich in (False, True)
         }
         for tolerance in args.tolerances:
-            t_controls, t_error, t_s, _ = case.adaptive(tolerance)
+            t_controls, t_error, t_s, _ = case.adaptive(
+                tolerance, repeats=1 if letter == "B" else 3
+            )
             needed.append(
                 f"| {letter} | {100 * tolerance:g} % | {fewest(sweeps[False], tolerance)} | "
                 f"{fewest(sweeps[True], tolerance)} | {t_controls:,} ({100 * t_error:.3f} %) | "

@@ -55,7 +55,7 @@ def test_adaptive_reaches_the_tolerance(tmp_path, cube_file, capsys):
     assert error <= 0.02
     assert 0 < controls < 98
     text = capsys.readouterr().out
-    assert "adaptive: nodal error <= 0.02, from no control" in text
+    assert "adaptive: nodal error <= 0.02, from a count-stratified start" in text
     assert f"controls        {controls} of 98 boundary nodes" in text
     assert f"nodal error     {error:.4g} against full IDW (tolerance" in text
 

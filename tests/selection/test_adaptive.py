@@ -385,7 +385,8 @@ def test_a_sampled_selection_is_checked_on_every_target():
     error = nodal_error(mesh, displacement, morph.control_nodes.numpy())
     assert error == pytest.approx(plan.result_.error, rel=1e-9)
     assert error <= tolerance and plan.result_.converged
-    assert plan.result_.rounds > 1 and plan.result_.history[0][0] == 0  # every run counted
+    # every run counted, from the stratified start's first prefix of 8 nodes
+    assert plan.result_.rounds > 1 and plan.result_.history[0][0] == 8
 
 
 # ---------------------------------------------------------------- driven by the RBF error
@@ -469,6 +470,7 @@ def test_an_rbf_selection_keeps_its_start_and_the_anchors():
         ({"method": "idw", "kernel": "cubic"}, "kernel: an option of method='rbf'"),
         ({"method": "rbf", "weights": torch.ones(343)}, "weights: the RBF error"),
         ({"method": "rbf", "num_samples": 10}, "num_samples: the RBF error"),
+        ({"method": "rbf", "score_samples": 10}, "score_samples: the RBF error"),
         ({"method": "rbf", "max_controls": 2}, "max_controls (2) is smaller than the 4"),
         ({"method": "rbf", "kernel": "cubic", "degree": 0}, "degree must be at least 1"),
     ],

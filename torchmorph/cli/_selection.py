@@ -193,12 +193,12 @@ def _adaptive_plan(
         args.adaptive,
         family,
         max_controls=args.max_controls,
-        start=start,
+        start="stratified" if start is None else start,
         power=DEFAULT_POWER if args.power is None else args.power,
     )
     budget = "" if args.max_controls is None else f", at most {args.max_controls} controls"
-    if start is None:
-        origin = "from no control"
+    if start is None:  # the stratified start is IDW's; RBF starts from its anchors
+        origin = "from no control" if args.method == "rbf" else "from a count-stratified start"
     elif args.select is None and not args.region:
         origin = f"from the enrichment sets {', '.join(enrich)}"
     else:

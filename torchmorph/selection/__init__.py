@@ -2,7 +2,8 @@
 :mod:`torchmorph.selection.sidw`, per-region selection plans with enrichment (ESIDW,
 Algorithm 2 steps (i)–(ii)) in :mod:`torchmorph.selection.plan`, and the error-driven
 selection (the greedy loop of :mod:`torchmorph.selection.greedy` with the IDW error
-of :mod:`torchmorph.selection.adaptive`)."""
+of :mod:`torchmorph.selection.adaptive`, started from the count-stratified order of
+:mod:`torchmorph.selection.stratified`)."""
 
 from torchmorph.selection.adaptive import IDWErrorOracle, select_adaptive
 from torchmorph.selection.greedy import ErrorOracle, GreedySelection, greedy_selection
@@ -14,6 +15,7 @@ from torchmorph.selection.plan import (
     UncoveredNodesError,
 )
 from torchmorph.selection.sidw import DEFAULT_SEED, STRATEGIES, select_control_points
+from torchmorph.selection.stratified import nested_order
 
 __all__ = [
     "DEFAULT_SEED",
@@ -27,6 +29,7 @@ __all__ = [
     "SelectionPlan",
     "UncoveredNodesError",
     "greedy_selection",
+    "nested_order",
     "select_adaptive",
     "select_control_points",
 ]

@@ -12,6 +12,14 @@ The loop
 1. ``oracle.scores(S)`` scores every candidate (one pass over all of them): how much
    adding it is expected to lower the error. The candidates with a positive score,
    best first, form a queue.
+   An oracle with a ``pick(S, pool, tolerance, limit)`` method (IDW's) then adds
+   candidates of the queue's first :data:`POOL` one at a time, each the one that lowers
+   the error most given those added before it (exact, cheap once the pool is known),
+   until the tolerance, the budget, or no candidate of the pool lowers the error; the
+   loop scores again (step 1). Candidates that each pull the same far-field targets the
+   same way are so taken one after the other, never together. Steps 2-3 are the round
+   of an oracle without ``pick``, or when ``pick`` adds nothing (from no control, the
+   scores are first-order shares, and no candidate alone may lower the error).
 2. A batch is taken from the head of the queue, skipping a candidate that lies closer
    than ``spacing`` times its distance to ``S`` to one taken before it in the batch (so
    that a batch is not spent on one neighbourhood).
@@ -41,6 +49,9 @@ from torch import Tensor
 
 __all__ = ["PREFIX_SHARE", "ErrorOracle", "GreedySelection", "greedy_selection"]
 
+#: Candidates of the best scores an oracle's ``pick`` chooses from in a round.
+POOL = 256
+
 #: A round keeps the longest prefix of its batch whose error decrease is at least this
 #: share of the best prefix's (1: the best prefix itself, the fewest controls; less:
 #: longer prefixes, fewer rounds).
@@ -69,6 +80,10 @@ class ErrorOracle(Protocol):
         candidate, how much adding it is expected to lower them (larger is better;
         any value <= 0 for candidates not worth adding, the selected ones included)."""
         ...
+
+    # Optional: ``pick(selected, pool, tolerance, limit) -> Tensor | None``, candidates
+    # of ``pool`` added one at a time, each lowering the error most given the earlier
+    # ones (see the module's notes); None where it does not apply.
 
 
 @dataclass
@@ -109,6 +124,7 @@ def greedy_selection(
     initial: Tensor | None = None,
     min_batch: int = 8,
     spacing: float = 0.5,
+    sequential: bool = True,
 ) -> GreedySelection:
     """Grow a set of control points until the oracle's worst error is at most ``tolerance``.
 
@@ -128,6 +144,9 @@ def greedy_selection(
         The smallest batch, >= 1.
     spacing : float, default 0.5
         Spread of a batch (see the module's notes), >= 0 (0: the queue's order alone).
+    sequential : bool, default True
+        Use the oracle's ``pick`` where it has one (see the module's notes); False:
+        batches and their prefixes only.
 
     Returns
     -------
@@ -185,6 +204,19 @@ def greedy_selection(
         if not queue.size:
             reason = "stalled"
             break
+        picker = getattr(oracle, "pick", None) if sequential else None
+        added = None
+        if picker is not None:
+            pool = torch.from_numpy(queue[:POOL].copy())
+            added = picker(torch.from_numpy(chosen), pool, tolerance, budget - chosen.size)
+        if added is not None and added.numel():
+            chosen = np.concatenate([chosen, added.numpy()])
+            error = evaluate(chosen)
+            if error <= tolerance or chosen.size >= budget:
+                reason = "tolerance" if error <= tolerance else "budget"
+                reason = "exhausted" if chosen.size >= num_candidates else reason
+                break
+            continue
         batch = _spread_batch(
             points, tree, chosen, queue, min(count, budget - chosen.size), spacing
         )

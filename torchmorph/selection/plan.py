@@ -408,9 +408,12 @@ class AdaptivePlan:
         (N_b, D) to one of those (e.g. the POD training set of a parametrised family).
     max_controls : int, optional
         At most this many controls (>= 1), the ``start`` set included.
-    start : SelectionPlan, optional
-        A coarse SIDW/ESIDW plan whose selection is kept and grown (e.g. the
-        enrichment sets alone, or a large radius). Default: start from no control.
+    start : "stratified", SelectionPlan or None, default "stratified"
+        Where the selection starts. ``"stratified"``: from a share of the shortest
+        count-stratified prefix of the boundary nodes that meets the tolerance
+        (:func:`select_adaptive`'s ``start``; IDW's error only). A coarse SIDW/ESIDW
+        plan: its selection is kept and grown (e.g. the enrichment sets alone, or a
+        large radius). None: from no control.
     weights : Tensor, shape (N,), optional
         Node weights of the error (quantity of interest), >= 0, not all zero on the
         interior nodes; default 1 everywhere (the nodal error).
@@ -451,7 +454,7 @@ class AdaptivePlan:
     tolerance: float
     displacements: Tensor | Callable[[Tensor], Tensor]
     max_controls: int | None = None
-    start: Any = None
+    start: Any = "stratified"
     weights: Tensor | None = None
     power: float = 4.0
     num_samples: int | None = None
@@ -477,9 +480,12 @@ class AdaptivePlan:
                 "displacements must be a Tensor (N_b, D) / (F, N_b, D) or a callable of "
                 f"the boundary points, got {type(self.displacements).__name__}"
             )
-        if self.start is not None and not callable(getattr(self.start, "select", None)):
+        if isinstance(self.start, str):
+            check_choice(self.start, "start", ("stratified",))
+        elif self.start is not None and not callable(getattr(self.start, "select", None)):
             raise TypeError(
-                f"start must be a SelectionPlan (or None), got {type(self.start).__name__}"
+                "start must be 'stratified', a SelectionPlan or None, got "
+                f"{type(self.start).__name__}"
             )
         if self.method is not None:
             check_choice(self.method, "method", ("idw", "rbf"))
@@ -535,7 +541,8 @@ class AdaptivePlan:
             weights, candidate_weights = node_weights[interior], node_weights[boundary]
         initial = None
         generator = _check_generator(generator)
-        if self.start is not None:
+        stratified = isinstance(self.start, str)
+        if self.start is not None and not stratified:
             chosen = torch.as_tensor(self.start.select(mesh, generator=generator)).to(boundary)
             initial = torch.searchsorted(boundary, chosen.unique()).cpu()
         if method == "rbf":
@@ -559,6 +566,7 @@ class AdaptivePlan:
             generator=torch.Generator().manual_seed(DEFAULT_SEED),
             min_batch=self.min_batch,
             spacing=self.spacing,
+            start="stratified" if stratified else "empty",
         )
         self.result_, self.sampled_targets_ = result, measured
         return torch.sort(boundary[result.indices.to(boundary.device)]).values
