@@ -99,14 +99,22 @@ def test_prefix_errors_equal_the_errors_of_each_prefix():
         assert error == pytest.approx(float(fresh.max()), rel=1e-12)
 
 
-def test_each_pick_is_the_best_candidate_of_the_pool():
+@pytest.mark.parametrize("on_a_candidate", [False, True])
+def test_each_pick_is_the_best_candidate_of_the_pool(on_a_candidate):
     mesh, displacement = bent_box(5)
     boundary = mesh.points[mesh.boundary_nodes]
     family = torch.stack([displacement, 0.5 * displacement.roll(7, 0)])
-    oracle = IDWErrorOracle(boundary, mesh.points[mesh.interior_nodes], family)
+    targets = mesh.points[mesh.interior_nodes]
     selected = nested_order(boundary)[:12]
+    moving = torch.nonzero(displacement[:, 1] > 0.05).flatten()
+    candidate = int(moving[~torch.isin(moving, selected)][0])
+    if on_a_candidate:  # a target there: IDW from the others until it is picked
+        targets = torch.cat([targets, boundary[candidate : candidate + 1]])
+    oracle = IDWErrorOracle(boundary, targets, family, num_samples=len(targets))
     _, scores = oracle.scores(selected)
     pool = torch.argsort(scores, descending=True)[:32]
+    if on_a_candidate:
+        pool = torch.cat([torch.tensor([candidate]), pool[pool != candidate][:31]])
     picked = oracle.pick(selected, pool, 1e-9, 3)
     pool = pool[:16]  # with F = 2 members, the first half of the pool is read
     assert len(picked) == 3

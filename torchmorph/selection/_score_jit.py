@@ -233,21 +233,21 @@ def score_rows(
 
 
 @njit(**_OPTIONS)
-def _pick(weights_t, pool, sums, accumulated, reference, omega, family, totals, goal, limit):
+def _pick(
+    weights_t, pool, sums, accumulated, approx, reference, omega, family, totals, goal, limit
+):
     """Candidates of ``pool`` one at a time, each the one whose addition lowers
     ``Σ_f totals_f`` most (exactly, at the sampled targets), until the largest of
     ``totals`` is at most ``goal``, ``limit`` are taken or none lowers it. Updates
-    ``sums``, ``accumulated`` (F, D, N_s) and ``totals`` in place; returns the taken
-    candidates. The fields are stored (F, D, N_s): the loops over targets vectorise."""
+    ``sums``, ``accumulated``, ``approx`` (the selective field; kept where ``sums`` is
+    0) and ``totals`` in place; returns the taken candidates. The fields are stored
+    (F, D, N_s): the loops over targets vectorise."""
     members, dim, count = reference.shape
-    approx = np.empty((members, dim, count))
     error = np.empty((members, dim, count))
     for f in range(members):
         for k in range(dim):
             for i in range(count):
-                value = accumulated[f, k, i] / sums[i] if sums[i] > 0 else 0.0
-                approx[f, k, i] = value
-                error[f, k, i] = reference[f, k, i] - value
+                error[f, k, i] = reference[f, k, i] - approx[f, k, i]
     taken = np.zeros(pool.shape[0], dtype=np.bool_)
     ratio = np.empty(count)
     gains = np.empty(members)
@@ -292,8 +292,9 @@ def _pick(weights_t, pool, sums, accumulated, reference, omega, family, totals, 
                 value = family[f, j, k]
                 for i in range(count):
                     accumulated[f, k, i] += row[i] * value
-                    approx[f, k, i] = accumulated[f, k, i] / sums[i]
-                    error[f, k, i] = reference[f, k, i] - approx[f, k, i]
+                    if sums[i] > 0:
+                        approx[f, k, i] = accumulated[f, k, i] / sums[i]
+                        error[f, k, i] = reference[f, k, i] - approx[f, k, i]
     return out[:size]
 
 
@@ -302,6 +303,7 @@ def pick(
     pool: Tensor,
     sums: Tensor,
     accumulated: Tensor,
+    approx: Tensor,
     reference: Tensor,
     omega: Tensor,
     family: Tensor,
@@ -310,8 +312,9 @@ def pick(
     limit: int,
 ) -> Tensor:
     """The exact sequential greedy of :func:`_pick` on float64 arrays: ``sums`` (N_s,)
-    and ``accumulated`` (F, N_s, D) the selection's ``Σ W`` and ``Σ W d``, ``reference``
-    (F, N_s, D) full IDW, ``omega`` (F, N_s) the error's weights, ``family``
+    and ``accumulated`` (F, N_s, D) the selection's ``Σ W`` and ``Σ W d``, ``approx``
+    (F, N_s, D) its field, ``reference`` (F, N_s, D) full IDW, ``omega`` (F, N_s) the
+    error's weights, ``family``
     (F, N_c, D), ``totals`` (F,) the squared errors; returns the taken candidates
     (int64) and leaves ``totals`` at their squared errors after."""
     array = lambda tensor: np.ascontiguousarray(tensor.to(torch.float64).numpy())  # noqa: E731
@@ -322,6 +325,7 @@ def pick(
         np.ascontiguousarray(pool.numpy().astype(np.int64)),
         copy(sums),  # updated in place: never the caller's
         copy(accumulated.permute(0, 2, 1)),
+        copy(approx.permute(0, 2, 1)),
         array(reference.permute(0, 2, 1)),
         array(omega),
         array(family),

@@ -215,7 +215,8 @@ def _checked_selection(
     if start == "stratified" and options.get("score_samples") is None:
         options["score_samples"] = STRATIFIED_SCORE_SAMPLES
     oracle = IDWErrorOracle(candidates, targets, displacements, **options)
-    shortest, searched = None, list[tuple[int, float]]()
+    shortest: Tensor | None = None
+    searched: list[tuple[int, float]] = []
     if start == "stratified":
         initial, shortest, searched = _stratified_start(oracle, tolerance, max_controls, initial)
     result = greedy_selection(

@@ -365,14 +365,15 @@ class IDWErrorOracle:
             both = self._accumulated(selected) if selected.numel() else None
             if both is None:
                 both = self._with_ones.new_zeros(len(self.sample), self._with_ones.shape[1])
-            error = self.reference - self._selective(selected, both)[0]
-            totals = self._weighted_squares(error) / self.reference_sq
+            approx = self._selective(selected, both)[0]
+            totals = self._weighted_squares(self.reference - approx) / self.reference_sq
             omega = self.target_weights[None, :] / self.reference_sq[:, None]
             return _score_jit.pick(
                 self.weights_t,
                 pool.cpu()[: max(16, len(pool) // self.num_members)],
                 both[:, -1],
                 self._field(both[:, :-1]),
+                approx,
                 self.reference,
                 omega,
                 self.family,
