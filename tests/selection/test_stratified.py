@@ -11,7 +11,7 @@ import torch
 from test_adaptive import bent_box, nodal_error
 
 from torchmorph.idw import idw_weights
-from torchmorph.selection import IDWErrorOracle, select_adaptive
+from torchmorph.selection import AdaptivePlan, IDWErrorOracle, select_adaptive
 from torchmorph.selection.stratified import (
     _hilbert_keys,
     hilbert_order,
@@ -152,6 +152,10 @@ def test_both_starts_reach_the_tolerance(start):
 
 def test_a_bad_start_is_refused():
     mesh, displacement = bent_box(4)
+    with pytest.raises(ValueError, match="start must be one of"):
+        AdaptivePlan(0.01, displacement, start="random")
+    with pytest.raises(TypeError, match="start must be 'stratified', a SelectionPlan or None"):
+        AdaptivePlan(0.01, displacement, start=3)
     with pytest.raises(ValueError, match="start must be one of"):
         select_adaptive(
             mesh.points[mesh.boundary_nodes],
