@@ -25,10 +25,10 @@ and gives the worst error over it.
 Everything runs on one thread (torch and numba). Run
 ``python benchmarks/adaptive.py`` (the first run longer: meshing); ``--cases A C`` for
 fewer cases, ``--tolerances 0.01`` to leave out 0.1 %, ``--start empty`` for the selection
-from no control (``AdaptivePlan(start=None)``). Measured on 2 shared cores: case A
-takes seconds; case C about 3 minutes (its 0.1 % row 2 minutes: it needs most of its
-boundary nodes); case B's equal-count run (4,922 controls) 5 minutes, its 1 % row 1
-minute, and its 0.1 % row 13 minutes.
+from no control (``AdaptivePlan(start=None)``). Measured on 2 shared cores, after the
+meshes are cached: the whole run about 2 minutes (case B's equal-count and 0.1 % rows
+15 and 20 s of it); with ``--start empty`` about 10 minutes (case B's 0.1 % row 5
+minutes, its equal-count run 2, case C's 0.1 % row 2).
 """
 
 from __future__ import annotations
