@@ -164,6 +164,18 @@ def _dot4(r0, r1, r2, r3, column, count):
     return a0, a1, a2, a3
 
 
+@njit(**_OPTIONS)
+def _add_dots(ratio, columns, begin, size, acc):
+    """acc[g, k] += Σ_i ratio[g, i] columns[k, begin + i] for the four rows of ratios."""
+    r0, r1, r2, r3 = ratio[0], ratio[1], ratio[2], ratio[3]
+    for k in range(columns.shape[0]):
+        a0, a1, a2, a3 = _dot4(r0, r1, r2, r3, columns[k, begin : begin + size], size)
+        acc[0, k] += a0
+        acc[1, k] += a1
+        acc[2, k] += a2
+        acc[3, k] += a3
+
+
 @njit(parallel=True, **_OPTIONS)
 def _score_rows(weights_t, count, sums, linear, square, first, second):
     rows = weights_t.shape[0]
@@ -188,23 +200,12 @@ def _score_rows(weights_t, count, sums, linear, square, first, second):
                 else:
                     for i in range(size):
                         target[i] = 0.0
-            r0, r1, r2, r3 = ratio[0], ratio[1], ratio[2], ratio[3]
-            for k in range(linear.shape[0]):
-                a0, a1, a2, a3 = _dot4(r0, r1, r2, r3, linear[k, begin : begin + size], size)
-                acc_first[0, k] += a0
-                acc_first[1, k] += a1
-                acc_first[2, k] += a2
-                acc_first[3, k] += a3
+            _add_dots(ratio, linear, begin, size, acc_first)
             for g in range(_GROUP):
                 target = ratio[g]
                 for i in range(size):
                     target[i] *= target[i]
-            for k in range(square.shape[0]):
-                a0, a1, a2, a3 = _dot4(r0, r1, r2, r3, square[k, begin : begin + size], size)
-                acc_second[0, k] += a0
-                acc_second[1, k] += a1
-                acc_second[2, k] += a2
-                acc_second[3, k] += a3
+            _add_dots(ratio, square, begin, size, acc_second)
         for g in range(_GROUP):
             j = start + g
             if j < rows:
