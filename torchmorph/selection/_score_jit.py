@@ -1,5 +1,5 @@
 """The numba kernels of the IDW error oracle
-(:class:`torchmorph.selection.adaptive.IDWErrorOracle`): the assembly of its weights,
+(:class:`torchmorph.selection.oracle.IDWErrorOracle`): the assembly of its weights,
 the pass that scores every candidate, the sums of a set of candidates' rows and the
 exact sequential picks.
 
@@ -19,7 +19,7 @@ that each column is read once per four candidates; groups run in parallel.
 :func:`accumulate` adds ``Σ_j v_jk W_ji`` over a set of candidates' rows, read in place.
 :func:`pick` adds candidates of a pool one at a time, each the one that lowers the
 error most given the earlier ones, updating the sums after each (the oracle's
-:meth:`~torchmorph.selection.adaptive.IDWErrorOracle.pick`).
+:meth:`~torchmorph.selection.oracle.IDWErrorOracle.pick`).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
 error falls below a tolerance or a budget of controls is spent. What the error is, and
 how much a candidate would reduce it, is asked of an :class:`ErrorOracle`: the loop
 itself knows only indices, scores and the candidates' positions.
-:class:`~torchmorph.selection.adaptive.IDWErrorOracle` is the oracle of selective IDW;
+:class:`~torchmorph.selection.oracle.IDWErrorOracle` is the oracle of selective IDW;
 another interpolant (a greedy RBF selection) plugs in the same way.
 
 The loop

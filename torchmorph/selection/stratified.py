@@ -22,11 +22,10 @@ the curve's positions in van der Corput order (the binary digits of 0, 1, 2, ...
 reversed: 0, 1/2, 1/4, 3/4, 1/8, ...), so that the first n points of it lie about
 ``N / n`` apart along the curve for every n: one order serves every count, and the
 error of each prefix adds only the new points to the sums of the shorter one
-(:meth:`~torchmorph.selection.adaptive.IDWErrorOracle.prefix_errors`).
+(:meth:`~torchmorph.selection.oracle.IDWErrorOracle.prefix_errors`).
 :func:`stratified_count` finds, by those errors, the shortest prefix that meets a
-tolerance; :class:`~torchmorph.selection.adaptive.IDWErrorOracle`'s selection starts
-from a share of it and adds the controls the error asks for
-(:func:`~torchmorph.selection.adaptive.select_adaptive`, ``start="stratified"``).
+tolerance; :func:`~torchmorph.selection.adaptive.select_adaptive` (``start="stratified"``,
+the default) starts from a share of it and adds the controls the error asks for.
 """
 
 from __future__ import annotations
@@ -54,8 +53,6 @@ def hilbert_order(points: Tensor) -> Tensor:
     points = as_points(points, "points", dim=dim_of(points))
     array = points.detach().to("cpu", torch.float64).numpy()
     count, dim = array.shape
-    if count == 0:
-        return torch.zeros(0, dtype=torch.int64)
     if dim == 1:
         return torch.from_numpy(np.argsort(array[:, 0], kind="stable"))
     bits = min(16, 63 // dim)
