@@ -48,14 +48,14 @@ from torchmorph.idw import idw_apply
 from torchmorph.paper import get_case, load_mesh
 from torchmorph.selection import AdaptivePlan, select_adaptive
 
-START: str | None = "stratified"  # AdaptivePlan's start ("empty": None), set by --start
 SWEEP_FACTORS = (4.0, 2.83, 2.0, 1.41, 1.0, 0.71, 0.5, 0.35, 0.25, 0.18, 0.125, 0.088, 0.0625)
 
 
 class Case:
     """A case's mesh, boundary displacement at μ* and full-IDW reference."""
 
-    def __init__(self, letter: str) -> None:
+    def __init__(self, letter: str, start: str | None = "stratified") -> None:
+        self.start = start  # AdaptivePlan's start (None: from no control)
         self.spec = get_case(letter)
         self.mesh = load_mesh(self.spec, size="paper")
         mesh = self.mesh
@@ -114,7 +114,7 @@ class Case:
         """(controls, error at μ*, selection seconds, plan) of the adaptive selection
         (the median time of ``repeats`` runs); the rows it selected are ``plan.rows_``."""
         family = self.displacement if family is None else family
-        plan = AdaptivePlan(tolerance, family, max_controls=budget, start=START)
+        plan = AdaptivePlan(tolerance, family, max_controls=budget, start=self.start)
         times = []
         for _ in range(repeats):
             start = time.perf_counter()
@@ -162,8 +162,7 @@ def main() -> None:
         help="the adaptive selection's start (default: the stratified start)",
     )
     args = parser.parse_args()
-    global START
-    START = "stratified" if args.start == "stratified" else None
+    start = "stratified" if args.start == "stratified" else None
     torch.set_num_threads(1)
     try:
         import numba
@@ -175,7 +174,7 @@ def main() -> None:
     first, equal, needed = [], [], []
     cases = {}
     for letter in args.cases:
-        case = cases[letter] = Case(letter)
+        case = cases[letter] = Case(letter, start)
         warm_up(case)
         n_b, n_i = len(case.boundary), len(case.interior)
         controls, error, esidw_s = case.geometric(1.0, enrich=True)

@@ -282,8 +282,7 @@ class IDWErrorOracle:
         ``order``, the last one); ``order`` disjoint from ``base``."""
         with torch.no_grad():
             if self._prefixes[0] is not base or self._prefixes[1] is not order:
-                empty = self._with_ones.new_zeros(len(self.sample), self._with_ones.shape[1])
-                start = self._accumulated(base.to(self.points.device)) if base.numel() else empty
+                start = self._accumulated(base.to(self.points.device))
                 self._prefixes = (base, order, {0: start})
             known = self._prefixes[2]
             base, order = base.to(self.points.device), order.to(self.points.device)
@@ -302,6 +301,8 @@ class IDWErrorOracle:
         """``Σ_{k∈S} W_ik [d_k | 1]`` at the sampled targets, (N_s, F·D + 1). When
         ``selected`` extends the selection of the last scoring (the greedy loop's
         prefixes do), only the added candidates' rows are read."""
+        if not selected.numel():
+            return self._with_ones.new_zeros(len(self.sample), self._with_ones.shape[1])
         base, sums = self._base
         start = 0
         if 0 < base.numel() <= selected.numel() and torch.equal(selected[: base.numel()], base):
@@ -362,9 +363,7 @@ class IDWErrorOracle:
             return None
         with torch.no_grad():
             selected = selected.to(self.points.device)
-            both = self._accumulated(selected) if selected.numel() else None
-            if both is None:
-                both = self._with_ones.new_zeros(len(self.sample), self._with_ones.shape[1])
+            both = self._accumulated(selected)
             approx = self._selective(selected, both)[0]
             totals = self._weighted_squares(self.reference - approx) / self.reference_sq
             omega = self.target_weights[None, :] / self.reference_sq[:, None]
