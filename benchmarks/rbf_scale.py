@@ -19,7 +19,13 @@ and the relative 2-norm error ‖u_partition − u_global‖ / ‖u_global‖ ov
 
 (b) ``--controls`` × ``--targets`` (default 10⁵ × 10⁶; the last ``--coarse`` size): the
 partition of unity's fit, its first morph and the median of ``--repeats`` later morphs,
-the process's peak resident memory (``ru_maxrss``) and the size of its state.
+the process's peak resident memory (``ru_maxrss``) and the size of its state;
+
+(c) with ``--sparse RADIUS ...`` (alone): :class:`torchmorph.rbf.SparseRBF` with
+Wendland's C2 at those support radii, against the dense global fit with the same kernel
+and radius at the ``--compare`` counts up to 10⁴, then at ``--controls`` × ``--targets``
+(fit, first and later morphs, peak memory, state, and the share of the targets within
+the support radius of a control, the others moving by the polynomial tail alone).
 
 numba's kernels are loaded from its cache by a tiny morph before the timings.
 
@@ -48,7 +54,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from _timing import median_time, seconds  # noqa: E402
 
-from torchmorph.rbf import RBF, PartitionRBF  # noqa: E402
+from torchmorph.rbf import RBF, PartitionRBF, SparseRBF  # noqa: E402
 
 SEMI_AXES = np.array([1.0, 0.12, 3.0])
 BOX = np.array([3.0, 2.0, 5.0])
@@ -182,6 +188,57 @@ def large(controls: int, targets: int, coarse: int, patch_size: int, overlap: fl
     )
 
 
+def sparse(radii, counts, compare_targets: int, controls: int, targets: int, repeats) -> None:
+    """(c) :class:`SparseRBF` (Wendland C2, degree 1): the error against the dense global
+    fit with the same kernel and radius, then ``controls`` x ``targets``."""
+    print(
+        f"(c) SparseRBF, wendland_c2, against the dense global fit, {compare_targets:,} targets\n"
+    )
+    print("| controls | support radius | neighbours per control | global dense fit + morph "
+          "| sparse fit + morph | error vs global |")  # fmt: skip
+    print("|---:|---:|---:|---:|---:|---:|")
+    for count in counts:
+        points, volume_points, values = case(count, compare_targets)
+        for radius in radii:
+            options = {"kernel": "wendland_c2", "support_radius": radius}
+            dense, fit = timed(lambda: RBF(points, volume_points, mode="matrix_free", **options))
+            reference, morph = timed(lambda dense=dense: dense(values))
+            del dense
+            module, sparse_fit = timed(lambda: SparseRBF(points, volume_points, **options))
+            result, sparse_morph = timed(lambda module=module: module(values))
+            error = float((result - reference).norm() / reference.norm())
+            print(
+                f"| {count:,} | {radius:g} | {module.kernel_columns.shape[0] / count:.0f} | "
+                f"{seconds(fit + morph)} | {seconds(sparse_fit + sparse_morph)} | {error:.1e} |",
+                flush=True,
+            )
+    if not controls:
+        return
+    print(f"\n{controls:,} controls x {targets:,} targets\n")
+    print("| support radius | neighbours per control | targets within the support | fit "
+          "| first morph | later morph (median) | peak memory | state |")  # fmt: skip
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
+    points, volume_points, values = case(controls, targets)
+    for radius in radii:
+        module, fit = timed(
+            lambda radius=radius: SparseRBF(
+                points, volume_points, kernel="wendland_c2", support_radius=radius
+            )
+        )
+        _, first = timed(lambda module=module: module(values))
+        later = median_time(lambda module=module: module(values), repeats, warmup=0)
+        reached = float((module.eval_indptr.diff() > 0).double().mean())
+        state = sum(t.numel() * t.element_size() for t in module.state_dict().values()
+                    if isinstance(t, torch.Tensor))  # fmt: skip
+        print(
+            f"| {radius:g} | {module.kernel_columns.shape[0] / controls:.0f} | {reached:.1%} | "
+            f"{seconds(fit)} | {seconds(first)} | {seconds(later)} | "
+            f"{peak_memory_gb():.2f} GB | {state / 1e9:.2f} GB |",
+            flush=True,
+        )
+        del module
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--compare", type=int, nargs="*", default=[10_000, 30_000])
@@ -192,15 +249,30 @@ def main(argv=None) -> None:
     parser.add_argument("--patch-size", type=int, default=100)
     parser.add_argument("--overlap", type=float, default=1.5)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--sparse",
+        type=float,
+        nargs="*",
+        default=None,
+        metavar="RADIUS",
+        help="run (c) alone: SparseRBF (wendland_c2) at these support radii",
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(THREADS)
+    kernel = "wendland_c2" if args.sparse else "thin_plate_spline"
     print(
         f"{platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"{THREADS} threads, float64, thin_plate_spline, degree=1\n"
+        f"{THREADS} threads, float64, {kernel}, degree=1\n"
     )
     warm = case(40, 10)
     PartitionRBF(warm[0], warm[1], patch_size=8, coarse_size=10)(warm[2])
     RBF(warm[0], warm[1])(warm[2])
+    if args.sparse:
+        SparseRBF(warm[0], warm[1], support_radius=1.0)(warm[2])
+        compared = [count for count in args.compare if count <= 10_000]
+        sparse(args.sparse, compared, args.compare_targets, args.controls, args.targets,
+               args.repeats)  # fmt: skip
+        return
     if args.compare:
         compare(args.compare, args.compare_targets, args.coarse, args.patch_size, args.overlap)
     if args.controls:

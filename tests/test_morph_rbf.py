@@ -392,3 +392,53 @@ def test_partition_of_unity_solver(monkeypatch):
         MeshMorph(mesh, method="rbf", solver="partition", mode="dense")
     with pytest.raises(ValueError, match="solver: an option of method='rbf'"):
         MeshMorph(mesh, solver="partition")
+
+
+def test_sparse_solver_is_the_dense_wendland_fit():
+    from torchmorph import PODReducer
+    from torchmorph.rbf import SparseRBF
+
+    mesh = box_mesh(6)
+    options = {"method": "rbf", "kernel": "wendland_c2", "support_radius": 0.6}
+    morph = MeshMorph(mesh, solver="sparse", **options)
+    assert isinstance(morph.rbf, SparseRBF)
+    points = mesh.points[morph.boundary_nodes]
+    d = 0.05 * torch.stack(
+        [torch.sin(3 * points[:, 1]), points[:, 0] * points[:, 2], 0 * points[:, 0]], 1
+    )
+    dense = MeshMorph(mesh, **options)(d)
+    out = morph(d)
+    assert torch.equal(out[morph.boundary_nodes], d)
+    assert float((out - dense).norm() / dense.norm()) < 1e-12
+    family = torch.stack([d, d.flip(0), 0.5 * d + 0.01])
+    reducer = PODReducer(num_modes=3).fit(morph, family)
+    assert torch.allclose(reducer(family), morph(family), atol=1e-12, rtol=0)
+    g = torch.randn(1, mesh.num_nodes, 3, dtype=d.dtype, generator=torch.Generator().manual_seed(1))
+    left = float((morph(d[None]) * g).sum())
+    right = float((d[None] * morph.adjoint(g)).sum())
+    assert left == pytest.approx(right, rel=1e-12)
+    twin = MeshMorph(mesh, solver="sparse", **options)
+    twin.load_state_dict(morph.state_dict())
+    assert torch.equal(twin(d), out)
+    with pytest.raises(ValueError, match="solver: the state was saved with the sparse"):
+        MeshMorph(mesh, **options).load_state_dict(morph.state_dict())
+    with pytest.raises(ValueError, match="points: the sparse RBF"):
+        morph(d, points=mesh.points)
+    with pytest.raises(ValueError, match="mode: solver='sparse'"):
+        MeshMorph(mesh, solver="sparse", mode="dense", **options)
+    with pytest.raises(ValueError, match="^kernel must be one of 'wendland_c0'"):
+        MeshMorph(mesh, method="rbf", solver="sparse")
+
+
+def test_a_state_saved_before_the_sparse_fit_still_loads():
+    mesh = box_mesh(4)
+    morph = MeshMorph(mesh, method="rbf")
+    state = morph.state_dict()
+    extra = dict(state["_extra_state"])
+    del extra["solver"]
+    state["_extra_state"] = {**extra, "partition": False}
+    twin = MeshMorph(mesh, method="rbf")
+    twin.load_state_dict(state)
+    state["_extra_state"] = {**extra, "partition": True}
+    with pytest.raises(ValueError, match="solver: the state was saved with the partition"):
+        twin.load_state_dict(state)

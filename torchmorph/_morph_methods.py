@@ -15,8 +15,10 @@ from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE
 from torchmorph.idw.module import IDW
 from torchmorph.idw.stiffened import StiffenedIDW
 from torchmorph.rbf import partition
+from torchmorph.rbf.kernels import WENDLAND
 from torchmorph.rbf.module import RBF
 from torchmorph.rbf.partition import PARTITION_CONTROLS, PartitionRBF
+from torchmorph.rbf.sparse import SparseRBF
 
 __all__ = [
     "IDW_OPTIONS",
@@ -25,8 +27,10 @@ __all__ = [
     "Method",
     "build_interpolant",
     "check_method_options",
+    "check_moved_points",
     "check_transforms",
     "interpolation_matrix",
+    "solver_of",
 ]
 
 Method = Literal["idw", "rbf"]
@@ -80,11 +84,11 @@ def check_method_options(method: str, mode: str, options: dict[str, Any]) -> dic
         )
     solver = options.get("solver")
     if solver is not None:
-        check_choice(solver, "solver", ("auto", "dense", "partition"))
+        check_choice(solver, "solver", ("auto", "dense", "partition", "sparse"))
         if solver != "dense" and mode != "auto":
             raise ValueError(
-                f"mode: solver={solver!r} may fit the partition-of-unity RBF, which has no "
-                f"dense or matrix-free choice; leave mode='auto' (got {mode!r})"
+                f"mode: solver={solver!r} may fit the partition-of-unity or the sparse RBF, "
+                f"which have no dense or matrix-free choice; leave mode='auto' (got {mode!r})"
             )
     if options.get("stiffening_length") is not None and mode == "tree":
         raise ValueError("mode: near-wall stiffening (stiffening_length) has no tree mode")
@@ -92,6 +96,25 @@ def check_method_options(method: str, mode: str, options: dict[str, Any]) -> dic
         name: default if options.get(name) is None else options[name]
         for name, default in own.items()
     }
+
+
+def solver_of(interpolant: nn.Module) -> str:
+    """The kind of an RBF fit: "partition", "sparse" or "dense" (IDW's too)."""
+    if isinstance(interpolant, PartitionRBF):
+        return "partition"
+    return "sparse" if isinstance(interpolant, SparseRBF) else "dense"
+
+
+def check_moved_points(interpolant: nn.Module) -> None:
+    """``ValueError`` naming ``points`` when ``interpolant`` is fitted to the reference
+    positions once (the partition-of-unity and the sparse RBF)."""
+    solver = solver_of(interpolant)
+    if solver != "dense":
+        name = "partition-of-unity" if solver == "partition" else solver
+        raise ValueError(
+            f"points: the {name} RBF (solver={solver!r}) is fitted to the reference "
+            "positions once; moved points need solver='dense' or method='idw'"
+        )
 
 
 def build_interpolant(
@@ -103,18 +126,27 @@ def build_interpolant(
     block_bytes: int | None,
     dense_bytes: int | None,
     options: dict[str, Any],
-) -> IDW | StiffenedIDW | RBF | PartitionRBF:
+) -> IDW | StiffenedIDW | RBF | PartitionRBF | SparseRBF:
     """The interpolation from ``controls`` (N_c, D) to ``targets`` (N_t, D) of ``method``,
     with the options of :func:`check_method_options` (IDW with near-wall stiffening,
     :class:`~torchmorph.idw.StiffenedIDW`, when ``stiffening_length`` is given; RBF by a
-    partition of unity, :class:`~torchmorph.rbf.PartitionRBF`, with ``solver="partition"``,
-    or ``"auto"`` beyond :data:`~torchmorph.rbf.PARTITION_CONTROLS` controls)."""
+    partition of unity, :class:`~torchmorph.rbf.PartitionRBF`, with ``solver="partition"``;
+    the sparse fit of a Wendland kernel, :class:`~torchmorph.rbf.SparseRBF`, with
+    ``"sparse"``; ``"auto"`` takes one of them, sparse for a Wendland kernel, beyond
+    :data:`~torchmorph.rbf.PARTITION_CONTROLS` controls)."""
     kind: type[IDW] | type[StiffenedIDW] | type[RBF] = RBF
     if method == "rbf":
         options = dict(options)
         solver = options.pop("solver") or "dense"
         if solver == "auto" and controls.shape[0] > PARTITION_CONTROLS:
-            solver = "partition"
+            solver = "sparse" if options["kernel"] in WENDLAND else "partition"
+        if solver == "sparse":
+            if options.pop("epsilon") is not None and options["kernel"] in WENDLAND:
+                raise ValueError(
+                    f"epsilon must be None for kernel={options['kernel']!r}: its scale is "
+                    "support_radius"
+                )
+            return SparseRBF(controls, targets, **options)
         if solver == "partition":  # the module's defaults, read now
             return PartitionRBF(
                 controls,

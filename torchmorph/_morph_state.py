@@ -201,16 +201,17 @@ def check_interpolant_state(state_dict, prefix: str, interpolant: nn.Module) -> 
     check_saved_hyperparameters("RBF", extra, current)
 
 
-def check_variant(extra: dict[str, Any], stiffening: list[float] | None, partition: bool) -> None:
+def check_variant(extra: dict[str, Any], stiffening: list[float] | None, solver: str) -> None:
     """Raise ``ValueError`` naming the argument if a MeshMorph state was saved with
     another near-wall stiffening (``[stiffening_power, stiffening_length]`` or None) or
-    another RBF solver (the partition of unity or the dense fit) than the morph it loads
-    into. States saved before these existed are plain IDW and dense RBF."""
-    if bool(extra.get("partition", False)) != partition:
-        saved, current = ("a dense", "the partition") if partition else ("the partition", "a dense")
+    another RBF fit (``solver``: "dense", "partition" or "sparse") than the morph it
+    loads into. States saved before these existed are plain IDW and dense RBF; those
+    saved before the sparse fit say ``partition`` (True or False)."""
+    saved = extra.get("solver", "partition" if extra.get("partition", False) else "dense")
+    if saved != solver:
         raise ValueError(
-            f"solver: the state was saved with {saved} RBF fit but this MeshMorph has "
-            f"{current} one; build the morph with the saved solver"
+            f"solver: the state was saved with the {saved} RBF fit but this MeshMorph has "
+            f"the {solver} one; build the morph with the saved solver"
         )
     saved_stiffening = extra.get("stiffening")
     if saved_stiffening != stiffening:

@@ -25,8 +25,10 @@ from torchmorph._morph_methods import (
     Method,
     build_interpolant,
     check_method_options,
+    check_moved_points,
     check_transforms,
     interpolation_matrix,
+    solver_of,
 )
 from torchmorph._morph_state import (
     STATE_VERSION,
@@ -43,6 +45,7 @@ from torchmorph.mesh.model import CellBlock, Mesh
 from torchmorph.mesh.quality import inverted_cells
 from torchmorph.rbf.module import RBF
 from torchmorph.rbf.partition import PartitionRBF
+from torchmorph.rbf.sparse import SparseRBF
 
 if TYPE_CHECKING:
     from torchmorph.selection.plan import AdaptivePlan, SelectionPlan
@@ -89,12 +92,11 @@ class MeshMorph(nn.Module):
     kernel, epsilon, degree, support_radius
         RBF only: passed to :class:`~torchmorph.rbf.RBF` (defaults: the thin-plate
         spline, degree 1; epsilon and support_radius as RBF requires for the kernel).
-    solver : {"dense", "partition", "auto"}, optional
-        RBF only: the dense fit (default), the partition of unity
-        (:class:`~torchmorph.rbf.PartitionRBF`: a coarse global fit plus local patches,
-        for more controls than a dense factorisation affords; a few 1e-3 from the global
-        fit far from the controls; no moved ``points`` in :meth:`forward`), or the
-        partition beyond :data:`~torchmorph.rbf.PARTITION_CONTROLS` controls.
+    solver : {"dense", "partition", "sparse", "auto"}, optional
+        RBF only: the dense fit (default), the partition of unity (PartitionRBF, a few
+        1e-3 from the global fit far from the controls), the sparse global fit of a
+        Wendland kernel (SparseRBF), or beyond PARTITION_CONTROLS controls the sparse fit
+        (Wendland) or the partition; neither takes moved ``points`` in :meth:`forward`.
     mode : {"auto", "dense", "matrix_free", "tree"}
         Passed to :class:`~torchmorph.idw.IDW` or :class:`~torchmorph.rbf.RBF`
         (``"tree"`` is IDW's only).
@@ -266,7 +268,7 @@ class MeshMorph(nn.Module):
         return None
 
     @property
-    def interpolant(self) -> IDW | StiffenedIDW | RBF | PartitionRBF:
+    def interpolant(self) -> IDW | StiffenedIDW | RBF | PartitionRBF | SparseRBF:
         """The interpolation from the control points to the interior nodes: :attr:`idw`
         or :attr:`rbf`."""
         return self._modules[self.method]  # type: ignore[return-value]
@@ -302,7 +304,7 @@ class MeshMorph(nn.Module):
             "version": self._STATE_VERSION,
             "method": self.method,
             "stiffening": self._stiffening(),
-            "partition": isinstance(self._modules.get("rbf"), PartitionRBF),
+            "solver": solver_of(self.interpolant),
             "node_set_names": list(self._node_set_names),
             "cell_blocks": [list(block) for block in self._cell_blocks],
         }
@@ -317,7 +319,7 @@ class MeshMorph(nn.Module):
         extra = state_dict.get(prefix + "_extra_state")
         if extra is not None:  # before anything is loaded
             check_saved_hyperparameters("MeshMorph", extra, {"method": self.method})
-            check_variant(extra, self._stiffening(), isinstance(self.interpolant, PartitionRBF))
+            check_variant(extra, self._stiffening(), solver_of(self.interpolant))
         check_interpolant_state(state_dict, prefix + self.method + ".", self.interpolant)
         resize_buffers_for_load(self, state_dict, prefix, self._STATE_BUFFERS)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
@@ -498,11 +500,8 @@ class MeshMorph(nn.Module):
             )
             return self.assemble(boundary_displacement, interior)
         controls = self.controls_from_boundary(boundary_displacement)
-        if points is not None and isinstance(self.interpolant, PartitionRBF):
-            raise ValueError(
-                "points: the partition-of-unity RBF (solver='partition') is fitted to the "
-                "reference positions once; moved points need solver='dense' or method='idw'"
-            )
+        if points is not None:
+            check_moved_points(self.interpolant)
         if points is None:
             interior = self.interpolant(controls)
         else:
@@ -594,7 +593,7 @@ class MeshMorph(nn.Module):
         return (
             f"num_nodes={self.num_nodes}, num_boundary={self.num_boundary}, "
             f"num_interior={self.num_interior}, num_controls={self.num_controls}, "
-            f"method={self.method!r}, mode={getattr(self.interpolant, 'mode', 'partition')!r}"
+            f"method={self.method!r}, mode={getattr(self.interpolant, 'mode', solver_of(self.interpolant))!r}"
         )
 
 

@@ -1,6 +1,6 @@
 """``torchmorph morph --mode tree [--tree-tolerance TOL]`` and ``--method rbf --rbf-solver
-partition``: the command's tree-approximated IDW and partition-of-unity RBF against the
-library, and the combinations that do not go together."""
+partition | sparse``: the command's tree-approximated IDW, partition-of-unity RBF and
+sparse Wendland RBF against the library, and the combinations that do not go together."""
 
 from __future__ import annotations
 
@@ -53,6 +53,18 @@ def test_partition_solver_equals_the_library(tmp_path, case, capsys):
     np.testing.assert_allclose(field, expected, rtol=0, atol=1e-14)
 
 
+def test_sparse_solver_equals_the_library(tmp_path, case, capsys):
+    path, mesh, boundary = case
+    options = ["--method", "rbf", "--kernel", "wendland_c2", "--support-radius", "0.6"]
+    code, field = run(tmp_path, path, *options, "--rbf-solver", "sparse")
+    assert code == EXIT_OK
+    assert "sparse: kernel and evaluation matrices" in capsys.readouterr().out
+    expected = MeshMorph(
+        mesh, method="rbf", solver="sparse", kernel="wendland_c2", support_radius=0.6
+    )(boundary).numpy()
+    np.testing.assert_allclose(field, expected, rtol=0, atol=1e-14)
+
+
 @pytest.mark.parametrize(
     ("options", "message"),
     [
@@ -62,6 +74,10 @@ def test_partition_solver_equals_the_library(tmp_path, case, capsys):
         (
             ["--method", "rbf", "--rbf-solver", "partition", "--mode", "dense"],
             "--mode: --rbf-solver partition may fit the partition of unity",
+        ),
+        (
+            ["--method", "rbf", "--rbf-solver", "sparse"],
+            "--rbf-solver: sparse needs a compactly supported --kernel",
         ),
         (["--mode", "tree", "--stiffening", "0.1"], "--stiffening: near-wall stiffening has no"),
     ],

@@ -92,10 +92,11 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--rbf-solver",
-        choices=("dense", "partition", "auto"),
+        choices=("dense", "partition", "sparse", "auto"),
         default=None,
         help="with --method rbf: the dense fit (default), the partition of unity for "
-        "10^4 controls and more (a coarse global fit plus local patches), or auto",
+        "10^4 controls and more (a coarse global fit plus local patches), the sparse global "
+        "fit of a Wendland kernel (--kernel wendland_c2 --support-radius R), or auto",
     )
     group.add_argument(
         "--kernel",
@@ -163,8 +164,8 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
         error("argument --mode: tree is IDW's; --method rbf takes auto, dense or matrix_free")
     if args.rbf_solver not in (None, "dense") and args.mode != "auto":
         error(
-            f"argument --mode: --rbf-solver {args.rbf_solver} may fit the partition of unity, "
-            "which has no storage mode; leave --mode auto"
+            f"argument --mode: --rbf-solver {args.rbf_solver} may fit the partition of unity "
+            "or the sparse RBF, which have no storage mode; leave --mode auto"
         )
     if args.stiffening is not None or args.stiffening_power is not None:
         flag = "--stiffening" if args.stiffening is not None else "--stiffening-power"
@@ -175,6 +176,11 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
             "--method rbf (--steps K is)"
         )
     kernel = args.kernel or "thin_plate_spline"
+    if args.rbf_solver == "sparse" and kernel not in WENDLAND:
+        error(
+            f"argument --rbf-solver: sparse needs a compactly supported --kernel "
+            f"({', '.join(WENDLAND)}) with --support-radius; --kernel is {kernel}"
+        )
     if kernel in WENDLAND:
         if args.support_radius is None:
             error(f"argument --support-radius: required with --kernel {kernel}")

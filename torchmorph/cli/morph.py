@@ -413,10 +413,15 @@ def run(args: argparse.Namespace) -> int:
         }.get(morph.idw.mode, "dense, stored")
         built = f"W {morph.num_interior} x {morph.num_controls}, {storage}"
     else:
-        mode = getattr(morph.rbf, "mode", "partition")
+        from torchmorph.rbf import SparseRBF
+
+        mode = getattr(
+            morph.rbf, "mode", "sparse" if isinstance(morph.rbf, SparseRBF) else "partition"
+        )
         storage = {
             "matrix_free": "kernel evaluated at every morph",
             "partition": "partition of unity: a coarse global fit and local patches",
+            "sparse": "sparse: kernel and evaluation matrices within the support radius",
         }.get(mode, f"evaluation matrix {morph.num_interior} rows, stored")
         built = f"system of {morph.num_controls} controls factorised, {storage}"
     _line("assembly", f"{_seconds(morph.assembly_time)} ({built}; {args.dtype} on {device})")

@@ -5,8 +5,9 @@ The kernels and the matrices built from them (:mod:`torchmorph.rbf.kernels`), th
 factorised interpolation system (:mod:`torchmorph.rbf.system`), the functional core
 (:mod:`torchmorph.rbf.functional`: :func:`rbf_interpolate`), the :class:`RBF` module
 (:mod:`torchmorph.rbf.module`) over them, the partition-of-unity :class:`PartitionRBF`
-for many controls (:mod:`torchmorph.rbf.partition`, :func:`build_rbf` choosing it or
-the dense fit), and greedy reduction
+for many controls (:mod:`torchmorph.rbf.partition`, :func:`build_rbf` choosing it, the
+sparse fit or the dense one), the :class:`SparseRBF` of a compactly supported kernel
+(:mod:`torchmorph.rbf.sparse`), and greedy reduction
 (:mod:`torchmorph.rbf.greedy`: :class:`RBFErrorOracle`, the oracle of
 :func:`torchmorph.selection.greedy.greedy_selection` for RBF interpolation).
 """
@@ -20,6 +21,7 @@ from torchmorph.rbf.greedy import RBFErrorOracle
 from torchmorph.rbf.kernels import KERNELS, MIN_DEGREE, SCALE_INVARIANT, WENDLAND
 from torchmorph.rbf.module import RBF
 from torchmorph.rbf.partition import PARTITION_CONTROLS, PartitionRBF, build_rbf
+from torchmorph.rbf.sparse import SparseRBF
 
 __all__ = [
     "DEFAULT_BLOCK_BYTES",
@@ -32,6 +34,7 @@ __all__ = [
     "WENDLAND",
     "PartitionRBF",
     "RBFErrorOracle",
+    "SparseRBF",
     "build_rbf",
     "rbf_interpolate",
 ]

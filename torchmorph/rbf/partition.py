@@ -31,6 +31,7 @@ from torchmorph.rbf.functional import (
     from_columns,
 )
 from torchmorph.rbf.kernels import (
+    WENDLAND,
     fused,
     monomial_powers,
     polynomial_matrix,
@@ -38,6 +39,7 @@ from torchmorph.rbf.kernels import (
 )
 from torchmorph.rbf.module import RBF
 from torchmorph.rbf.patches import blend_weights, build_patches, coarse_subset, wendland_weight
+from torchmorph.rbf.sparse import SparseRBF
 from torchmorph.rbf.system import FACTOR_NAMES, factorise, solve
 
 __all__ = [
@@ -63,7 +65,7 @@ DEFAULT_COARSE_SIZE = 6000
 #: 3·10⁴ (O(N³), 7.2 GB of kernel matrix), the partition 9-13 s at either.
 PARTITION_CONTROLS = 20_000
 
-Solver = Literal["auto", "dense", "partition"]
+Solver = Literal["auto", "dense", "partition", "sparse"]
 
 #: The per-patch buffers of the local factorisations, packed: ``patch_<name>`` (all the
 #: patches' factors flattened, concatenated) with ``patch_<name>_shapes`` (P, 2) (a
@@ -545,17 +547,24 @@ def build_rbf(
     *,
     solver: Solver = "auto",
     **options,
-) -> RBF | PartitionRBF:
+) -> RBF | PartitionRBF | SparseRBF:
     """An RBF morph of ``targets`` by ``controls``: the dense :class:`~torchmorph.rbf.RBF`
-    (``solver="dense"``) or the :class:`PartitionRBF` (``"partition"``); ``"auto"``: dense
-    up to :data:`PARTITION_CONTROLS` controls, partition beyond (exact at the controls,
-    a few 1e-3 of relative 2-norm from the global fit over volume targets, see
-    :class:`PartitionRBF`'s notes). ``options`` go to the chosen class (``TypeError`` for
-    one it does not take)."""
-    check_choice(solver, "solver", ("auto", "dense", "partition"))
+    (``solver="dense"``), the :class:`PartitionRBF` (``"partition"``) or the
+    :class:`~torchmorph.rbf.SparseRBF` (``"sparse"``, compactly supported kernels);
+    ``"auto"``: dense up to :data:`PARTITION_CONTROLS` controls, beyond that the sparse
+    fit for a Wendland kernel (the global fit, to rounding) and the partition of unity for
+    the others (exact at the controls, a few 1e-3 of relative 2-norm from the global fit
+    over volume targets, see :class:`PartitionRBF`'s notes). ``options`` go to the chosen
+    class (``TypeError`` for one it does not take)."""
+    check_choice(solver, "solver", ("auto", "dense", "partition", "sparse"))
     count = len(controls)
     if solver == "auto":
-        solver = "partition" if count > PARTITION_CONTROLS else "dense"
+        if count <= PARTITION_CONTROLS:
+            solver = "dense"
+        else:
+            solver = "sparse" if options.get("kernel") in WENDLAND else "partition"
     if solver == "dense":
         return RBF(controls, targets, **options)
+    if solver == "sparse":
+        return SparseRBF(controls, targets, **options)
     return PartitionRBF(controls, targets, **options)
