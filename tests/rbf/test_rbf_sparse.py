@@ -102,6 +102,8 @@ def test_a_batch_equals_the_loop_and_float32_runs():
     batch = torch.stack([field(controls), field(controls).flip(1), -field(controls)])
     looped = torch.stack([module(one) for one in batch])
     torch.testing.assert_close(module(batch), looped, rtol=0, atol=1e-14)
+    empty = SparseRBF(controls, targets[:0], support_radius=0.4)
+    assert empty(batch).shape == (3, 0, 3)
     single = SparseRBF(controls.float(), targets.float(), support_radius=0.4)
     out = single(field(controls).float())
     assert out.dtype == torch.float32

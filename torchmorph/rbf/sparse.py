@@ -69,14 +69,15 @@ class _Pairs:
         queries = np.ascontiguousarray(queries)
         common = (self.points, self.keys, self.starts, self.low, self.inverse, self.dims,
                   self.offsets, self.radius**2)  # fmt: skip
-        _sparse_jit.count_pairs(queries, *common, counts)
-        indptr = np.zeros(queries.shape[0] + 1, np.int64)
-        np.cumsum(counts, out=indptr[1:])
-        columns = np.empty(int(indptr[-1]), np.int64)
-        values = np.empty(int(indptr[-1]))
-        _sparse_jit.fill_pairs(
-            queries, *common, code, self.inverse, self.order, indptr, columns, values
-        )
+        with numba_threads():
+            _sparse_jit.count_pairs(queries, *common, counts)
+            indptr = np.zeros(queries.shape[0] + 1, np.int64)
+            np.cumsum(counts, out=indptr[1:])
+            columns = np.empty(int(indptr[-1]), np.int64)
+            values = np.empty(int(indptr[-1]))
+            _sparse_jit.fill_pairs(
+                queries, *common, code, self.inverse, self.order, indptr, columns, values
+            )
         return indptr, columns, values
 
 
@@ -320,14 +321,11 @@ class SparseRBF(nn.Module):
     def transposed(self, grad: np.ndarray) -> np.ndarray:
         """The operator's transpose on target columns (N_t, K): the λ of the saddle system
         with right side [Bᵀ g; P_tᵀ g]."""
-        # Bᵀ g as a scatter (B is stored by target rows)
-        spread = np.zeros((self.num_controls, grad.shape[1]))
-        rows = np.repeat(np.arange(self.num_targets), np.diff(self.eval_indptr.numpy()))
-        np.add.at(
-            spread,
-            self.eval_columns.numpy(),
-            self.eval_values.numpy()[:, None] * grad[rows],
+        evaluation = scipy.sparse.csr_matrix(
+            (self.eval_values.numpy(), self.eval_columns.numpy(), self.eval_indptr.numpy()),
+            shape=(self.num_targets, self.num_controls),
         )
+        spread = np.asarray(evaluation.T @ grad)
         bottom = self._target_poly().T @ grad if self.powers else np.zeros((0, grad.shape[1]))
         weights, _ = self._saddle(spread, bottom)
         return weights
