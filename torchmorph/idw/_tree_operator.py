@@ -18,8 +18,11 @@ from torchmorph.idw.backends.numba import _tree_jit
 
 __all__ = ["TARGET_BLOCK"]
 
-TARGET_BLOCK = 32
-"""Targets per block (a leaf of the target tree): a block shares one traversal."""
+TARGET_BLOCK = 64
+"""Targets per block (a leaf of the target tree): a block shares one traversal. With
+float32 leaf sums, 64 took 0.90× the time of 32 at 10^5 × 10^4 and at 10^6 × 10^5
+(1e-4, one thread; ``benchmarks/tree.py``'s clouds); with float64 leaf sums 128 had
+been 1.12× faster than 32 at 10^6 but slower at 10^5 and below."""
 
 REFERENCE_REACH = 0.01
 """How far (times the controls' bounding-box diagonal) a block's reference distance is
@@ -73,6 +76,17 @@ class _TreeOperator:
         leaves = np.sort(starts[children[:, 0] < 0]) if targets.shape[0] else starts[:0]
         self.block_starts = np.append(leaves, targets.shape[0]).astype(np.int64)
         self.references = self._references(cKDTree(self.controls))
+        self._leaves: dict[type, tuple[np.ndarray, np.ndarray]] = {}
+
+    def _leaf_arrays(self, dtype: type) -> tuple[np.ndarray, np.ndarray]:
+        """(controls transposed, squared block references) in the dtype of the leaves'
+        exact sums: float32 for float32 inputs (twice the vector lanes), else float64."""
+        if dtype not in self._leaves:
+            self._leaves[dtype] = (
+                self.controls_t.astype(dtype, copy=False),
+                (self.references**2).astype(dtype),
+            )
+        return self._leaves[dtype]
 
     def _references(self, searcher) -> np.ndarray:
         """Per block: a distance below its targets' nearest control, so that their weights
@@ -100,7 +114,7 @@ class _TreeOperator:
             nearest, _ = searcher.query(centres, k=1)
         return np.maximum(nearest - radius, math.sqrt(self.radius2))
 
-    def _run(self, values, scaled, eta, transpose, coincident=None):
+    def _run(self, values, scaled, eta, transpose, single, coincident=None):
         n_targets, n_controls = self.targets.shape[0], self.controls.shape[0]
         columns, dim = values.shape[1], self.controls.shape[1]
         nodes = self.starts.shape[0]
@@ -130,6 +144,8 @@ class _TreeOperator:
             if coincident is None:
                 coincident = np.zeros(n_targets, np.int64)
             coincident_sum = np.zeros((n_targets, columns))
+            dtype = np.float32 if single else np.float64
+            controls_leaf, references = self._leaf_arrays(dtype)
             _tree_jit.traverse(
                 self.targets, self.block_starts, self.references, self.controls_t,
                 np.ascontiguousarray(values.T),
@@ -138,6 +154,7 @@ class _TreeOperator:
                 float(eta),
                 self.radius2, transpose, groups, sums, numerator, bounds, coincident,
                 coincident_sum, node_zeroth, node_first, node_second, out, self.max_leaf,
+                references, controls_leaf, np.ascontiguousarray(values.T, dtype=dtype),
             )  # fmt: skip
             if transpose:
                 total = out.sum(axis=0)
@@ -149,12 +166,15 @@ class _TreeOperator:
                 return total
         return sums, numerator, bounds, coincident, coincident_sum
 
-    def apply(self, values: np.ndarray, eta: float):
+    def apply(self, values: np.ndarray, eta: float, single: bool = False):
         """(u' in the targets' tree order, S', the per-target bound E / (S' - E) on
-        ``|u' - u| / Δ``, the coincident counts); ``values`` (N_c, K) in control order."""
+        ``|u' - u| / Δ``, the coincident counts); ``values`` (N_c, K) in control order;
+        ``single``: the leaves' exact sums in float32."""
         values = np.ascontiguousarray(values[self.control_order])
         empty = np.zeros((self.targets.shape[0], values.shape[1]))
-        sums, numerator, bounds, coincident, coincident_sum = self._run(values, empty, eta, False)
+        sums, numerator, bounds, coincident, coincident_sum = self._run(
+            values, empty, eta, False, single
+        )
         result = numerator / np.where(sums > 0, sums, 1.0)[:, None]
         hit = coincident > 0
         result[hit] = coincident_sum[hit] / coincident[hit, None]
@@ -163,13 +183,16 @@ class _TreeOperator:
         relative[hit] = 0.0
         return result, sums, relative, coincident
 
-    def apply_transposed(self, grad: np.ndarray, eta: float, sums, coincident) -> np.ndarray:
-        """Aᵀ grad for ``grad`` (N_t, K) in the targets' tree order; (N_c, K), control order."""
+    def apply_transposed(
+        self, grad: np.ndarray, eta: float, sums, coincident, single: bool = False
+    ) -> np.ndarray:
+        """Aᵀ grad for ``grad`` (N_t, K) in the targets' tree order; (N_c, K), control order
+        (``single`` as the forward call's)."""
         hit = coincident > 0
         scale = np.where(hit, 1.0 / np.maximum(coincident, 1), 1.0 / np.where(sums > 0, sums, 1))
         scaled = np.ascontiguousarray(grad * scale[:, None])
         values = np.zeros((self.controls.shape[0], grad.shape[1]))
-        total = self._run(values, scaled, eta, True, coincident.copy())
+        total = self._run(values, scaled, eta, True, single, coincident.copy())
         out = np.empty_like(total)
         out[self.control_order] = total
         return out
@@ -180,9 +203,12 @@ class _TreeApply(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, values: Tensor, operator: _TreeOperator, eta: float, state: dict):
-        result, sums, relative, coincident = operator.apply(values.detach().double().numpy(), eta)
+        single = values.dtype == torch.float32
+        result, sums, relative, coincident = operator.apply(
+            values.detach().double().numpy(), eta, single
+        )
         state["sums"], state["coincident"], state["relative"] = sums, coincident, relative
-        ctx.operator, ctx.eta, ctx.state = operator, eta, state
+        ctx.operator, ctx.eta, ctx.state, ctx.single = operator, eta, state, single
         out = torch.from_numpy(result)
         return out.to(values.dtype)
 
@@ -190,6 +216,6 @@ class _TreeApply(torch.autograd.Function):
     def backward(ctx, grad: Tensor):
         state = ctx.state
         total = ctx.operator.apply_transposed(
-            grad.detach().double().numpy(), ctx.eta, state["sums"], state["coincident"]
+            grad.detach().double().numpy(), ctx.eta, state["sums"], state["coincident"], ctx.single
         )
         return torch.from_numpy(total).to(grad.dtype), None, None, None

@@ -292,11 +292,16 @@ def _leaf_by_controls(
     pass over the leaf's contiguous controls for the weights and their sum (squared
     distances, the ratio form), then one dot product per value column (``weight`` is
     scratch of the leaf's width). The forward and transposed passes share it, so that
-    their running sums, hence their acceptance decisions, are the same to the bit."""
+    their running sums, hence their acceptance decisions, are the same to the bit.
+
+    The arithmetic is in the dtype of ``local``, ``controls_t``, ``values_t``, ``ref2``
+    and ``weight`` (float32 for float32 inputs: twice the vector lanes), each leaf's sums
+    then added to the float64 block sums."""
     dim, columns = controls_t.shape[0], values_t.shape[0]
     width = stop - start
+    zero = ref2 - ref2  # 0 in the leaf's dtype
     for t in range(rows):
-        total = 0.0
+        total = zero
         if dim == 3:
             x0, x1, x2 = local[0, t], local[1, t], local[2, t]
             c0 = controls_t[0, start:stop]
@@ -338,7 +343,7 @@ def _leaf_by_controls(
         else:
             for column in range(columns):
                 row = values_t[column, start:stop]
-                dot = 0.0
+                dot = zero
                 for k in range(width):
                     dot += weight[k] * row[k]
                 numerator[column, t] += dot
@@ -359,7 +364,7 @@ def _visit_block(
     first_target, last_target, targets, reference, controls_t, values_t, scaled, children,
     starts, stops, centroids, radii, second_geometry, effective, zeroth, first, second, power, mode,
     eta, n_controls, radius2, transpose, sums, numerator, bounds, coincident, coincident_sum,
-    node_zeroth, node_first, node_second, out, max_leaf,
+    node_zeroth, node_first, node_second, out, max_leaf, ref2_leaf, controls_leaf, values_leaf,
 ):  # fmt: skip
     """One block of targets against the tree (see :func:`traverse`)."""
     dim, columns = controls_t.shape[0], values_t.shape[0]
@@ -380,6 +385,8 @@ def _visit_block(
     for t in range(rows):
         for a in range(dim):
             local[a, t] = targets[first_target + t, a]
+    local_leaf = local.astype(controls_leaf.dtype)  # the leaves' arithmetic
+    buffer_leaf = np.empty(max_leaf, controls_leaf.dtype)
     block_centre = np.zeros(dim)
     for a in range(dim):
         for t in range(rows):
@@ -518,8 +525,9 @@ def _visit_block(
             reachable = nearest - rho <= 2.0 * math.sqrt(radius2)  # a coincidence possible
             if not reachable:  # controls outer, the block's targets in SIMD
                 _leaf_by_controls(
-                    local, controls_t, values_t, start, stop, rows, ref2, half_power, mode,
-                    buffer, block_sums, block_numerator, transpose, block_scaled, out,
+                    local_leaf, controls_leaf, values_leaf, start, stop, rows, ref2_leaf,
+                    half_power, mode, buffer_leaf, block_sums, block_numerator, transpose,
+                    block_scaled, out,
                 )  # fmt: skip
                 continue
             for t in range(rows):
@@ -585,7 +593,7 @@ def traverse(
     targets, block_starts, references, controls_t, values_t, scaled, children, starts, stops,
     centroids, radii, second_geometry, effective, zeroth, first, second, power, mode, eta,
     radius2, transpose, groups, sums, numerator, bounds, coincident, coincident_sum, node_zeroth,
-    node_first, node_second, out, max_leaf,
+    node_first, node_second, out, max_leaf, ref2_leaf, controls_leaf, values_leaf,
 ):  # fmt: skip
     """Every block of targets against the tree, in parallel over ``groups`` groups of
     blocks (each with its own transposed accumulators ``node_*[group]``, ``out[group]``).
@@ -610,5 +618,5 @@ def traverse(
                 second_geometry, effective, zeroth, first, second, power, mode, eta,
                 stops[0] - starts[0], radius2, transpose, sums, numerator, bounds, coincident, coincident_sum,
                 node_zeroth[group], node_first[group], node_second[group], out[group],
-                max_leaf,
+                max_leaf, ref2_leaf[block], controls_leaf, values_leaf,
             )  # fmt: skip
