@@ -108,6 +108,9 @@ def test_a_batch_equals_the_loop_and_float32_runs():
     out = single(field(controls).float())
     assert out.dtype == torch.float32
     torch.testing.assert_close(out.double(), looped[0], rtol=0, atol=1e-5)
+    cast = SparseRBF(controls, targets, support_radius=0.4).float()
+    assert cast.controls.dtype == torch.float32 and cast.kernel_values.dtype == F64
+    torch.testing.assert_close(cast(field(controls).float()), out, rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("degree", [-1, 1])

@@ -232,10 +232,18 @@ class SparseRBF(nn.Module):
         self.register_buffer("coupling", coupling)
         self.register_buffer("schur", poly.T @ coupling)
 
-    # ------------------------------------------------------------------ solves
-    def _kernel_product(self, block: np.ndarray) -> np.ndarray:
-        return _product(self.kernel_indptr, self.kernel_columns, self.kernel_values, block)
+    def _apply(self, fn, recurse=True):
+        """``.to``, ``.float()`` …: the points take the new dtype; the fit (both matrices,
+        Z, S, the polynomial's scaling) stays float64."""
+        kept = {k: v for k, v in self._buffers.items() if k not in ("controls", "targets")}
+        super()._apply(fn, recurse)
+        for name, before in kept.items():
+            after = self._buffers[name]
+            if before is not None and after is not None and after.dtype != before.dtype:
+                self._buffers[name] = before.to(device=after.device)
+        return self
 
+    # ------------------------------------------------------------------ solves
     def _solve(self, right: np.ndarray) -> np.ndarray:
         """Φ⁻¹ right by the sparse factorisation (made again after a state is loaded)."""
         if self._factor is None:
@@ -301,6 +309,11 @@ class SparseRBF(nn.Module):
         check_same_device_dtype(
             self.controls, "the module's controls", displacements, "displacements"
         )
+        if self.controls.device.type != "cpu":
+            raise ValueError(
+                f"displacements: SparseRBF runs on the CPU (numba and SuperLU), but the "
+                f"module was moved to {self.controls.device}"
+            )
         values = columns_of(displacements)
         result = _SparseApply.apply(values, self)
         return from_columns(result.to(displacements.dtype), displacements)
