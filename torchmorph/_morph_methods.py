@@ -17,7 +17,7 @@ from torchmorph.idw.stiffened import StiffenedIDW
 from torchmorph.rbf import partition
 from torchmorph.rbf.kernels import WENDLAND
 from torchmorph.rbf.module import RBF
-from torchmorph.rbf.partition import PARTITION_CONTROLS, PartitionRBF
+from torchmorph.rbf.partition import PARTITION_CONTROLS, PartitionRBF, sparse_fits
 from torchmorph.rbf.sparse import SparseRBF
 
 __all__ = [
@@ -132,14 +132,15 @@ def build_interpolant(
     :class:`~torchmorph.idw.StiffenedIDW`, when ``stiffening_length`` is given; RBF by a
     partition of unity, :class:`~torchmorph.rbf.PartitionRBF`, with ``solver="partition"``;
     the sparse fit of a Wendland kernel, :class:`~torchmorph.rbf.SparseRBF`, with
-    ``"sparse"``; ``"auto"`` takes one of them, sparse for a Wendland kernel, beyond
-    :data:`~torchmorph.rbf.PARTITION_CONTROLS` controls)."""
+    ``"sparse"``; ``"auto"`` takes one of them beyond
+    :data:`~torchmorph.rbf.PARTITION_CONTROLS` controls, as
+    :func:`~torchmorph.rbf.build_rbf` does)."""
     kind: type[IDW] | type[StiffenedIDW] | type[RBF] = RBF
     if method == "rbf":
         options = dict(options)
         solver = options.pop("solver") or "dense"
         if solver == "auto" and controls.shape[0] > PARTITION_CONTROLS:
-            solver = "sparse" if options["kernel"] in WENDLAND else "partition"
+            solver = "sparse" if sparse_fits(controls, options) else "partition"
         if solver == "sparse":
             if options.pop("epsilon") is not None and options["kernel"] in WENDLAND:
                 raise ValueError(

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from torchmorph.rbf import RBF, SparseRBF, build_rbf
+from torchmorph.rbf import RBF, PartitionRBF, SparseRBF, build_rbf
 from torchmorph.rbf import partition as partition_module
 from torchmorph.rbf.kernels import WENDLAND
-from torchmorph.rbf.sparse import _Pairs
+from torchmorph.rbf.sparse import _Pairs, mean_neighbours
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -196,5 +196,13 @@ def test_build_rbf_picks_the_sparse_fit_for_a_wendland_kernel(monkeypatch):
     assert type(build_rbf(controls, targets, solver="sparse", **options)) is SparseRBF
     monkeypatch.setattr(partition_module, "PARTITION_CONTROLS", 50)
     assert type(build_rbf(controls, targets, **options)) is SparseRBF
+    assert mean_neighbours(controls, 0.5) == pytest.approx(
+        float((torch.cdist(controls, controls) < 0.5).sum()) / 60
+    )
+    # a support holding more controls than SPARSE_NEIGHBOURS on average: the partition
+    monkeypatch.setattr(partition_module, "SPARSE_NEIGHBOURS", 10)
+    assert mean_neighbours(controls, 0.5) > 10
+    chosen = build_rbf(controls, targets, patch_size=20, coarse_size=30, **options)
+    assert type(chosen) is PartitionRBF
     with pytest.raises(ValueError, match="^kernel must be one of 'wendland_c0'"):
         build_rbf(controls, targets, solver="sparse", kernel="thin_plate_spline")

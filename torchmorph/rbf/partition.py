@@ -39,7 +39,7 @@ from torchmorph.rbf.kernels import (
 )
 from torchmorph.rbf.module import RBF
 from torchmorph.rbf.patches import blend_weights, build_patches, coarse_subset, wendland_weight
-from torchmorph.rbf.sparse import SparseRBF
+from torchmorph.rbf.sparse import SPARSE_NEIGHBOURS, SparseRBF, mean_neighbours
 from torchmorph.rbf.system import FACTOR_NAMES, factorise, solve
 
 __all__ = [
@@ -50,6 +50,7 @@ __all__ = [
     "PartitionRBF",
     "Solver",
     "build_rbf",
+    "sparse_fits",
 ]
 
 #: Most controls in a cell of the patches' kd-split (a patch holds about 3 times as many).
@@ -541,6 +542,16 @@ def _integer(value, name: str, minimum: int) -> int:
     return int(value)
 
 
+def sparse_fits(controls: Tensor, options: dict) -> bool:
+    """Whether ``solver="auto"`` takes the sparse fit: a Wendland kernel whose support
+    holds at most :data:`~torchmorph.rbf.sparse.SPARSE_NEIGHBOURS` controls on average."""
+    radius = options.get("support_radius")
+    if options.get("kernel") not in WENDLAND or radius is None:
+        return False
+    return mean_neighbours(as_points(controls, "controls", dim=dim_of(controls)),
+                           check_positive(radius, "support_radius")) <= SPARSE_NEIGHBOURS  # fmt: skip
+
+
 def build_rbf(
     controls: Tensor,
     targets: Tensor,
@@ -552,8 +563,9 @@ def build_rbf(
     (``solver="dense"``), the :class:`PartitionRBF` (``"partition"``) or the
     :class:`~torchmorph.rbf.SparseRBF` (``"sparse"``, compactly supported kernels);
     ``"auto"``: dense up to :data:`PARTITION_CONTROLS` controls, beyond that the sparse
-    fit for a Wendland kernel (the global fit, to rounding) and the partition of unity for
-    the others (exact at the controls, a few 1e-3 of relative 2-norm from the global fit
+    fit for a Wendland kernel with at most
+    :data:`~torchmorph.rbf.sparse.SPARSE_NEIGHBOURS` controls within the support of a
+    control on average (the global fit, to rounding) and the partition of unity otherwise (exact at the controls, a few 1e-3 of relative 2-norm from the global fit
     over volume targets, see :class:`PartitionRBF`'s notes). ``options`` go to the chosen
     class (``TypeError`` for one it does not take)."""
     check_choice(solver, "solver", ("auto", "dense", "partition", "sparse"))
@@ -562,7 +574,7 @@ def build_rbf(
         if count <= PARTITION_CONTROLS:
             solver = "dense"
         else:
-            solver = "sparse" if options.get("kernel") in WENDLAND else "partition"
+            solver = "sparse" if sparse_fits(controls, options) else "partition"
     if solver == "dense":
         return RBF(controls, targets, **options)
     if solver == "sparse":

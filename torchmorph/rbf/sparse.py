@@ -32,7 +32,13 @@ from torchmorph.rbf.kernels import (
 )
 from torchmorph.rbf.system import check_polynomial_rank
 
-__all__ = ["SparseRBF"]
+__all__ = ["SPARSE_NEIGHBOURS", "SparseRBF", "mean_neighbours"]
+
+#: ``solver="auto"`` (:func:`~torchmorph.rbf.build_rbf`, ``MeshMorph``) takes the sparse
+#: fit of a Wendland kernel only up to this many controls within the support radius of a
+#: control, on average: the factorisation's fill grows with it (10⁵ controls, measured in
+#: ``benchmarks/rbf_scale.py``: 20 s at 153, 60 s at 343, about 2 minutes at 609).
+SPARSE_NEIGHBOURS = 400
 
 _GRID_KEYS = 2**62  # the grid's cells are numbered in int64
 
@@ -63,22 +69,38 @@ class _Pairs:
         grid = np.meshgrid(*([np.arange(-1, 2)] * dim), indexing="ij")
         self.offsets = np.stack([axis.reshape(-1) for axis in grid], axis=1).astype(np.int64)
 
-    def rows(self, queries: np.ndarray, code: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(indptr, columns, values): row q holds the points within the radius of query q."""
+    def counts(self, queries: np.ndarray) -> np.ndarray:
+        """The number of indexed points within the radius of each query."""
         counts = np.empty(queries.shape[0], np.int64)
         queries = np.ascontiguousarray(queries)
-        common = (self.points, self.keys, self.starts, self.low, self.inverse, self.dims,
-                  self.offsets, self.radius**2)  # fmt: skip
         with numba_threads():
-            _sparse_jit.count_pairs(queries, *common, counts)
+            _sparse_jit.count_pairs(queries, *self._common(), counts)
+        return counts
+
+    def _common(self) -> tuple[Any, Any, Any, Any, float, Any, Any, float]:
+        return (self.points, self.keys, self.starts, self.low, self.inverse, self.dims,
+                self.offsets, self.radius**2)  # fmt: skip
+
+    def rows(self, queries: np.ndarray, code: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(indptr, columns, values): row q holds the points within the radius of query q."""
+        counts = self.counts(queries)
+        queries = np.ascontiguousarray(queries)
+        with numba_threads():
             indptr = np.zeros(queries.shape[0] + 1, np.int64)
             np.cumsum(counts, out=indptr[1:])
             columns = np.empty(int(indptr[-1]), np.int64)
             values = np.empty(int(indptr[-1]))
             _sparse_jit.fill_pairs(
-                queries, *common, code, self.inverse, self.order, indptr, columns, values
+                queries, *self._common(), code, self.inverse, self.order, indptr, columns, values
             )
         return indptr, columns, values
+
+
+def mean_neighbours(controls: Tensor, support_radius: float) -> float:
+    """The mean number of controls within ``support_radius`` of a control (itself
+    included): the kernel matrix's entries per row, counted without forming it."""
+    points = controls.detach().double().cpu().numpy()
+    return float(_Pairs(points, float(support_radius)).counts(points).mean())
 
 
 def _product(indptr: Tensor, columns: Tensor, values: Tensor, block: np.ndarray) -> np.ndarray:
