@@ -20,7 +20,12 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-__all__ = ["NotFittedError", "check_saved_hyperparameters", "resize_buffers_for_load"]
+__all__ = [
+    "NotFittedError",
+    "apply_keeping_dtypes",
+    "check_saved_hyperparameters",
+    "resize_buffers_for_load",
+]
 
 
 class NotFittedError(RuntimeError):
@@ -73,3 +78,15 @@ def resize_buffers_for_load(
             dtype = incoming.dtype
         if current.shape != incoming.shape or current.dtype != dtype:
             module._buffers[name] = torch.empty(incoming.shape, dtype=dtype, device=current.device)
+
+
+def apply_keeping_dtypes(module: nn.Module, fn, recurse: bool, names: Iterable[str]) -> None:
+    """``nn.Module._apply`` (``.to``, ``.float()``, ``.cuda()`` …) for ``module``, with the
+    named buffers moved to the new device but kept in their dtype (a fit computed in
+    float64 stays float64 when the points go to float32)."""
+    kept = {name: module._buffers[name] for name in names}
+    nn.Module._apply(module, fn, recurse)
+    for name, before in kept.items():
+        after = module._buffers[name]
+        if before is not None and after is not None and after.dtype != before.dtype:
+            module._buffers[name] = before.to(device=after.device)

@@ -19,7 +19,11 @@ from torchmorph._checks import (
     check_vectors,
 )
 from torchmorph._memory import free_memory
-from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
+from torchmorph._state import (
+    apply_keeping_dtypes,
+    check_saved_hyperparameters,
+    resize_buffers_for_load,
+)
 from torchmorph._threads import numba_threads
 from torchmorph.rbf.functional import (
     check_distinct,
@@ -219,12 +223,7 @@ class RBF(nn.Module):
         """``.to``, ``.cuda``, ``.float()`` …: the factorisation and the polynomial's
         scaling move with the module but stay float64 (see the class notes); the points
         and the evaluation matrix take the new dtype."""
-        kept = {name: self._buffers[name] for name in (*FACTOR_NAMES, "shift", "poly_scale")}
-        super()._apply(fn, recurse)
-        for name, before in kept.items():
-            after = self._buffers[name]
-            if before is not None and after is not None and after.dtype != before.dtype:
-                self._buffers[name] = before.to(device=after.device)
+        apply_keeping_dtypes(self, fn, recurse, (*FACTOR_NAMES, "shift", "poly_scale"))
         return self
 
     def _assemble(self) -> Tensor:

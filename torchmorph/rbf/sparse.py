@@ -14,7 +14,11 @@ import torch
 from torch import Tensor, nn
 
 from torchmorph._checks import as_points, check_same_device_dtype, check_vectors
-from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
+from torchmorph._state import (
+    apply_keeping_dtypes,
+    check_saved_hyperparameters,
+    resize_buffers_for_load,
+)
 from torchmorph._threads import numba_threads
 from torchmorph.rbf import _sparse_jit
 from torchmorph.rbf.functional import (
@@ -257,12 +261,8 @@ class SparseRBF(nn.Module):
     def _apply(self, fn, recurse=True):
         """``.to``, ``.float()`` …: the points take the new dtype; the fit (both matrices,
         Z, S, the polynomial's scaling) stays float64."""
-        kept = {k: v for k, v in self._buffers.items() if k not in ("controls", "targets")}
-        super()._apply(fn, recurse)
-        for name, before in kept.items():
-            after = self._buffers[name]
-            if before is not None and after is not None and after.dtype != before.dtype:
-                self._buffers[name] = before.to(device=after.device)
+        fit = [name for name in self._buffers if name not in ("controls", "targets")]
+        apply_keeping_dtypes(self, fn, recurse, fit)
         return self
 
     # ------------------------------------------------------------------ solves
