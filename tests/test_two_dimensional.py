@@ -118,3 +118,15 @@ def test_selective_morph_and_pod_on_a_planar_mesh():
     )
     assert reducer.num_modes_ == 1  # a one-parameter linear family: one mode
     torch.testing.assert_close(reducer(bulge(mu)), reference)
+
+
+def test_sparse_wendland_morph_of_a_planar_mesh_is_the_dense_one():
+    mesh = square(8)
+    options = {"method": "rbf", "kernel": "wendland_c2", "support_radius": 0.5}
+    dense, sparse = MeshMorph(mesh, **options), MeshMorph(mesh, solver="sparse", **options)
+    top = dense.boundary_mask("top")
+    d = torch.zeros(dense.num_boundary, 2, dtype=F64)
+    d[:, 1] = 0.1 * torch.sin(torch.pi * dense.boundary_points[:, 0]) * top
+    expected = dense(d)
+    torch.testing.assert_close(sparse(d), expected, rtol=0, atol=1e-14)
+    assert count_inverted(mesh, expected) == 0
