@@ -146,15 +146,16 @@ class _TreeOperator:
             coincident_sum = np.zeros((n_targets, columns))
             dtype = np.float32 if single else np.float64
             controls_leaf, references = self._leaf_arrays(dtype)
+            values_t = np.ascontiguousarray(values.T)
             _tree_jit.traverse(
                 self.targets, self.block_starts, self.references, self.controls_t,
-                np.ascontiguousarray(values.T),
+                values_t,
                 scaled, self.children, self.starts, self.stops, self.centroids, self.radii,
                 self.second, self.effective, zeroth, first, second, self.power, self.mode,
                 float(eta),
                 self.radius2, transpose, groups, sums, numerator, bounds, coincident,
                 coincident_sum, node_zeroth, node_first, node_second, out, self.max_leaf,
-                references, controls_leaf, np.ascontiguousarray(values.T, dtype=dtype),
+                references, controls_leaf, values_t.astype(dtype, copy=False),
             )  # fmt: skip
             if transpose:
                 total = out.sum(axis=0)

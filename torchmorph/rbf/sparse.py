@@ -257,6 +257,17 @@ class SparseRBF(nn.Module):
         coupling = torch.from_numpy(np.ascontiguousarray(self._solve(poly.numpy())))
         self.register_buffer("coupling", coupling)
         self.register_buffer("schur", poly.T @ coupling)
+        self._polynomials()
+
+    def _polynomials(self) -> None:
+        """The tail's monomials at the controls and at the targets, float64 NumPy, made once
+        per geometry (at the fit and after a state is loaded), not per call."""
+        self._poly_controls, self._poly_targets = (
+            polynomial_matrix(points.double(), self.powers, self.poly_shift, self.poly_scale)
+            .cpu()
+            .numpy()
+            for points in (self.controls, self.targets)
+        )
 
     def _apply(self, fn, recurse=True):
         """``.to``, ``.float()`` …: the points take the new dtype; the fit (both matrices,
@@ -297,12 +308,8 @@ class SparseRBF(nn.Module):
         first = self._solve(top)
         if not self.powers:
             return first, bottom
-        coupling = self.coupling.numpy()
-        poly = polynomial_matrix(
-            self.controls.double(), self.powers, self.poly_shift, self.poly_scale
-        ).numpy()
-        tail = np.linalg.solve(self.schur.numpy(), poly.T @ first - bottom)
-        return first - coupling @ tail, tail
+        tail = np.linalg.solve(self.schur.numpy(), self._poly_controls.T @ first - bottom)
+        return first - self.coupling.numpy() @ tail, tail
 
     # ---------------------------------------------------------------- forward
     @property
@@ -340,17 +347,12 @@ class SparseRBF(nn.Module):
         result = _SparseApply.apply(values, self)
         return from_columns(result.to(displacements.dtype), displacements)
 
-    def _target_poly(self) -> np.ndarray:
-        return polynomial_matrix(
-            self.targets.double(), self.powers, self.poly_shift, self.poly_scale
-        ).numpy()
-
     def operator(self, values: np.ndarray) -> np.ndarray:
         """B λ + P_t β for the value columns (N_c, K), float64."""
         weights, tail = self.coefficients(values)
         out = _product(self.eval_indptr, self.eval_columns, self.eval_values, weights)
         if self.powers:
-            out += self._target_poly() @ tail
+            out += self._poly_targets @ tail
         return out
 
     def transposed(self, grad: np.ndarray) -> np.ndarray:
@@ -361,7 +363,7 @@ class SparseRBF(nn.Module):
             shape=(self.num_targets, self.num_controls),
         )
         spread = np.asarray(evaluation.T @ grad)
-        bottom = self._target_poly().T @ grad if self.powers else np.zeros((0, grad.shape[1]))
+        bottom = self._poly_targets.T @ grad
         weights, _ = self._saddle(spread, bottom)
         return weights
 
@@ -390,6 +392,7 @@ class SparseRBF(nn.Module):
             state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
         )
         self._factor = None  # made again from the loaded kernel matrix
+        self._polynomials()
         for name, rows in (("kernel", self.num_controls), ("eval", self.num_targets)):
             indptr = self._buffers[f"{name}_indptr"]
             columns = self._buffers[f"{name}_columns"]
