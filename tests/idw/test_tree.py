@@ -149,6 +149,37 @@ def test_batch_equals_loop():
     assert batched.shape == (3, targets.shape[0], 3)
 
 
+@pytest.mark.parametrize("power", [4.0, 2.0, 3.0])
+@pytest.mark.parametrize("single", [False, True])
+def test_one_field_paths_equal_the_batch_paths_at_a_fixed_threshold(power, single):
+    """One 3-D field takes its own kernels (the leaf's weights and three dot products in one
+    pass; the far field's monomials shared by the four forms); as the first of a batch of
+    two it takes the general ones. At one threshold the traversal is the same, so the two
+    agree to rounding (float32 leaves: to float32's); in float64 the transposed pass (its
+    own code for the far field) is the exact adjoint, and the result stays within the bound (in float32 the geometry itself is off by 6e-8 of the unit: at 1e-4
+    from the surface the weights differ by 1e-3 from float64's)."""
+    from torchmorph.idw._tree_operator import _TreeOperator
+
+    generator = torch.Generator().manual_seed(3)
+    controls, targets = cloud("graded", generator)
+    operator = _TreeOperator(controls.numpy(), targets.numpy(), power, 1e-24, 16)
+    values = field(controls).numpy()
+    one, _, bound, _ = operator.apply(values, 0.3, single)
+    both, _, _, _ = operator.apply(np.concatenate([values, -values[:, ::-1]], 1), 0.3, single)
+    scale = np.abs(one).max()
+    assert np.abs(one - both[:, :3]).max() <= (1e-6 if single else 1e-13) * scale
+    if single:
+        return
+    sums, coincident = operator.apply(values, 0.3, single)[1], np.zeros(len(targets), np.int64)
+    grad = np.random.default_rng(0).standard_normal(one.shape)  # Aᵀ by its own code
+    back = operator.apply_transposed(grad, 0.3, sums, coincident, single)
+    assert abs((one * grad).sum() - (values * back).sum()) <= 1e-12 * np.abs(one * grad).sum()
+    exact = brute_force(controls, targets, field(controls), power).numpy()[operator.target_order]
+    spread = float(np.linalg.norm(values.max(0) - values.min(0)))
+    assert np.all(np.abs(one - exact).max(1) <= spread * bound + 1e-6 * scale)
+    assert 0 < np.abs(one - exact).max()  # the far field was used
+
+
 def test_gradient_is_the_transpose():
     """<A d, g> = <d, Aᵀ g> for the operator a call used, at a tolerance where the far
     field is active, close to the exact Wᵀ g (controls under coincident targets included)."""

@@ -14,7 +14,7 @@ from torch import Tensor
 
 from torchmorph._threads import numba_threads
 from torchmorph.idw.backends._protocol import power_code
-from torchmorph.idw.backends.numba import _tree_jit
+from torchmorph.idw.backends.numba import _kd_jit, _tree_jit, _tree_moments
 
 __all__ = ["TARGET_BLOCK"]
 
@@ -32,16 +32,16 @@ searched for (see ``_TreeOperator._references``)."""
 def _kd_tree(points: np.ndarray, leaf_size: int):
     """(order, starts, stops, children) of a kd-tree of median splits on the widest axis,
     nodes in depth-first preorder, each node the range ``order[start:stop]``
-    (:func:`torchmorph.idw.backends.numba._tree_jit.kd_tree`: 1.9 s for the two trees of
+    (:func:`torchmorph.idw.backends.numba._kd_jit.kd_tree`: 1.9 s for the two trees of
     3·10^6 targets and 3·10^5 controls, where a loop over the nodes in Python with
     NumPy's ``argpartition`` took 8.4 s)."""
     count = points.shape[0]
-    size = _tree_jit.max_nodes(count, leaf_size)
+    size = _kd_jit.max_nodes(count, leaf_size)
     order = np.arange(count, dtype=np.int64)
     starts = np.empty(size, np.int64)
     stops = np.empty(size, np.int64)
     children = np.empty((size, 2), np.int64)
-    nodes = _tree_jit.kd_tree(
+    nodes = _kd_jit.kd_tree(
         np.ascontiguousarray(points, dtype=np.float64), leaf_size, order, starts, stops, children
     )
     return order, starts[:nodes].copy(), stops[:nodes].copy(), children[:nodes].copy()
@@ -65,7 +65,7 @@ class _TreeOperator:
         self.radii = np.zeros(nodes)
         self.second = np.zeros((nodes, dim, dim))
         self.effective = np.zeros(nodes)
-        _tree_jit.node_geometry(
+        _tree_moments.node_geometry(
             self.controls, self.starts, self.stops, self.centroids, self.radii, self.second,
             self.effective,
         )  # fmt: skip
@@ -134,7 +134,7 @@ class _TreeOperator:
             first = np.zeros((nodes, columns, dim))
             second = np.zeros((nodes, columns, dim, dim))
             if not transpose:
-                _tree_jit.node_moments(
+                _tree_moments.node_moments(
                     self.controls, values, self.starts, self.stops, self.centroids,
                     zeroth, first, second,
                 )  # fmt: skip
@@ -159,7 +159,7 @@ class _TreeOperator:
             )  # fmt: skip
             if transpose:
                 total = out.sum(axis=0)
-                _tree_jit.push_down(
+                _tree_moments.push_down(
                     self.controls, self.starts, self.stops, self.centroids,
                     node_zeroth.sum(axis=0), node_first.sum(axis=0), node_second.sum(axis=0),
                     total,
