@@ -1,9 +1,10 @@
 """The numba traversal of the tree-approximated IDW (:mod:`torchmorph.idw.tree`; the
 trees are built by :mod:`._kd_jit`, the nodes' moments by :mod:`._tree_moments`): one
-traversal per block of targets that sums near leaves exactly and accepted far nodes by a second-order
-(quadrupole) expansion of ``|x - y|^-p`` about the node's centroid, with a rigorous
-bound on each accepted node's error. The same traversal, run with ``transpose=True``,
-applies the transpose of the operator it built (the backward pass to the displacements).
+traversal per block of targets that sums near leaves exactly and accepted far nodes by
+a second-order (quadrupole) expansion of ``|x - y|^-p`` about the node's centroid, with
+a rigorous bound on each accepted node's error. The same traversal, run with
+``transpose=True``, applies the transpose of the operator it built (the backward pass to
+the displacements).
 
 Notation (all arithmetic in float64): a node holds ``n`` controls ``y_k`` about their
 centroid ``c`` within the radius ``rho``; for a target ``x`` put ``r = x - c``,
