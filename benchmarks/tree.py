@@ -10,8 +10,10 @@ For each N_t: the exact fused sum's time (measured on all targets up to
 linearly, said so in the table); for each tolerance, the tree's build time, its first
 call (the tolerance's scale calibrated against the certified bound, up to
 ``CERTIFY_ATTEMPTS`` traversals) and a second call (the calibrated operator: one
-traversal), the speed-up of the second call over the exact sum, the certified bound and
-the relative 2-norm error measured at ``--sample`` targets against float64 exact sums.
+traversal), the transposed operator applied to the result (``TreeIDW.transposed``, the
+gradient's pass; its second application), the speed-up of the second call over the
+exact sum, the certified bound and the relative 2-norm error measured at ``--sample``
+targets against float64 exact sums.
 Exponents: least-squares slopes of log(time) against log(N_t) (N_c grows with N_t, so an
 exact sum grows as N_t²).
 
@@ -118,6 +120,8 @@ def main() -> None:
                 )
                 first, _ = timed(lambda module=module: module(displacements))
                 second, result = timed(lambda module=module: module(displacements))
+                module.transposed(result)  # sampled: the transpose's own threshold's sums
+                transposed, _ = timed(lambda module=module: module.transposed(result))
                 if mode == "sampled":
                     tree_times[tolerance].append(second)
                 measured_rows = result[rows_sample].double()
@@ -125,6 +129,7 @@ def main() -> None:
                 rows.append(
                     f"| {n_targets:,} | {n_controls:,} | {exact_time:.3g} s{scaled} | {mode} "
                     f"| {tolerance:g} | {build:.3g} s | {first:.3g} s | {second:.3g} s "
+                    f"| {transposed:.3g} s "
                     f"| {exact_time / second:.1f}x | {max(module.last_bound_):.2e} | {error:.2e} |"
                 )
                 print(rows[-1], flush=True)
@@ -132,9 +137,9 @@ def main() -> None:
     print()
     print(
         "| N_t | N_c | exact fused | error control | tolerance | tree build | first call "
-        "| second call | exact / second | certified bound | measured error |"
+        "| second call | transposed | exact / second | certified bound | measured error |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         print(row)
     if len(sizes) > 1:

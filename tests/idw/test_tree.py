@@ -269,7 +269,9 @@ def test_transposed_is_the_exact_transpose_within_tolerance(kind, called_first, 
     for index, values in enumerate((smooth, noise)):
         exact = exact_transpose(controls, targets, values)
         assert relative_error(batched[index], exact) <= tolerance
-        torch.testing.assert_close(module.transposed(values), batched[index], rtol=0, atol=0)
+        # one field takes its own kernels, a batch the general ones: equal to rounding
+        single = module.transposed(values)
+        assert float((single - batched[index]).abs().max()) <= 1e-13 * float(exact.abs().max())
     if error_control == "sampled":  # Aᵀ at a tighter threshold than A's
         return
     result = module(displacements)  # the operator the transpose now uses
