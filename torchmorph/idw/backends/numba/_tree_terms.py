@@ -88,14 +88,13 @@ def _leaf_by_controls(
     dim, columns = controls_t.shape[0], values_t.shape[0]
     width = stop - start
     zero = ref2 - ref2  # 0 in the leaf's dtype
-    summed = dim == 3 and columns == 3  # one 3-D field: one pass, no scratch
-    if summed:  # transposed: values_t is zero, the products unused, the sums the same bits
+    if dim == 3 and columns == 3:  # one 3-D field: its own kernels, no scratch
+        # transposed: values_t is zero, the products unused, the sums the same bits
         _leaf_field3(local, controls_t, values_t, start, stop, rows, ref2, half_power, mode,
                      sums, numerator)  # fmt: skip
-        if not transpose:
-            return
-        _leaf_field3_transposed(local, controls_t, start, stop, rows, ref2, half_power, mode,
-                                scaled, out)  # fmt: skip
+        if transpose:
+            _leaf_field3_transposed(local, controls_t, start, stop, rows, ref2, half_power,
+                                    mode, scaled, out)  # fmt: skip
         return
     for t in range(rows):
         total = zero
@@ -130,8 +129,7 @@ def _leaf_by_controls(
                 w = _power_of_ratio(ref2 / weight[k], half_power, mode)
                 weight[k] = w
                 total += w
-        if not summed:
-            sums[t] += total
+        sums[t] += total
         if transpose:
             for column in range(scaled.shape[0]):
                 g = scaled[column, t]
