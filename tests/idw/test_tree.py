@@ -182,6 +182,42 @@ def test_one_field_paths_equal_the_batch_paths_at_a_fixed_threshold(power, singl
     assert 0 < np.abs(one - exact).max()  # the far field was used
 
 
+def test_a_first_sampled_call_tunes_on_the_sampled_targets_blocks(monkeypatch):
+    """The first call in sampled mode tunes η on the blocks holding the sampled targets
+    (their rows are those of a whole traversal, to the bit), then traverses every block
+    once; the result holds the tolerance against exact float64 sums."""
+    import torchmorph.idw.tree as tree_module
+    from torchmorph.idw._tree_operator import _TreeOperator
+
+    monkeypatch.setattr(tree_module, "SAMPLE_TARGETS", 64)
+    generator = torch.Generator().manual_seed(5)
+    controls = sphere(2000, generator)
+    exponent = torch.rand(20000, 1, generator=generator, dtype=torch.float64) * 4
+    targets = sphere(20000, generator) * (1 - 10 ** (-exponent))
+    module = TreeIDW(controls, targets, tolerance=1e-3, error_control="sampled")
+    operator = module._operator
+    blocks = module._sample_blocks
+    assert blocks is not None and 4 * blocks.size <= operator.block_starts.size - 1
+    traversed = []
+    apply = _TreeOperator.apply
+
+    def recording(self, values, eta, single=False, blocks=None):
+        traversed.append(blocks)
+        return apply(self, values, eta, single, blocks)
+
+    monkeypatch.setattr(_TreeOperator, "apply", recording)
+    result = module(field(controls))
+    assert sum(blocks is None for blocks in traversed) == 1 and len(traversed) >= 2
+    assert relative_error(result, brute_force(controls, targets, field(controls), 4.0)) <= 1e-3
+    values, eta = field(controls).numpy(), module._applied[0]
+    positions = operator.target_rank[module._sample_rows().numpy()]
+    whole = apply(operator, values, eta)[0][positions]
+    assert np.array_equal(apply(operator, values, eta, blocks=blocks)[0][positions], whole)
+    traversed.clear()
+    module(field(controls))  # later calls: one whole traversal at the tuned η
+    assert traversed == [None]
+
+
 def test_gradient_is_the_transpose():
     """<A d, g> = <d, Aᵀ g> for the operator a call used, at a tolerance where the far
     field is active, close to the exact Wᵀ g (controls under coincident targets included)."""

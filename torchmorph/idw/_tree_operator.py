@@ -114,7 +114,7 @@ class _TreeOperator:
             nearest, _ = searcher.query(centres, k=1)
         return np.maximum(nearest - radius, math.sqrt(self.radius2))
 
-    def _run(self, values, scaled, eta, transpose, single, coincident=None):
+    def _run(self, values, scaled, eta, transpose, single, coincident=None, blocks=None):
         n_targets, n_controls = self.targets.shape[0], self.controls.shape[0]
         columns, dim = values.shape[1], self.controls.shape[1]
         nodes = self.starts.shape[0]
@@ -156,6 +156,7 @@ class _TreeOperator:
                 self.radius2, transpose, groups, sums, numerator, bounds, coincident,
                 coincident_sum, node_zeroth, node_first, node_second, out, self.max_leaf,
                 references, controls_leaf, values_t.astype(dtype, copy=False),
+                np.arange(self.block_starts.shape[0] - 1) if blocks is None else blocks,
             )  # fmt: skip
             if transpose:
                 total = out.sum(axis=0)
@@ -167,14 +168,16 @@ class _TreeOperator:
                 return total
         return sums, numerator, bounds, coincident, coincident_sum
 
-    def apply(self, values: np.ndarray, eta: float, single: bool = False):
+    def apply(self, values: np.ndarray, eta: float, single: bool = False, blocks=None):
         """(u' in the targets' tree order, S', the per-target bound E / (S' - E) on
         ``|u' - u| / Δ``, the coincident counts); ``values`` (N_c, K) in control order;
-        ``single``: the leaves' exact sums in float32."""
+        ``single``: the leaves' exact sums in float32; ``blocks``: the indices of the
+        target blocks to traverse (default all; the others' rows are left at zero, their
+        results the same to the bit as in a whole traversal)."""
         values = np.ascontiguousarray(values[self.control_order])
         empty = np.zeros((self.targets.shape[0], values.shape[1]))
         sums, numerator, bounds, coincident, coincident_sum = self._run(
-            values, empty, eta, False, single
+            values, empty, eta, False, single, blocks=blocks
         )
         result = numerator / np.where(sums > 0, sums, 1.0)[:, None]
         hit = coincident > 0

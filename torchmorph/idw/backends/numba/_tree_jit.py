@@ -347,10 +347,11 @@ def traverse(
     targets, block_starts, references, controls_t, values_t, scaled, children, starts, stops,
     centroids, radii, second_geometry, effective, zeroth, first, second, power, mode, eta,
     radius2, transpose, groups, sums, numerator, bounds, coincident, coincident_sum, node_zeroth,
-    node_first, node_second, out, max_leaf, ref2_leaf, controls_leaf, values_leaf,
+    node_first, node_second, out, max_leaf, ref2_leaf, controls_leaf, values_leaf, visit,
 ):  # fmt: skip
-    """Every block of targets against the tree, in parallel over ``groups`` groups of
-    blocks (each with its own transposed accumulators ``node_*[group]``, ``out[group]``).
+    """The blocks of targets listed in ``visit`` against the tree, in parallel over ``groups``
+    groups of them (each with its own transposed accumulators ``node_*[group]``,
+    ``out[group]``); each block's results depend on that block alone.
 
     A node of ``n`` controls (effective count ``m``, see :func:`node_geometry`) is accepted
     for a block when its bound ``δ_t`` at each target of the block satisfies
@@ -358,14 +359,15 @@ def traverse(
     summed so far for that target (a lower bound of its S, near nodes first); the block is
     tested at once first (``δ`` at its nearest target, the smallest ``L_t``, its farthest
     target), then target by target. Summed over accepted nodes the first term stays below
-    ``(η/2) S``, the second below ``(η/2)`` times the far nodes' share of S, so ``E = Σ m δ <= η S`` for every target. Leaves not accepted are summed exactly;
+    ``(η/2) S``, the second below ``(η/2)`` times the far nodes' share of S, so
+    ``E = Σ m δ <= η S`` for every target. Leaves not accepted are summed exactly;
     a target within ``radius2`` of a control is coincident (counted, its values summed).
     Forward (``transpose=False``): ``sums``, ``numerator``, ``bounds`` (E) and the
     coincident counts and sums. Transposed: ``out[group] += Aᵀ scaled`` by leaves and by
     per-node coefficients (spread by :func:`push_down`), ``scaled`` holding grad / S'."""
-    blocks = block_starts.shape[0] - 1
     for group in prange(groups):
-        for block in range(group, blocks, groups):
+        for index in range(group, visit.shape[0], groups):
+            block = visit[index]
             _visit_block(
                 block_starts[block], block_starts[block + 1], targets, references[block],
                 controls_t, values_t, scaled, children, starts, stops, centroids, radii,
