@@ -75,6 +75,7 @@ class _TreeOperator:
         self.targets = np.ascontiguousarray(targets[target_order])
         leaves = np.sort(starts[children[:, 0] < 0]) if targets.shape[0] else starts[:0]
         self.block_starts = np.append(leaves, targets.shape[0]).astype(np.int64)
+        self.all_blocks = np.arange(self.block_starts.shape[0] - 1)  # what a traversal visits
         self.references = self._references(cKDTree(self.controls))
         self._leaves: dict[type, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -156,7 +157,7 @@ class _TreeOperator:
                 self.radius2, transpose, groups, sums, numerator, bounds, coincident,
                 coincident_sum, node_zeroth, node_first, node_second, out, self.max_leaf,
                 references, controls_leaf, values_t.astype(dtype, copy=False),
-                np.arange(self.block_starts.shape[0] - 1) if blocks is None else blocks,
+                self.all_blocks if blocks is None else blocks,
             )  # fmt: skip
             if transpose:
                 total = out.sum(axis=0)

@@ -360,15 +360,31 @@ class TreeIDW(nn.Module):
         flat = values.detach().double().numpy()
         single = values.dtype == torch.float32
         positions = operator.target_rank[self._sample_rows().numpy()]
-        best = None
-        for _ in range(CERTIFY_ATTEMPTS):
+
+        def trial(eta: float) -> tuple[float, None]:
             result = operator.apply(flat, eta, single, blocks=self._sample_blocks)[0]
-            worst = max(_sampled(torch.from_numpy(result[positions]), exact, dim))
+            return max(_sampled(torch.from_numpy(result[positions]), exact, dim)), None
+
+        best, _, eta = self._tune(eta, trial, goal, largest, certified=False, stop=False)
+        return (eta, False) if best is None else (best[0], True)
+
+    def _tune(self, eta, trial, goal, largest, *, certified, stop):
+        """The search for ``η`` (see the module's notes): ``trial(η)`` gives the worst error
+        (bound or sampled) and what the caller keeps; below ``goal`` and far below it ``η`` is
+        raised, above it lowered, up to :data:`CERTIFY_ATTEMPTS` trials, ``self._calibration``
+        following. Returns ``(η, kept)`` of the last trial within ``goal`` (None if none was),
+        the last trial's ``kept`` and the last ``η``. ``stop``: keep the first within ``goal``."""
+        best, kept = None, None
+        loosen = LOOSEN if certified else SAMPLED_LOOSEN
+        for _ in range(CERTIFY_ATTEMPTS):
+            worst, kept = trial(eta)
             if worst <= goal:
-                best = eta
-                if worst > goal / SAMPLED_LOOSEN or eta >= largest:
+                best = (eta, kept)
+                if worst > goal / loosen or eta >= largest or stop:
                     break
-                factor = min((0.5 * goal / max(worst, 1e-300)) ** SAMPLED_GROWTH, 1e2)
+                # far below the goal: accept more nodes (the check is repeated)
+                factor = 0.5 * goal / max(worst, 1e-300)
+                factor = min(factor, 1e3) if certified else min(factor**SAMPLED_GROWTH, 1e2)
             elif best is not None:
                 self._calibration /= 4
                 break
@@ -376,7 +392,7 @@ class TreeIDW(nn.Module):
                 factor = max(0.5 * goal / worst, 1 / 64) if math.isfinite(worst) else 1 / 4
             self._calibration *= factor
             eta = min(largest, eta * factor)
-        return (eta, False) if best is None else (best, True)
+        return best, kept, eta
 
     def forward(self, displacements: Tensor) -> Tensor:
         """u at the targets, shape (N_t, D) or (B, N_t, D) like ``displacements``
@@ -417,31 +433,21 @@ class TreeIDW(nn.Module):
             and self._sample_blocks is not None
         ):
             eta, settled = self._sample_calibration(values, eta, exact, goal, largest, dim)
-        best = None
-        for _ in range(CERTIFY_ATTEMPTS):
+
+        def trial(eta: float):
             state: dict = {}
             result = _TreeApply.apply(values, operator, eta, state)
             with torch.no_grad():
                 bounds = self._certify(result, spread, batch, dim, state)
                 errors = bounds if certified else _sampled(result[sampled_rows], exact, dim)
-            worst = max(errors)
-            if worst <= goal:
-                best = (result, bounds, errors, eta, state)
-                loosen = LOOSEN if certified else SAMPLED_LOOSEN
-                if worst > goal / loosen or eta >= largest or not live.any() or settled:
-                    break
-                # far below the goal: accept more nodes (the check is repeated)
-                factor = 0.5 * goal / max(worst, 1e-300)
-                factor = min(factor, 1e3) if certified else min(factor**SAMPLED_GROWTH, 1e2)
-            elif best is not None:
-                self._calibration /= 4
-                break
-            else:
-                factor = max(0.5 * goal / worst, 1 / 64) if math.isfinite(worst) else 1 / 4
-            self._calibration *= factor
-            eta = min(largest, eta * factor)
+            return max(errors), (result, bounds, errors, state)
+
+        stop = settled or not live.any()
+        best, (result, bounds, errors, state), eta = self._tune(
+            eta, trial, goal, largest, certified=certified, stop=stop
+        )
         if best is not None:
-            result, bounds, errors, eta, state = best
+            eta, (result, bounds, errors, state) = best
         else:
             what = "error bound" if certified else "sampled error"
             warnings.warn(

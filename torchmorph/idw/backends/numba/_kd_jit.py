@@ -4,20 +4,9 @@ of a permutation of the points."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
-if TYPE_CHECKING:
-    from numba import njit
-else:
-    try:
-        from numba import njit
-    except ImportError:  # pragma: no cover - exercised where numba is absent
-
-        def njit(*args, **kwargs):
-            return lambda function: function
-
+from torchmorph.idw.backends.numba._jit import njit  # numba's, or a stand-in without it
 
 STACK = 256
 """Depth of a traversal's stack of nodes (a kd-tree of median splits is ~log2(N) deep,

@@ -6,21 +6,8 @@ of the transposed far field's per-node coefficients back to the controls."""
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from numba import njit, prange
-else:
-    try:
-        from numba import njit, prange
-    except ImportError:  # pragma: no cover - exercised where numba is absent
-        prange = range
-
-        def njit(*args, **kwargs):
-            return lambda function: function
-
-
-from torchmorph.idw.backends.numba._jit import _OPTIONS
+from torchmorph.idw.backends.numba._jit import _OPTIONS, njit, prange  # numba's, or stand-ins
 
 
 @njit(**_OPTIONS)

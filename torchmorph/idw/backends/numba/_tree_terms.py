@@ -8,20 +8,7 @@ so that their acceptance decisions agree to the bit."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from numba import njit
-else:
-    try:
-        from numba import njit
-    except ImportError:  # pragma: no cover - exercised where numba is absent
-
-        def njit(*args, **kwargs):
-            return lambda function: function
-
-
-from torchmorph.idw.backends.numba._jit import _OPTIONS
+from torchmorph.idw.backends.numba._jit import _OPTIONS, njit  # numba's, or stand-ins
 
 
 @njit(**_OPTIONS)
