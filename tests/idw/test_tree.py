@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from torchmorph.idw import idw_apply, idw_weights
+from torchmorph.idw._tree_threshold import REFINE_BAND
 from torchmorph.idw.backends.numba.kernels import available
 from torchmorph.idw.tree import SAMPLE_SAFETY, TreeIDW, idw_tree_apply
 
@@ -80,6 +81,32 @@ def test_sampled_tolerance_holds_against_exact_float64(kind, tolerance):
         result = module(displacements)
         assert relative_error(result, exact) <= tolerance
         assert max(module.last_sampled_error_) <= tolerance / SAMPLE_SAFETY
+
+
+@pytest.mark.parametrize("tolerance", [1e-3, 1e-5, 1e-6])
+def test_sampled_float32_reference_from_single_reference_up(monkeypatch, tolerance):
+    """Float32 inputs: the sampled check takes the float32 fused sums (float64 partial
+    sums) from SINGLE_REFERENCE up and float64 sums below; the tolerance holds against
+    float64 sums either way."""
+    import torchmorph.idw.tree as tree_module
+
+    generator = torch.Generator().manual_seed(9)
+    controls, targets = (points.float() for points in cloud("graded", generator))
+    displacements = field(controls.double()).float()
+    exact = brute_force(controls, targets, displacements, 4.0)
+    references = []
+
+    def recording(**arguments):
+        references.append(arguments["controls"].dtype)
+        return idw_apply(**arguments)
+
+    monkeypatch.setattr(tree_module, "idw_apply", recording)
+    module = TreeIDW(controls, targets, tolerance=tolerance, error_control="sampled")
+    result = module(displacements)
+    single = tolerance >= tree_module.SINGLE_REFERENCE
+    assert references == [torch.float32 if single else torch.float64]
+    assert result.dtype == torch.float32
+    assert relative_error(result, exact) <= max(tolerance, 1e-6)
 
 
 @pytest.mark.parametrize("error_control", ["certified", "sampled"])
@@ -184,8 +211,9 @@ def test_one_field_paths_equal_the_batch_paths_at_a_fixed_threshold(power, singl
 
 def test_a_first_sampled_call_tunes_on_the_sampled_targets_blocks(monkeypatch):
     """The first call in sampled mode tunes η on the blocks holding the sampled targets
-    (their rows are those of a whole traversal, to the bit), then traverses every block
-    once; the result holds the tolerance against exact float64 sums."""
+    (their rows are those of a whole traversal, to the bit) until the sampled error is
+    near the goal, then traverses every block once; the result holds the tolerance
+    against exact float64 sums; the next call keeps that η."""
     import torchmorph.idw.tree as tree_module
     from torchmorph.idw._tree_operator import _TreeOperator
 
@@ -194,7 +222,7 @@ def test_a_first_sampled_call_tunes_on_the_sampled_targets_blocks(monkeypatch):
     controls = sphere(2000, generator)
     exponent = torch.rand(20000, 1, generator=generator, dtype=torch.float64) * 4
     targets = sphere(20000, generator) * (1 - 10 ** (-exponent))
-    module = TreeIDW(controls, targets, tolerance=1e-3, error_control="sampled")
+    module = TreeIDW(controls, targets, tolerance=1e-4, error_control="sampled")
     operator = module._operator
     blocks = module._sample_blocks
     assert blocks is not None and 4 * blocks.size <= operator.block_starts.size - 1
@@ -208,14 +236,17 @@ def test_a_first_sampled_call_tunes_on_the_sampled_targets_blocks(monkeypatch):
     monkeypatch.setattr(_TreeOperator, "apply", recording)
     result = module(field(controls))
     assert sum(blocks is None for blocks in traversed) == 1 and len(traversed) >= 2
-    assert relative_error(result, brute_force(controls, targets, field(controls), 4.0)) <= 1e-3
+    assert relative_error(result, brute_force(controls, targets, field(controls), 4.0)) <= 1e-4
     values, eta = field(controls).numpy(), module._applied[0]
     positions = operator.target_rank[module._sample_rows().numpy()]
     whole = apply(operator, values, eta)[0][positions]
     assert np.array_equal(apply(operator, values, eta, blocks=blocks)[0][positions], whole)
+    # the cheap traversals of the sampled blocks brought the sampled error near the goal
+    goal = 1e-4 / tree_module.SAMPLE_SAFETY
+    assert REFINE_BAND * goal <= max(module.last_sampled_error_) <= goal
     traversed.clear()
     module(field(controls))  # later calls: one whole traversal at the tuned η
-    assert traversed == [None]
+    assert traversed == [None] and module._applied[0] == eta
 
 
 def test_gradient_is_the_transpose():

@@ -44,7 +44,7 @@ per-target bound, ``B = (Σ_i b_i²)^½`` and ``‖u'‖ - B <= ‖u‖``, the c
 bound ``B / (‖u'‖ - B) <= tolerance`` implies ``‖u' - u‖ / ‖u‖ <= tolerance`` in the
 2-norm over all targets, for each displacement field of a batch. When the certificate
 fails ``η`` is divided by 4 and the traversal repeated; when it holds with room (below
-``tolerance / LOOSEN``), ``η`` is raised towards the tolerance and the traversal
+``tolerance / LOOSEN`` of :mod:`~torchmorph.idw._tree_threshold`), ``η`` is raised towards the tolerance and the traversal
 repeated, keeping the last certified result; a :class:`TreeIDW` remembers the factor
 for its later calls. The bound is worst-case (it ignores the cancellations of the odd
 Gegenbauer terms and the smoothness of ``d``): measured errors are 100-3000 times below
@@ -56,9 +56,10 @@ Sampled error control
 ---------------------
 ``error_control="sampled"`` uses the same traversal with a larger ``η``, tuned until the
 relative 2-norm error at :data:`SAMPLE_TARGETS` targets (evenly spaced in the targets'
-order), measured against exact float64 sums of the fused kernels, is below
-``tolerance / SAMPLE_SAFETY`` (``η`` is raised while it is below a further factor
-:data:`SAMPLED_LOOSEN`). That is an estimate of the error over all targets, not a bound: it
+order), measured against exact sums of the fused kernels (float64; for float32 inputs
+the float32 kernels, whose partial sums are float64, from :data:`SINGLE_REFERENCE` up),
+is below ``tolerance / SAMPLE_SAFETY`` (``η`` is raised while it is below a further factor
+:data:`~torchmorph.idw._tree_threshold.SAMPLED_LOOSEN`). That is an estimate of the error over all targets, not a bound: it
 holds on the clouds of the tests (uniform; surface controls with targets filling the
 volume; graded by 10^4) and of the benchmark, where the error at 2,000 targets came out
 1.5-3 times below the tolerance (1e-3 to 1e-6), but a field whose error concentrates on
@@ -66,8 +67,11 @@ a few targets missed by the sample can exceed it. ``last_bound_`` still reports 
 certified bound of the result. A module's first call tunes ``η`` by traversing only the
 blocks of targets that hold the sampled ones (a block's results do not depend on the
 others, so the sampled rows come out as in a whole traversal), where those are at most a
-:data:`SAMPLE_BLOCKS`-th of the blocks, and then traverses every block once; later calls
-start from the tuned ``η`` with a whole traversal.
+:data:`SAMPLE_BLOCKS`-th of the blocks: there, up to ``REFINE_TRIALS`` further cheap
+traversals raise ``η`` until the sampled error is within ``[REFINE_BAND, 1]`` times the
+goal (on the benchmark at 10^6 × 10^5, 1e-4: one more, 0.19 s, and every call 10 %
+faster). It then traverses every block once; later calls start from the tuned ``η`` with a
+whole traversal.
 
 Exactness and gradients
 -----------------------
@@ -117,6 +121,7 @@ from torchmorph._checks import (
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph.idw._geometry import check_tolerance, normalise
 from torchmorph.idw._tree_operator import TARGET_BLOCK, _TreeApply, _TreeOperator
+from torchmorph.idw._tree_threshold import refine, search
 from torchmorph.idw.backends.numba.kernels import available
 from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE, idw_apply
 
@@ -144,23 +149,9 @@ DEFAULT_LEAF_SIZE = 64
 SAMPLE_TARGETS = 1024
 """Targets at which exact sums estimate ``rms(u)``, the scale of the tolerance."""
 
-CERTIFY_ATTEMPTS = 4
-"""Traversals per call at most: ``η`` divided by 4 after a bound above the tolerance,
-multiplied up to ``tolerance / (2 bound)`` after one below ``tolerance / LOOSEN``."""
-
-LOOSEN = 4.0
-
 SAMPLE_SAFETY = 1.5
 """``error_control="sampled"``: the error measured at the sampled targets must stay
 below ``tolerance / SAMPLE_SAFETY``."""
-
-SAMPLED_LOOSEN = 2.0
-"""``error_control="sampled"``: ``η`` is raised while the sampled error is below
-``tolerance / (SAMPLE_SAFETY · SAMPLED_LOOSEN)``."""
-
-SAMPLED_GROWTH = 1.6
-"""``error_control="sampled"``: the measured error grows about as ``η^0.6`` on the
-benchmark's clouds, so ``η`` is raised by ``(goal / (2 error))^SAMPLED_GROWTH``."""
 
 SAMPLED_START = 300.0
 """``error_control="sampled"``: the first ``η`` of a :class:`TreeIDW`, ``SAMPLED_START``
@@ -176,6 +167,11 @@ SAMPLE_BLOCKS = 4
 """``error_control="sampled"``: a first call tunes ``η`` on the blocks of targets that hold
 the sampled targets alone (then traverses all blocks once) when they are at most
 ``1 / SAMPLE_BLOCKS`` of the blocks."""
+
+SINGLE_REFERENCE = 1e-5
+"""For float32 inputs at tolerances from this up, the exact sums at the sampled targets are
+the float32 fused kernels' (float64 partial sums; within 1e-7 of float64 sums on the
+benchmark's clouds, 2 % of the goal at 1e-5; half the time of float64 sums)."""
 
 SAMPLED_ETA_LIMIT = 100.0
 """``error_control="sampled"``: the largest ``η`` tried (nodes still need ``ρ < R``)."""
@@ -332,17 +328,20 @@ class TreeIDW(nn.Module):
 
     def _scale(self, values64: Tensor, batch: int, dim: int):
         """Per field: Δ, the diameter of its bounding box; rms(u) at sampled targets; and
-        (the sampled rows, their exact float64 values (B, rows, D))."""
+        (the sampled rows, their exact values (B, rows, D) in float64; the float32 fused
+        sums for float32 inputs at tolerances from :data:`SINGLE_REFERENCE` up)."""
         fields = values64.reshape(-1, batch, dim)
         spread = (fields.amax(0) - fields.amin(0)).norm(dim=1).numpy()
         rows = self._sample_rows()
+        single = self.controls.dtype == torch.float32 and self.tolerance >= SINGLE_REFERENCE
+        dtype = torch.float32 if single else torch.float64
         sample = idw_apply(
-            controls=self.controls.double(),
-            targets=self.targets.double()[rows],
-            displacements=fields.permute(1, 0, 2),
+            controls=self.controls.to(dtype),
+            targets=self.targets[rows].to(dtype),
+            displacements=fields.permute(1, 0, 2).to(dtype),
             power=self.power,
             coincidence_tolerance=self.coincidence_tolerance,
-        )
+        ).double()
         rms = sample.square().sum(-1).mean(-1).sqrt().numpy()
         return spread, rms, (rows, sample)
 
@@ -354,44 +353,28 @@ class TreeIDW(nn.Module):
     def _sample_calibration(self, values, eta, exact, goal, largest, dim) -> tuple[float, bool]:
         """``error_control="sampled"``, first call: ``η`` tuned as :meth:`forward` tunes it,
         by traversals of the blocks that hold the sampled targets only (each block's results
-        are those of a whole traversal, to the bit: 1/15 of the work at 10^6 targets).
-        Returns ``η`` and whether the sampled error is within ``goal`` there."""
+        are those of a whole traversal, to the bit: 1/15 of the work at 10^6 targets), then
+        refined there. Returns ``η`` and whether the sampled error is within ``goal``."""
         operator = self._operator
         flat = values.detach().double().numpy()
         single = values.dtype == torch.float32
         positions = operator.target_rank[self._sample_rows().numpy()]
+        tried: dict[float, float] = {}  # η -> the sampled error
 
         def trial(eta: float) -> tuple[float, None]:
             result = operator.apply(flat, eta, single, blocks=self._sample_blocks)[0]
-            return max(_sampled(torch.from_numpy(result[positions]), exact, dim)), None
+            tried[eta] = max(_sampled(torch.from_numpy(result[positions]), exact, dim))
+            return tried[eta], None
 
         best, _, eta = self._tune(eta, trial, goal, largest, certified=False, stop=False)
-        return (eta, False) if best is None else (best[0], True)
+        if best is None:
+            return eta, False
+        return refine(best[0], tried, trial, goal, largest), True
 
     def _tune(self, eta, trial, goal, largest, *, certified, stop):
-        """The search for ``η`` (see the module's notes): ``trial(η)`` gives the worst error
-        (bound or sampled) and what the caller keeps; below ``goal`` and far below it ``η`` is
-        raised, above it lowered, up to :data:`CERTIFY_ATTEMPTS` trials, ``self._calibration``
-        following. Returns ``(η, kept)`` of the last trial within ``goal`` (None if none was),
-        the last trial's ``kept`` and the last ``η``. ``stop``: keep the first within ``goal``."""
-        best, kept = None, None
-        loosen = LOOSEN if certified else SAMPLED_LOOSEN
-        for _ in range(CERTIFY_ATTEMPTS):
-            worst, kept = trial(eta)
-            if worst <= goal:
-                best = (eta, kept)
-                if worst > goal / loosen or eta >= largest or stop:
-                    break
-                # far below the goal: accept more nodes (the check is repeated)
-                factor = 0.5 * goal / max(worst, 1e-300)
-                factor = min(factor, 1e3) if certified else min(factor**SAMPLED_GROWTH, 1e2)
-            elif best is not None:
-                self._calibration /= 4
-                break
-            else:
-                factor = max(0.5 * goal / worst, 1 / 64) if math.isfinite(worst) else 1 / 4
-            self._calibration *= factor
-            eta = min(largest, eta * factor)
+        """:func:`~torchmorph.idw._tree_threshold.search`, ``self._calibration`` following."""
+        best, kept, eta, factor = search(eta, trial, goal, largest, certified=certified, stop=stop)
+        self._calibration *= factor
         return best, kept, eta
 
     def forward(self, displacements: Tensor) -> Tensor:
@@ -433,6 +416,7 @@ class TreeIDW(nn.Module):
             and self._sample_blocks is not None
         ):
             eta, settled = self._sample_calibration(values, eta, exact, goal, largest, dim)
+            self._calibration = eta / scale  # later calls start from the tuned η
 
         def trial(eta: float):
             state: dict = {}

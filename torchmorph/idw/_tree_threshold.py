@@ -1,0 +1,89 @@
+"""The search for the tree's acceptance threshold ``η`` (:mod:`torchmorph.idw.tree`): a
+trial traversal at ``η`` gives the worst error, the certified bound or the error at the
+sampled targets; ``η`` is raised while that error is far below the goal and lowered
+when it is above, a few traversals per call at most, and the factor is remembered for
+the module's later calls."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+__all__ = ["refine", "search"]
+
+CERTIFY_ATTEMPTS = 4
+"""Traversals per call at most: ``η`` divided by 4 after a bound above the tolerance,
+multiplied up to ``tolerance / (2 bound)`` after one below ``tolerance / LOOSEN``."""
+
+LOOSEN = 4.0
+
+SAMPLED_LOOSEN = 2.0
+"""``error_control="sampled"``: ``η`` is raised while the sampled error is below
+``tolerance / (SAMPLE_SAFETY · SAMPLED_LOOSEN)``."""
+
+SAMPLED_GROWTH = 1.6
+"""``error_control="sampled"``: the measured error grows about as ``η^0.6`` on the
+benchmark's clouds, so ``η`` is raised by ``(goal / (2 error))^SAMPLED_GROWTH``."""
+
+REFINE_TRIALS = 3
+"""``error_control="sampled"``, a first call tuned on the sampled targets' blocks: further
+traversals of those blocks (cheap) raising ``η`` while the sampled error is below
+``REFINE_BAND`` times the goal, each aimed at ``REFINE_AIM`` times it."""
+
+REFINE_BAND = 0.75
+
+REFINE_AIM = 0.9
+
+Trial = Callable[[float], tuple[float, Any]]
+
+
+def search(
+    eta: float, trial: Trial, goal: float, largest: float, *, certified: bool, stop: bool
+) -> tuple[tuple[float, Any] | None, Any, float, float]:
+    """``trial(η)`` gives the worst error (bound or sampled) and what the caller keeps;
+    below ``goal`` and far below it ``η`` is raised, above it lowered, up to
+    :data:`CERTIFY_ATTEMPTS` trials. Returns ``(η, kept)`` of the last trial within
+    ``goal`` (None if none was), the last trial's ``kept``, the last ``η`` and the factor
+    by which the module's calibration follows. ``stop``: keep the first within ``goal``."""
+    best, kept, calibration = None, None, 1.0
+    loosen = LOOSEN if certified else SAMPLED_LOOSEN
+    for _ in range(CERTIFY_ATTEMPTS):
+        worst, kept = trial(eta)
+        if worst <= goal:
+            best = (eta, kept)
+            if worst > goal / loosen or eta >= largest or stop:
+                break
+            # far below the goal: accept more nodes (the check is repeated)
+            factor = 0.5 * goal / max(worst, 1e-300)
+            factor = min(factor, 1e3) if certified else min(factor**SAMPLED_GROWTH, 1e2)
+        elif best is not None:
+            calibration /= 4
+            break
+        else:
+            factor = max(0.5 * goal / worst, 1 / 64) if math.isfinite(worst) else 1 / 4
+        calibration *= factor
+        eta = min(largest, eta * factor)
+    return best, kept, eta, calibration
+
+
+def refine(
+    eta: float, tried: dict[float, float], trial: Trial, goal: float, largest: float
+) -> float:
+    """``error_control="sampled"``: from ``η`` within ``goal``, further trials (cheap where
+    each traverses the sampled targets' blocks alone) raising it while its error is below
+    :data:`REFINE_BAND` times the goal, never to an ``η`` that failed (``tried``: every
+    ``η`` tried and its error, the new trials added). Returns the largest ``η`` within
+    ``goal``."""
+    failed = [key for key, error in tried.items() if error > goal]
+    ceiling = min(failed) if failed else None
+    for _ in range(REFINE_TRIALS):
+        if tried[eta] >= REFINE_BAND * goal or eta >= largest:
+            break
+        raised = eta * (REFINE_AIM * goal / max(tried[eta], 1e-300)) ** SAMPLED_GROWTH
+        raised = min(raised, largest if ceiling is None else math.sqrt(eta * ceiling))
+        if trial(raised)[0] <= goal:
+            eta = raised
+        else:
+            ceiling = raised
+    return eta
