@@ -10,7 +10,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["refine", "search"]
+__all__ = ["search"]
 
 CERTIFY_ATTEMPTS = 4
 """Traversals per call at most: ``η`` divided by 4 after a bound above the tolerance,
@@ -25,15 +25,6 @@ SAMPLED_LOOSEN = 2.0
 SAMPLED_GROWTH = 1.6
 """``error_control="sampled"``: the measured error grows about as ``η^0.6`` on the
 benchmark's clouds, so ``η`` is raised by ``(goal / (2 error))^SAMPLED_GROWTH``."""
-
-REFINE_TRIALS = 3
-"""``error_control="sampled"``, a first call tuned on the sampled targets' blocks: further
-traversals of those blocks (cheap) raising ``η`` while the sampled error is below
-``REFINE_BAND`` times the goal, each aimed at ``REFINE_AIM`` times it."""
-
-REFINE_BAND = 0.75
-
-REFINE_AIM = 0.9
 
 Trial = Callable[[float], tuple[float, Any]]
 
@@ -65,25 +56,3 @@ def search(
         calibration *= factor
         eta = min(largest, eta * factor)
     return best, kept, eta, calibration
-
-
-def refine(
-    eta: float, tried: dict[float, float], trial: Trial, goal: float, largest: float
-) -> float:
-    """``error_control="sampled"``: from ``η`` within ``goal``, further trials (cheap where
-    each traverses the sampled targets' blocks alone) raising it while its error is below
-    :data:`REFINE_BAND` times the goal, never to an ``η`` that failed (``tried``: every
-    ``η`` tried and its error, the new trials added). Returns the largest ``η`` within
-    ``goal``."""
-    failed = [key for key, error in tried.items() if error > goal]
-    ceiling = min(failed) if failed else None
-    for _ in range(REFINE_TRIALS):
-        if tried[eta] >= REFINE_BAND * goal or eta >= largest:
-            break
-        raised = eta * (REFINE_AIM * goal / max(tried[eta], 1e-300)) ** SAMPLED_GROWTH
-        raised = min(raised, largest if ceiling is None else math.sqrt(eta * ceiling))
-        if trial(raised)[0] <= goal:
-            eta = raised
-        else:
-            ceiling = raised
-    return eta

@@ -44,8 +44,8 @@ per-target bound, ``B = (Σ_i b_i²)^½`` and ``‖u'‖ - B <= ‖u‖``, the c
 bound ``B / (‖u'‖ - B) <= tolerance`` implies ``‖u' - u‖ / ‖u‖ <= tolerance`` in the
 2-norm over all targets, for each displacement field of a batch. When the certificate
 fails ``η`` is divided by 4 and the traversal repeated; when it holds with room (below
-``tolerance / LOOSEN`` of :mod:`~torchmorph.idw._tree_threshold`), ``η`` is raised towards the tolerance and the traversal
-repeated, keeping the last certified result; a :class:`TreeIDW` remembers the factor
+``tolerance / LOOSEN``, :mod:`~torchmorph.idw._tree_threshold`), ``η`` is raised towards
+the tolerance and the traversal repeated, keeping the last certified result; a :class:`TreeIDW` remembers the factor
 for its later calls. The bound is worst-case (it ignores the cancellations of the odd
 Gegenbauer terms and the smoothness of ``d``): measured errors are 100-3000 times below
 the certified bound on the clouds of the tests and benchmarks, so the tree accepts far
@@ -58,20 +58,18 @@ Sampled error control
 relative 2-norm error at :data:`SAMPLE_TARGETS` targets (evenly spaced in the targets'
 order), measured against exact sums of the fused kernels (float64; for float32 inputs
 the float32 kernels, whose partial sums are float64, from :data:`SINGLE_REFERENCE` up),
-is below ``tolerance / SAMPLE_SAFETY`` (``η`` is raised while it is below a further factor
-:data:`~torchmorph.idw._tree_threshold.SAMPLED_LOOSEN`). That is an estimate of the error over all targets, not a bound: it
-holds on the clouds of the tests (uniform; surface controls with targets filling the
-volume; graded by 10^4) and of the benchmark, where the error at 2,000 targets came out
-1.5-3 times below the tolerance (1e-3 to 1e-6), but a field whose error concentrates on
+is below ``tolerance / SAMPLE_SAFETY`` (``η`` is raised while it is below a further
+factor ``SAMPLED_LOOSEN``, :mod:`~torchmorph.idw._tree_threshold`). That is an estimate of
+the error over all targets, not a bound: it holds on the clouds of the tests (uniform;
+surface controls with targets filling the volume; graded by 10^4) and of the benchmark,
+where the error at 2,000 targets came out 1.5-3 times below the tolerance (1e-3 to
+1e-6), but a field whose error concentrates on
 a few targets missed by the sample can exceed it. ``last_bound_`` still reports the
 certified bound of the result. A module's first call tunes ``η`` by traversing only the
 blocks of targets that hold the sampled ones (a block's results do not depend on the
 others, so the sampled rows come out as in a whole traversal), where those are at most a
-:data:`SAMPLE_BLOCKS`-th of the blocks: there, up to ``REFINE_TRIALS`` further cheap
-traversals raise ``η`` until the sampled error is within ``[REFINE_BAND, 1]`` times the
-goal (on the benchmark at 10^6 × 10^5, 1e-4: one more, 0.19 s, and every call 10 %
-faster). It then traverses every block once; later calls start from the tuned ``η`` with a
-whole traversal.
+:data:`SAMPLE_BLOCKS`-th of the blocks, and then traverses every block once; later calls
+start from the tuned ``η`` with a whole traversal.
 
 Exactness and gradients
 -----------------------
@@ -121,7 +119,7 @@ from torchmorph._checks import (
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph.idw._geometry import check_tolerance, normalise
 from torchmorph.idw._tree_operator import TARGET_BLOCK, _TreeApply, _TreeOperator
-from torchmorph.idw._tree_threshold import refine, search
+from torchmorph.idw._tree_threshold import search
 from torchmorph.idw.backends.numba.kernels import available
 from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE, idw_apply
 
@@ -353,23 +351,19 @@ class TreeIDW(nn.Module):
     def _sample_calibration(self, values, eta, exact, goal, largest, dim) -> tuple[float, bool]:
         """``error_control="sampled"``, first call: ``η`` tuned as :meth:`forward` tunes it,
         by traversals of the blocks that hold the sampled targets only (each block's results
-        are those of a whole traversal, to the bit: 1/15 of the work at 10^6 targets), then
-        refined there. Returns ``η`` and whether the sampled error is within ``goal``."""
+        are those of a whole traversal, to the bit: 1/15 of the work at 10^6 targets).
+        Returns ``η`` and whether the sampled error is within ``goal`` there."""
         operator = self._operator
         flat = values.detach().double().numpy()
         single = values.dtype == torch.float32
         positions = operator.target_rank[self._sample_rows().numpy()]
-        tried: dict[float, float] = {}  # η -> the sampled error
 
         def trial(eta: float) -> tuple[float, None]:
             result = operator.apply(flat, eta, single, blocks=self._sample_blocks)[0]
-            tried[eta] = max(_sampled(torch.from_numpy(result[positions]), exact, dim))
-            return tried[eta], None
+            return max(_sampled(torch.from_numpy(result[positions]), exact, dim)), None
 
         best, _, eta = self._tune(eta, trial, goal, largest, certified=False, stop=False)
-        if best is None:
-            return eta, False
-        return refine(best[0], tried, trial, goal, largest), True
+        return (eta, False) if best is None else (best[0], True)
 
     def _tune(self, eta, trial, goal, largest, *, certified, stop):
         """:func:`~torchmorph.idw._tree_threshold.search`, ``self._calibration`` following."""
@@ -416,7 +410,6 @@ class TreeIDW(nn.Module):
             and self._sample_blocks is not None
         ):
             eta, settled = self._sample_calibration(values, eta, exact, goal, largest, dim)
-            self._calibration = eta / scale  # later calls start from the tuned η
 
         def trial(eta: float):
             state: dict = {}
