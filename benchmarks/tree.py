@@ -11,9 +11,12 @@ linearly, said so in the table); for each tolerance, the tree's build time, its 
 call (the tolerance's scale calibrated against the certified bound, up to
 ``CERTIFY_ATTEMPTS`` traversals) and a second call (the calibrated operator: one
 traversal), the transposed operator applied to the result (``TreeIDW.transposed``, the
-gradient's pass; its second application), the speed-up of the second call over the
-exact sum, the certified bound and the relative 2-norm error measured at ``--sample``
-targets against float64 exact sums.
+gradient's pass; its second application), a loop of ``--loop`` calls on fields turning
+from that field to a second one over a quarter turn (what a solver's loop hands over:
+the mean time per call and the traversals of all blocks in all, ``last_traversals_``;
+one per call where the threshold needs no retuning), the speed-up of the second call
+over the exact sum, the certified bound and the relative 2-norm error measured at
+``--sample`` targets against float64 exact sums.
 Exponents: least-squares slopes of log(time) against log(N_t) (N_c grows with N_t, so an
 exact sum grows as N_t²).
 
@@ -56,6 +59,12 @@ def field(points: torch.Tensor) -> torch.Tensor:
     return torch.stack([0.1 * x * y, 0.05 * torch.sin(3 * z), 0.02 + 0.1 * x * z], 1)
 
 
+def second_field(points: torch.Tensor) -> torch.Tensor:
+    """Another smooth field of the surface points (a twist-like mode), for the loop."""
+    x, y, z = points.unbind(1)
+    return torch.stack([0.05 * torch.sin(4 * x + y), 0.08 * x * z * z, 0.03 * torch.cos(5 * y)], 1)
+
+
 def timed(function):
     start = time.perf_counter()
     result = function()
@@ -76,6 +85,10 @@ def main() -> None:
         "--certified-limit", type=int, default=100_000,
         help="largest N_t at which error_control='certified' is timed as well",
     )  # fmt: skip
+    parser.add_argument(
+        "--loop", type=int, default=8,
+        help="calls on fields turning from one mode to another over a quarter turn",
+    )  # fmt: skip
     arguments = parser.parse_args()
     torch.set_num_threads(1)
     warm = fibonacci_sphere(200).float()  # numba compiles here, not in a timed first call
@@ -88,7 +101,7 @@ def main() -> None:
     for n_targets in sizes:
         n_controls = n_targets // 10
         controls64, targets64 = fibonacci_sphere(n_controls), graded_ball(n_targets, 1)
-        displacements64 = field(controls64)
+        displacements64, second_fields = field(controls64), second_field(controls64)
         controls, targets, displacements = (
             controls64.float(),
             targets64.float(),
@@ -125,6 +138,15 @@ def main() -> None:
                 second, result = timed(lambda module=module: module(displacements))
                 module.transposed(result)  # sampled: the transpose's own threshold's sums
                 transposed, _ = timed(lambda module=module: module.transposed(result))
+                loop, traversals = [], 0
+                for step in range(1, arguments.loop + 1):
+                    angle = 0.5 * math.pi * step / arguments.loop
+                    turned = (
+                        math.cos(angle) * displacements64 + math.sin(angle) * second_fields
+                    ).float()
+                    loop.append(timed(lambda module=module, turned=turned: module(turned))[0])
+                    traversals += module.last_traversals_
+                looped = f"{np.mean(loop):.3g} s, {traversals}" if arguments.loop else "–"
                 if mode == "sampled":
                     tree_times[tolerance].append(second)
                 measured_rows = result[rows_sample].double()
@@ -132,7 +154,7 @@ def main() -> None:
                 rows.append(
                     f"| {n_targets:,} | {n_controls:,} | {exact_time:.3g} s{scaled} | {mode} "
                     f"| {tolerance:g} | {build:.3g} s | {first:.3g} s | {second:.3g} s "
-                    f"| {transposed:.3g} s "
+                    f"| {transposed:.3g} s | {looped} "
                     f"| {exact_time / second:.1f}x | {max(module.last_bound_):.2e} | {error:.2e} |"
                 )
                 print(rows[-1], flush=True)
@@ -140,9 +162,10 @@ def main() -> None:
     print()
     print(
         "| N_t | N_c | exact fused | error control | tolerance | tree build | first call "
-        "| second call | transposed | exact / second | certified bound | measured error |"
+        "| second call | transposed | loop: mean call, traversals | exact / second "
+        "| certified bound | measured error |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         print(row)
     if len(sizes) > 1:

@@ -245,6 +245,59 @@ def test_a_first_sampled_call_tunes_on_the_sampled_targets_blocks(monkeypatch):
     assert traversed == [None] and module._applied[0] == eta
 
 
+@pytest.mark.parametrize(
+    ("error_control", "kind"),
+    [("sampled", "graded"), ("certified", "graded"), ("certified", "uniform")],
+)
+def test_repeated_calls_settle_to_one_traversal(error_control, kind):
+    """Where the error jumps past the goal between two thresholds, a failed raise is
+    remembered: calls settle to one traversal each (they used to raise, fail and
+    traverse 3-4 times on every call on these clouds), within the tolerance."""
+    generator = torch.Generator().manual_seed(5)
+    controls, targets = cloud(kind, generator)
+    displacements = field(controls)
+    exact = brute_force(controls, targets, displacements, 4.0)
+    module = TreeIDW(controls, targets, tolerance=1e-4, error_control=error_control)
+    traversals = []
+    for _ in range(8):
+        result = module(displacements)
+        traversals.append(module.last_traversals_)
+        assert relative_error(result, exact) <= 1e-4
+    assert traversals[-4:] == [1, 1, 1, 1] and max(traversals) > 1, traversals
+
+
+def test_search_goes_halfway_to_a_threshold_that_failed():
+    """The search on a step (the error jumps past the goal at η = 10): a raise that
+    fails becomes the ceiling, later raises go at most to the geometric mean of the last
+    good η and the ceiling, and none is tried once that is within RAISE_LEAST of it."""
+    from torchmorph.idw._tree_threshold import RAISE_LEAST, search
+
+    tried: list[float] = []
+
+    def trial(eta):
+        tried.append(eta)
+        return (1e-6 * eta if eta < 10.0 else 1.0), eta
+
+    def call(start, ceiling):
+        tried.clear()
+        best, _, start, ceiling = search(
+            start, trial, 1e-3, 100.0, certified=False, stop=False, ceiling=ceiling
+        )
+        assert best is not None and best[0] == start < 10.0
+        return start, ceiling
+
+    start, ceiling = call(1.0, None)
+    assert tried == [1.0, 100.0] and (start, ceiling) == (1.0, 100.0)
+    start, ceiling = call(start, ceiling)
+    assert tried == [1.0, 10.0] and (start, ceiling) == (1.0, 10.0)
+    for _ in range(4):
+        start, ceiling = call(start, ceiling)
+        if len(tried) == 1:
+            break
+    assert len(tried) == 1 and ceiling == 10.0
+    assert 10.0 / RAISE_LEAST**2 <= start < 10.0
+
+
 def test_gradient_is_the_transpose():
     """<A d, g> = <d, Aᵀ g> for the operator a call used, at a tolerance where the far
     field is active, close to the exact Wᵀ g (controls under coincident targets included)."""

@@ -26,33 +26,55 @@ SAMPLED_GROWTH = 1.6
 """``error_control="sampled"``: the measured error grows about as ``η^0.6`` on the
 benchmark's clouds, so ``η`` is raised by ``(goal / (2 error))^SAMPLED_GROWTH``."""
 
+RAISE_LEAST = 1.25
+"""``η`` is not raised by less than this factor: below it, an ``η`` that failed is too
+close (the trial would cost a traversal for little)."""
+
 Trial = Callable[[float], tuple[float, Any]]
 
 
 def search(
-    eta: float, trial: Trial, goal: float, largest: float, *, certified: bool, stop: bool
-) -> tuple[tuple[float, Any] | None, Any, float, float]:
+    eta: float,
+    trial: Trial,
+    goal: float,
+    largest: float,
+    *,
+    certified: bool,
+    stop: bool,
+    ceiling: float | None = None,
+) -> tuple[tuple[float, Any] | None, tuple[float, Any], float, float | None]:
     """``trial(η)`` gives the worst error (bound or sampled) and what the caller keeps;
     below ``goal`` and far below it ``η`` is raised, above it lowered, up to
-    :data:`CERTIFY_ATTEMPTS` trials. Returns ``(η, kept)`` of the last trial within
-    ``goal`` (None if none was), the last trial's ``kept``, the last ``η`` and the factor
-    by which the module's calibration follows. ``stop``: keep the first within ``goal``."""
-    best, kept, calibration = None, None, 1.0
+    :data:`CERTIFY_ATTEMPTS` trials. An ``η`` that failed after a raise is the
+    ``ceiling``: later raises go at most halfway to it (geometrically), one per call, and
+    not at all when that is less than :data:`RAISE_LEAST` (without it, a cloud whose
+    error jumps past the goal between two ``η`` made every call raise, fail and traverse
+    2-4 times).
+    Returns ``(η, kept)`` of the last trial within ``goal`` (None if none was) and of the
+    last trial, the ``η`` the next call starts from and the ceiling.
+    ``stop``: keep the first within ``goal``."""
+    best, last, start, raises = None, (eta, None), eta, 0
     loosen = LOOSEN if certified else SAMPLED_LOOSEN
     for _ in range(CERTIFY_ATTEMPTS):
         worst, kept = trial(eta)
+        last = (eta, kept)
         if worst <= goal:
-            best = (eta, kept)
+            best, start = last, eta
             if worst > goal / loosen or eta >= largest or stop:
                 break
             # far below the goal: accept more nodes (the check is repeated)
             factor = 0.5 * goal / max(worst, 1e-300)
             factor = min(factor, 1e3) if certified else min(factor**SAMPLED_GROWTH, 1e2)
-        elif best is not None:
-            calibration /= 4
+            raised = min(largest, eta * factor)
+            if ceiling is not None:
+                raised = min(raised, math.sqrt(eta * ceiling))
+            if raised < RAISE_LEAST * eta or (ceiling is not None and raises):
+                break  # towards a ceiling, one raise per call: two traversals at most
+            eta, raises = raised, raises + 1
+        elif best is not None:  # the raise went too far: keep the last η within the goal
+            ceiling = eta if ceiling is None else min(ceiling, eta)
             break
         else:
             factor = max(0.5 * goal / worst, 1 / 64) if math.isfinite(worst) else 1 / 4
-        calibration *= factor
-        eta = min(largest, eta * factor)
-    return best, kept, eta, calibration
+            eta = start = min(largest, eta * factor)
+    return best, last, start, ceiling

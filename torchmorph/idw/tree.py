@@ -232,8 +232,10 @@ class TreeIDW(nn.Module):
     more, see the module's notes). CPU only; float32 and float64 in, the same out (the
     sums run in float64, the leaves' exact sums in the inputs' dtype: see the module's
     notes). ``last_bound_`` holds the certified relative bound of the
-    last call, one value per displacement field, and ``last_sampled_error_`` the
-    sampled error (``error_control="sampled"``).
+    last call, one value per displacement field, ``last_sampled_error_`` the
+    sampled error (``error_control="sampled"``) and ``last_traversals_`` how many
+    traversals of all the blocks the call made (1 but where the check failed; a first
+    call's traversals of the sampled targets' blocks alone are not counted).
     """
 
     controls: Tensor
@@ -274,6 +276,7 @@ class TreeIDW(nn.Module):
         self._build()
         self.last_bound_: list[float] = []
         self.last_sampled_error_: list[float] = []
+        self.last_traversals_ = 0
 
     _calibration: float
     """η over its first value, learnt from the checks of earlier calls."""
@@ -293,6 +296,7 @@ class TreeIDW(nn.Module):
             self.leaf_size,
         )
         self._calibration = 1.0
+        self._ceiling: float | None = None  # η over its first value that failed a raise
         self._applied: tuple[float, dict] | None = None  # η and sums of the last result
         # the blocks holding the sampled targets, where they are a small part of all
         positions = self._operator.target_rank[self._sample_rows().numpy()]
@@ -348,7 +352,9 @@ class TreeIDW(nn.Module):
         n_targets = int(self.targets.shape[0])
         return torch.linspace(0, n_targets - 1, min(SAMPLE_TARGETS, n_targets)).round().long()
 
-    def _sample_calibration(self, values, eta, exact, goal, largest, dim) -> tuple[float, bool]:
+    def _sample_calibration(
+        self, values, eta, exact, goal, largest, dim, unit
+    ) -> tuple[float, bool]:
         """``error_control="sampled"``, first call: ``η`` tuned as :meth:`forward` tunes it,
         by traversals of the blocks that hold the sampled targets only (each block's results
         are those of a whole traversal, to the bit: 1/15 of the work at 10^6 targets).
@@ -362,14 +368,24 @@ class TreeIDW(nn.Module):
             result = operator.apply(flat, eta, single, blocks=self._sample_blocks)[0]
             return max(_sampled(torch.from_numpy(result[positions]), exact, dim)), None
 
-        best, _, eta = self._tune(eta, trial, goal, largest, certified=False, stop=False)
-        return (eta, False) if best is None else (best[0], True)
+        best, _ = self._tune(eta, trial, goal, largest, certified=False, stop=False, unit=unit)
+        if best is None:  # from the lowered η the search would try next
+            return min(largest, self._calibration * unit), False
+        return best[0], True
 
-    def _tune(self, eta, trial, goal, largest, *, certified, stop):
-        """:func:`~torchmorph.idw._tree_threshold.search`, ``self._calibration`` following."""
-        best, kept, eta, factor = search(eta, trial, goal, largest, certified=certified, stop=stop)
-        self._calibration *= factor
-        return best, kept, eta
+    def _tune(self, eta, trial, goal, largest, *, certified, stop, unit):
+        """:func:`~torchmorph.idw._tree_threshold.search`; ``self._calibration`` and
+        ``self._ceiling`` follow in units of ``unit`` (this call's first ``η`` over the
+        calibration; None: they stay). Returns ``(η, kept)`` of the last trial within
+        ``goal`` (None if none was) and of the last trial."""
+        ceiling = None if self._ceiling is None or unit is None else self._ceiling * unit
+        best, last, start, ceiling = search(
+            eta, trial, goal, largest, certified=certified, stop=stop, ceiling=ceiling
+        )
+        if unit is not None:
+            self._calibration = start / unit
+            self._ceiling = None if ceiling is None else ceiling / unit
+        return best, last
 
     def forward(self, displacements: Tensor) -> Tensor:
         """u at the targets, shape (N_t, D) or (B, N_t, D) like ``displacements``
@@ -385,7 +401,7 @@ class TreeIDW(nn.Module):
         )
         n_targets = self.targets.shape[0]
         if n_targets == 0:
-            self.last_bound_ = [0.0] * batch
+            self.last_bound_, self.last_traversals_ = [0.0] * batch, 0
             empty = displacements.new_zeros((batch, 0, dim))
             return empty if batched else empty[0]
         with torch.no_grad():
@@ -394,11 +410,13 @@ class TreeIDW(nn.Module):
         certified = self.error_control == "certified"
         largest = 0.5 if certified else SAMPLED_ETA_LIMIT
         eta = largest if live.any() else self._threshold(largest)
+        unit = None  # η over the calibration (all-zero fields leave both alone)
         if live.any():
             scale = 0.5 * self.tolerance * float((rms[live] / spread[live]).min())
             if not certified:  # measured: errors ~1e-4 η at p = 4, far below the bound's
                 scale = SAMPLED_START * self.tolerance
-            eta = min(largest, max(scale * self._calibration, 1e-300))
+            unit = max(scale, 1e-300)
+            eta = min(largest, unit * self._calibration)
         operator = self._operator
         sampled_rows = torch.from_numpy(operator.target_rank)[rows]
         goal = self.tolerance if certified else self.tolerance / SAMPLE_SAFETY
@@ -409,10 +427,13 @@ class TreeIDW(nn.Module):
             and self._applied is None
             and self._sample_blocks is not None
         ):
-            eta, settled = self._sample_calibration(values, eta, exact, goal, largest, dim)
+            eta, settled = self._sample_calibration(values, eta, exact, goal, largest, dim, unit)
+
+        traversals = []
 
         def trial(eta: float):
             state: dict = {}
+            traversals.append(eta)
             result = _TreeApply.apply(values, operator, eta, state)
             with torch.no_grad():
                 bounds = self._certify(result, spread, batch, dim, state)
@@ -420,8 +441,8 @@ class TreeIDW(nn.Module):
             return max(errors), (result, bounds, errors, state)
 
         stop = settled or not live.any()
-        best, (result, bounds, errors, state), eta = self._tune(
-            eta, trial, goal, largest, certified=certified, stop=stop
+        best, (eta, (result, bounds, errors, state)) = self._tune(
+            eta, trial, goal, largest, certified=certified, stop=stop, unit=unit
         )
         if best is not None:
             eta, (result, bounds, errors, state) = best
@@ -434,6 +455,7 @@ class TreeIDW(nn.Module):
             )
         self.last_sampled_error_ = [] if certified else errors
         self.last_bound_ = bounds
+        self.last_traversals_ = len(traversals)
         self._applied = (eta, state)
         out = result[torch.from_numpy(operator.target_rank)].reshape(n_targets, batch, dim)
         return out.permute(1, 0, 2) if batched else out[:, 0]
