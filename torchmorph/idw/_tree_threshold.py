@@ -42,39 +42,43 @@ def search(
     certified: bool,
     stop: bool,
     ceiling: float | None = None,
+    attempts: int = CERTIFY_ATTEMPTS,
+    probes: int | None = 1,
 ) -> tuple[tuple[float, Any] | None, tuple[float, Any], float, float | None]:
     """``trial(η)`` gives the worst error (bound or sampled) and what the caller keeps;
-    below ``goal`` and far below it ``η`` is raised, above it lowered, up to
-    :data:`CERTIFY_ATTEMPTS` trials. An ``η`` that failed after a raise is the
-    ``ceiling``: later raises go at most halfway to it (geometrically), one per call, and
-    not at all when that is less than :data:`RAISE_LEAST` (without it, a cloud whose
-    error jumps past the goal between two ``η`` made every call raise, fail and traverse
-    2-4 times).
-    Returns ``(η, kept)`` of the last trial within ``goal`` (None if none was) and of the
-    last trial, the ``η`` the next call starts from and the ceiling.
-    ``stop``: keep the first within ``goal``."""
-    best, last, start, raises = None, (eta, None), eta, 0
+    below ``goal`` and far below it ``η`` is raised, above it lowered, up to ``attempts``
+    trials. An ``η`` that failed after one within the goal is the ``ceiling``: raises go
+    at most halfway to it (geometrically), ``probes`` of them per call (None: as many as
+    the attempts allow), and none when that is less than :data:`RAISE_LEAST` (without it,
+    a cloud whose error jumps past the goal between two ``η`` made every call raise, fail
+    and traverse 2-4 times). Returns ``(η, kept)`` of the last trial within ``goal`` (None
+    if none was) and of the last trial, the ``η`` the next call starts from and the
+    ceiling. ``stop``: keep the first within ``goal``."""
+    best, last, start, raises, best_error = None, (eta, None), eta, 0, 0.0
     loosen = LOOSEN if certified else SAMPLED_LOOSEN
-    for _ in range(CERTIFY_ATTEMPTS):
+    for _ in range(attempts):
         worst, kept = trial(eta)
         last = (eta, kept)
         if worst <= goal:
-            best, start = last, eta
-            if worst > goal / loosen or eta >= largest or stop:
-                break
-            # far below the goal: accept more nodes (the check is repeated)
-            factor = 0.5 * goal / max(worst, 1e-300)
-            factor = min(factor, 1e3) if certified else min(factor**SAMPLED_GROWTH, 1e2)
-            raised = min(largest, eta * factor)
-            if ceiling is not None:
-                raised = min(raised, math.sqrt(eta * ceiling))
-            if raised < RAISE_LEAST * eta or (ceiling is not None and raises):
-                break  # towards a ceiling, one raise per call: two traversals at most
-            eta, raises = raised, raises + 1
-        elif best is not None:  # the raise went too far: keep the last η within the goal
+            best, best_error, start = last, worst, eta
+        elif best is not None:  # the raise went too far: back to the last η within it
             ceiling = eta if ceiling is None else min(ceiling, eta)
-            break
-        else:
+        else:  # none within the goal yet: lower η
             factor = max(0.5 * goal / worst, 1 / 64) if math.isfinite(worst) else 1 / 4
             eta = start = min(largest, eta * factor)
+            continue
+        good = best[0]
+        if best_error > goal / loosen or good >= largest or stop:
+            break
+        # far below the goal: accept more nodes (the check is repeated)
+        factor = 0.5 * goal / max(best_error, 1e-300)
+        factor = min(factor, 1e3) if certified else min(factor**SAMPLED_GROWTH, 1e2)
+        raised = min(largest, good * factor)
+        if ceiling is not None:
+            raised = min(raised, math.sqrt(good * ceiling))
+            if probes is not None and raises >= probes:
+                break
+        if raised < RAISE_LEAST * good:
+            break
+        eta, raises = raised, raises + 1
     return best, last, start, ceiling

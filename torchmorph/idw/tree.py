@@ -166,6 +166,11 @@ SAMPLE_BLOCKS = 4
 the sampled targets alone (then traverses all blocks once) when they are at most
 ``1 / SAMPLE_BLOCKS`` of the blocks."""
 
+SAMPLE_ATTEMPTS = 8
+"""``error_control="sampled"``: traversals of the sampled targets' blocks at most in a
+first call's search (cheap: each a small part of a whole traversal), which may go on
+halving the gap to a threshold that failed (later calls then find nothing to probe)."""
+
 SINGLE_REFERENCE = 1e-5
 """For float32 inputs at tolerances from this up, the exact sums at the sampled targets are
 the float32 fused kernels' (float64 partial sums; within 1e-7 of float64 sums on the
@@ -368,19 +373,22 @@ class TreeIDW(nn.Module):
             result = operator.apply(flat, eta, single, blocks=self._sample_blocks)[0]
             return max(_sampled(torch.from_numpy(result[positions]), exact, dim)), None
 
-        best, _ = self._tune(eta, trial, goal, largest, certified=False, stop=False, unit=unit)
+        best, _ = self._tune(
+            eta, trial, goal, largest, certified=False, stop=False, unit=unit,
+            attempts=SAMPLE_ATTEMPTS, probes=None,
+        )  # fmt: skip
         if best is None:  # from the lowered η the search would try next
             return min(largest, self._calibration * unit), False
         return best[0], True
 
-    def _tune(self, eta, trial, goal, largest, *, certified, stop, unit):
+    def _tune(self, eta, trial, goal, largest, *, certified, stop, unit, **limits):
         """:func:`~torchmorph.idw._tree_threshold.search`; ``self._calibration`` and
         ``self._ceiling`` follow in units of ``unit`` (this call's first ``η`` over the
         calibration; None: they stay). Returns ``(η, kept)`` of the last trial within
         ``goal`` (None if none was) and of the last trial."""
         ceiling = None if self._ceiling is None or unit is None else self._ceiling * unit
         best, last, start, ceiling = search(
-            eta, trial, goal, largest, certified=certified, stop=stop, ceiling=ceiling
+            eta, trial, goal, largest, certified=certified, stop=stop, ceiling=ceiling, **limits
         )
         if unit is not None:
             self._calibration = start / unit
