@@ -13,8 +13,9 @@ from typing import Any
 __all__ = ["search"]
 
 CERTIFY_ATTEMPTS = 4
-"""Traversals per call at most: ``η`` divided by 4 after a bound above the tolerance,
-multiplied up to ``tolerance / (2 bound)`` after one below ``tolerance / LOOSEN``."""
+"""Traversals per call at most: ``η`` lowered after an error above the goal (aiming at
+half of it), raised after one below ``goal / LOOSEN`` (certified) or ``goal /
+SAMPLED_LOOSEN`` (sampled)."""
 
 LOOSEN = 4.0
 

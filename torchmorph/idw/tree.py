@@ -48,11 +48,12 @@ it holds with room (below ``tolerance / LOOSEN``, :mod:`~torchmorph.idw._tree_th
 ``η`` is raised towards the tolerance and the traversal repeated, keeping the last
 certified result. A :class:`TreeIDW` starts its next call from the ``η`` it kept, and
 remembers one whose raise failed: later raises go halfway to it (geometrically), one
-per call, none within 1.25 times it, so that calls settle to one traversal each. The bound is worst-case (it ignores the cancellations of the odd
-Gegenbauer terms and the smoothness of ``d``): measured errors are 100-3000 times below
-the certified bound on the clouds of the tests and benchmarks, so the tree accepts far
-fewer nodes than an error estimate would allow, and a certified call is slower than the
-exact fused sum at every size measured (``benchmarks/tree.py``).
+per call, none within 1.25 times it, so that calls settle to one traversal each. The
+bound is worst-case (it ignores the cancellations of the odd Gegenbauer terms and the
+smoothness of ``d``): measured errors are 100-3000 times below the certified bound on
+the clouds of the tests and benchmarks, so the tree accepts far fewer nodes than an
+error estimate would allow, and a certified call is slower than the exact fused sum at
+every size measured (``benchmarks/tree.py``).
 
 Sampled error control
 ---------------------
@@ -65,15 +66,14 @@ factor ``SAMPLED_LOOSEN``, :mod:`~torchmorph.idw._tree_threshold`). That is an e
 the error over all targets, not a bound: it holds on the clouds of the tests (uniform;
 surface controls with targets filling the volume; graded by 10^4) and of the benchmark,
 where the error at 2,000 targets came out 1.5-3 times below the tolerance (1e-3 to
-1e-6), but a field whose error concentrates on
-a few targets missed by the sample can exceed it. ``last_bound_`` still reports the
-certified bound of the result. A module's first call tunes ``η`` by traversing only the
-blocks of targets that hold the sampled ones (a block's results do not depend on the
-others, so the sampled rows come out as in a whole traversal; up to
-:data:`SAMPLE_ATTEMPTS` of these cheap trials, halving the gap to a threshold that
-failed), where those are at most a :data:`SAMPLE_BLOCKS`-th of the blocks, and then
-traverses every block once; later calls start from the tuned ``η`` with a whole
-traversal.
+1e-6), but a field whose error concentrates on a few targets missed by the sample can
+exceed it. ``last_bound_`` still reports the certified bound of the result. A module's
+first call tunes ``η`` by traversing only the blocks of targets that hold the sampled
+ones (a block's results do not depend on the others, so the sampled rows come out as in
+a whole traversal; up to :data:`SAMPLE_ATTEMPTS` of these cheap trials, halving the gap
+to a threshold that failed), where those are at most a :data:`SAMPLE_BLOCKS`-th of the
+blocks, and then traverses every block once; later calls start from the tuned ``η``
+with a whole traversal.
 
 Exactness and gradients
 -----------------------
