@@ -36,7 +36,7 @@ sampled error control) against the exact fused sum on the clouds of
 N_t from 10^4 (``--tree-sizes``), tolerances 1e-3, 1e-4 and 1e-6, CPU only (the tree has
 no CUDA kernels), one thread: the exact sum's time (on ``--exact-limit`` targets and
 scaled beyond), the tree's build and the better of two calls once the threshold's
-search has settled (the first call calibrates it; where a raise failed, up to four more
+search has settled (the first call calibrates it; where a raise failed, up to five more
 may each probe a threshold between, a second traversal: the calls are made until one
 traverses once, ``TreeIDW.last_traversals_``), the measured error at 2,000 targets against float64 exact sums,
 the peak memory of the build and the calls per mesh node (N_t + N_c), fitted exponents

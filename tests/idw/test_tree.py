@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from torchmorph.idw import idw_apply, idw_weights
+from torchmorph.idw._tree_threshold import RAISE_LEAST
 from torchmorph.idw.backends.numba.kernels import available
 from torchmorph.idw.tree import SAMPLE_SAFETY, TreeIDW, idw_tree_apply
 
@@ -264,6 +265,94 @@ def test_repeated_calls_settle_to_one_traversal(error_control, kind):
         traversals.append(module.last_traversals_)
         assert relative_error(result, exact) <= 1e-4
     assert traversals[-4:] == [1, 1, 1, 1] and max(traversals) > 1, traversals
+    assert module._ceiling is not None and module._calibration < module._ceiling
+
+
+def test_a_ceiling_is_eased_after_quiet_calls(monkeypatch):
+    """After CEILING_CALLS calls without a failed trial, the ceiling is raised by
+    CEILING_EASE, so that a field that turned easier could take a larger η: on a field
+    that did not, one probe fails and the calls settle again."""
+    import torchmorph.idw.tree as tree_module
+
+    monkeypatch.setattr(tree_module, "CEILING_CALLS", 3)
+    generator = torch.Generator().manual_seed(5)
+    controls, targets = cloud("graded", generator)
+    module = TreeIDW(controls, targets, tolerance=1e-4, error_control="certified")
+    traversals = []
+    for _ in range(16):
+        module(field(controls))
+        traversals.append(module.last_traversals_)
+    settled = traversals[traversals.index(1) :]  # one probe every CEILING_CALLS + 1 calls
+    assert settled[:8] == [1, 1, 1, 2, 1, 1, 1, 2], traversals
+
+
+def _step_cloud(monkeypatch):
+    """The 20,000 graded targets of the sampled-blocks test, 64 sampled, and an error
+    that jumps past the goal at η = 2 (1e-4 of the goal below it)."""
+    import torchmorph.idw.tree as tree_module
+    from torchmorph.idw._tree_operator import _TreeOperator
+
+    monkeypatch.setattr(tree_module, "SAMPLE_TARGETS", 64)
+    generator = torch.Generator().manual_seed(5)
+    controls = sphere(2000, generator)
+    exponent = torch.rand(20000, 1, generator=generator, dtype=torch.float64) * 4
+    targets = sphere(20000, generator) * (1 - 10 ** (-exponent))
+    tried: list[tuple[float, bool]] = []  # (η, whole traversal)
+    apply = _TreeOperator.apply
+
+    def recording(self, values, eta, single=False, blocks=None):
+        tried.append((eta, blocks is None))
+        return apply(self, values, eta, single, blocks)
+
+    monkeypatch.setattr(_TreeOperator, "apply", recording)
+    goal = 1e-3 / SAMPLE_SAFETY
+
+    def step(*arguments):  # the error of the last traversal's η
+        return [1e-4 * goal if tried[-1][0] < 2.0 else 10 * goal]
+
+    monkeypatch.setattr(tree_module, "_sampled", step)
+    module = TreeIDW(controls, targets, tolerance=1e-3, error_control="sampled")
+    return module, controls, tried
+
+
+def test_a_first_sampled_call_narrows_a_failed_threshold_on_the_sampled_blocks(monkeypatch):
+    """On a step of the error, the first call's cheap trials on the sampled targets'
+    blocks close in on it (within RAISE_LEAST² of the lowest η that failed), so that the
+    next calls traverse once, probing nothing."""
+    module, controls, tried = _step_cloud(monkeypatch)
+    module(field(controls))
+    assert sum(whole for _, whole in tried) == 1 and len(tried) > 3
+    assert module._applied[0] < 2.0 <= module._ceiling * (module._applied[0] / module._calibration)
+    assert module._ceiling < module._calibration * RAISE_LEAST**2
+    for _ in range(3):
+        tried.clear()
+        module(field(controls))
+        assert len(tried) == 1 and tried[0][1]
+
+
+def test_a_call_that_never_meets_the_goal_warns_and_keeps_its_last_threshold(monkeypatch):
+    """Every trial over the goal: the call warns, returns the last traversal's result and
+    keeps that traversal's η (the transposed pass must use the same operator)."""
+    import torchmorph.idw.tree as tree_module
+    from torchmorph.idw._tree_operator import _TreeOperator
+
+    generator = torch.Generator().manual_seed(5)
+    controls, targets = cloud("graded", generator)
+    module = TreeIDW(controls, targets, tolerance=1e-3, error_control="sampled")
+    tried = []
+    apply = _TreeOperator.apply
+
+    def recording(self, values, eta, single=False, blocks=None):
+        tried.append(eta)
+        return apply(self, values, eta, single, blocks)
+
+    monkeypatch.setattr(_TreeOperator, "apply", recording)
+    monkeypatch.setattr(tree_module, "_sampled", lambda *arguments: [math.inf])
+    with pytest.warns(UserWarning, match="could not be brought below"):
+        result = module(field(controls))
+    assert module.last_traversals_ == len(tried) > 1 and module._applied[0] == tried[-1]
+    expected = apply(module._operator, field(controls).numpy(), tried[-1])[0]
+    assert np.allclose(result.numpy(), expected[module._operator.target_rank])
 
 
 def test_search_goes_halfway_to_a_threshold_that_failed():

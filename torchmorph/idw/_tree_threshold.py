@@ -27,6 +27,13 @@ SAMPLED_GROWTH = 1.6
 """``error_control="sampled"``: the measured error grows about as ``η^0.6`` on the
 benchmark's clouds, so ``η`` is raised by ``(goal / (2 error))^SAMPLED_GROWTH``."""
 
+CEILING_CALLS = 32
+"""Calls without a failed trial after which a ceiling is raised by :data:`CEILING_EASE`
+(a field that turned easier may then allow a larger ``η``; where it did not, a probe
+fails: about one traversal more per this many calls)."""
+
+CEILING_EASE = 1.5
+
 RAISE_LEAST = 1.25
 """``η`` is not raised by less than this factor: below it, an ``η`` that failed is too
 close (the trial would cost a traversal for little)."""
@@ -48,11 +55,11 @@ def search(
 ) -> tuple[tuple[float, Any] | None, tuple[float, Any], float, float | None]:
     """``trial(η)`` gives the worst error (bound or sampled) and what the caller keeps;
     below ``goal`` and far below it ``η`` is raised, above it lowered, up to ``attempts``
-    trials. An ``η`` that failed after one within the goal is the ``ceiling``: raises go
-    at most halfway to it (geometrically), ``probes`` of them per call (None: as many as
-    the attempts allow), and none when that is less than :data:`RAISE_LEAST` (without it,
-    a cloud whose error jumps past the goal between two ``η`` made every call raise, fail
-    and traverse 2-4 times). Returns ``(η, kept)`` of the last trial within ``goal`` (None
+    trials. An ``η`` that failed is the ``ceiling``: raises go at most halfway to it
+    (geometrically), ``probes`` of them per call (None: as many as the attempts allow),
+    and none when that is less than :data:`RAISE_LEAST` (without it, a cloud whose error
+    jumps past the goal between two ``η`` made every call raise, fail and traverse 2-4
+    times; the caller loosens it after :data:`CEILING_CALLS` calls). Returns ``(η, kept)`` of the last trial within ``goal`` (None
     if none was) and of the last trial, the ``η`` the next call starts from and the
     ceiling. ``stop``: keep the first within ``goal``."""
     best, last, start, raises, best_error = None, (eta, None), eta, 0, 0.0
@@ -65,6 +72,7 @@ def search(
         elif best is not None:  # the raise went too far: back to the last η within it
             ceiling = eta if ceiling is None else min(ceiling, eta)
         else:  # none within the goal yet: lower η
+            ceiling = eta if ceiling is None else min(ceiling, eta)
             factor = max(0.5 * goal / worst, 1 / 64) if math.isfinite(worst) else 1 / 4
             eta = start = min(largest, eta * factor)
             continue

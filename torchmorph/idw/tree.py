@@ -47,11 +47,12 @@ fails ``η`` is lowered (aiming at half the tolerance) and the traversal repeate
 it holds with room (below ``tolerance / LOOSEN``, :mod:`~torchmorph.idw._tree_threshold`),
 ``η`` is raised towards the tolerance and the traversal repeated, keeping the last
 certified result. A :class:`TreeIDW` starts its next call from the ``η`` it kept, and
-remembers one whose raise failed: later raises go halfway to it (geometrically), one
-per call, none within 1.25 times it, so that calls settle to one traversal each. The
-bound is worst-case (it ignores the cancellations of the odd Gegenbauer terms and the
-smoothness of ``d``): measured errors are 100-3000 times below the certified bound on
-the clouds of the tests and benchmarks, so the tree accepts far fewer nodes than an
+remembers the lowest that failed: later raises go halfway to it (geometrically), one
+per call, none within 1.25 times it, so that calls settle to one traversal each; after
+``CEILING_CALLS`` calls without a failure it is raised by half (the field may be easier).
+The bound is worst-case (it ignores the cancellations of the odd Gegenbauer terms and
+the smoothness of ``d``): measured errors are 100-3000 times below the certified bound
+on the clouds of the tests and benchmarks, so the tree accepts far fewer nodes than an
 error estimate would allow, and a certified call is slower than the exact fused sum at
 every size measured (``benchmarks/tree.py``).
 
@@ -123,7 +124,7 @@ from torchmorph._checks import (
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph.idw._geometry import check_tolerance, normalise
 from torchmorph.idw._tree_operator import TARGET_BLOCK, _TreeApply, _TreeOperator
-from torchmorph.idw._tree_threshold import search
+from torchmorph.idw._tree_threshold import CEILING_CALLS, CEILING_EASE, search
 from torchmorph.idw.backends.numba.kernels import available
 from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE, idw_apply
 
@@ -171,14 +172,12 @@ the sampled targets alone (then traverses all blocks once) when they are at most
 ``1 / SAMPLE_BLOCKS`` of the blocks."""
 
 SAMPLE_ATTEMPTS = 8
-"""``error_control="sampled"``: traversals of the sampled targets' blocks at most in a
-first call's search (cheap: each a small part of a whole traversal), which may go on
-halving the gap to a threshold that failed (later calls then find nothing to probe)."""
+"""``error_control="sampled"``: a first call's cheap trials on the sampled targets' blocks
+at most (they may halve the gap to a threshold that failed, so later calls need not)."""
 
 SINGLE_REFERENCE = 1e-5
-"""For float32 inputs at tolerances from this up, the exact sums at the sampled targets are
-the float32 fused kernels' (float64 partial sums; within 1e-7 of float64 sums on the
-benchmark's clouds, 2 % of the goal at 1e-5; half the time of float64 sums)."""
+"""Float32 inputs, tolerances from this up: the sampled check's exact sums are the float32
+fused kernels' (7e-8 from float64 sums on the benchmark's clouds; half the time)."""
 
 SAMPLED_ETA_LIMIT = 100.0
 """``error_control="sampled"``: the largest ``η`` tried (nodes still need ``ρ < R``)."""
@@ -243,8 +242,8 @@ class TreeIDW(nn.Module):
     notes). ``last_bound_`` holds the certified relative bound of the
     last call, one value per displacement field, ``last_sampled_error_`` the
     sampled error (``error_control="sampled"``) and ``last_traversals_`` how many
-    traversals of all the blocks the call made (1 but where the check failed; a first
-    call's traversals of the sampled targets' blocks alone are not counted).
+    traversals of all the blocks the call made (1 but where ``η`` was raised or lowered;
+    a first call's traversals of the sampled targets' blocks alone are not counted).
     """
 
     controls: Tensor
@@ -305,7 +304,8 @@ class TreeIDW(nn.Module):
             self.leaf_size,
         )
         self._calibration = 1.0
-        self._ceiling: float | None = None  # η over its first value that failed a raise
+        self._ceiling: float | None = None  # η that failed, over the calibration's unit
+        self._quiet = 0  # calls since a trial last failed
         self._applied: tuple[float, dict] | None = None  # η and sums of the last result
         # the blocks holding the sampled targets, where they are a small part of all
         positions = self._operator.target_rank[self._sample_rows().numpy()]
@@ -367,7 +367,8 @@ class TreeIDW(nn.Module):
         """``error_control="sampled"``, first call: ``η`` tuned as :meth:`forward` tunes it,
         by traversals of the blocks that hold the sampled targets only (each block's results
         are those of a whole traversal, to the bit: 1/15 of the work at 10^6 targets).
-        Returns ``η`` and whether the sampled error is within ``goal`` there."""
+        Returns the last ``η`` within ``goal`` there and True, or the next ``η`` the
+        search would try and False where none was."""
         operator = self._operator
         flat = values.detach().double().numpy()
         single = values.dtype == torch.float32
@@ -375,7 +376,8 @@ class TreeIDW(nn.Module):
 
         def trial(eta: float) -> tuple[float, None]:
             result = operator.apply(flat, eta, single, blocks=self._sample_blocks)[0]
-            return max(_sampled(torch.from_numpy(result[positions]), exact, dim)), None
+            rows = torch.from_numpy(result[positions]).to(values.dtype)  # as forward's
+            return max(_sampled(rows, exact, dim)), None
 
         best, _ = self._tune(
             eta, trial, goal, largest, certified=False, stop=False, unit=unit,
@@ -387,16 +389,19 @@ class TreeIDW(nn.Module):
 
     def _tune(self, eta, trial, goal, largest, *, certified, stop, unit, **limits):
         """:func:`~torchmorph.idw._tree_threshold.search`; ``self._calibration`` and
-        ``self._ceiling`` follow in units of ``unit`` (this call's first ``η`` over the
-        calibration; None: they stay). Returns ``(η, kept)`` of the last trial within
+        ``self._ceiling`` follow in units of ``unit`` (the ``η`` a calibration of 1 stands
+        for in this call; None: they stay). Returns ``(η, kept)`` of the last trial within
         ``goal`` (None if none was) and of the last trial."""
-        ceiling = None if self._ceiling is None or unit is None else self._ceiling * unit
-        best, last, start, ceiling = search(
+        if unit is None:  # all-zero fields: nothing learnt
+            return search(eta, trial, goal, largest, certified=certified, stop=stop)[:2]
+        ceiling = None if self._ceiling is None else self._ceiling * unit
+        best, last, start, found = search(
             eta, trial, goal, largest, certified=certified, stop=stop, ceiling=ceiling, **limits
         )
-        if unit is not None:
-            self._calibration = start / unit
-            self._ceiling = None if ceiling is None else ceiling / unit
+        if found != ceiling:
+            self._quiet = 0
+        self._calibration = start / unit
+        self._ceiling = None if found is None else found / unit
         return best, last
 
     def forward(self, displacements: Tensor) -> Tensor:
@@ -429,6 +434,9 @@ class TreeIDW(nn.Module):
                 scale = SAMPLED_START * self.tolerance
             unit = max(scale, 1e-300)
             eta = min(largest, unit * self._calibration)
+            self._quiet += 1
+            if self._ceiling is not None and self._quiet > CEILING_CALLS:  # look above again
+                self._ceiling, self._quiet = CEILING_EASE * self._ceiling, 0
         operator = self._operator
         sampled_rows = torch.from_numpy(operator.target_rank)[rows]
         goal = self.tolerance if certified else self.tolerance / SAMPLE_SAFETY
