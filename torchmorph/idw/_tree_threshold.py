@@ -59,9 +59,10 @@ def search(
     (geometrically), ``probes`` of them per call (None: as many as the attempts allow),
     and none when that is less than :data:`RAISE_LEAST` (without it, a cloud whose error
     jumps past the goal between two ``η`` made every call raise, fail and traverse 2-4
-    times; the caller loosens it after :data:`CEILING_CALLS` calls). Returns ``(η, kept)`` of the last trial within ``goal`` (None
-    if none was) and of the last trial, the ``η`` the next call starts from and the
-    ceiling. ``stop``: keep the first within ``goal``."""
+    times; the caller loosens it after :data:`CEILING_CALLS` calls). Returns ``(η,
+    kept)`` of the last trial within ``goal`` (None if none was) and of the last trial,
+    the ``η`` the next call starts from and the ceiling. ``stop``: keep the first within
+    ``goal``."""
     best, last, start, raises, best_error = None, (eta, None), eta, 0, 0.0
     loosen = LOOSEN if certified else SAMPLED_LOOSEN
     for _ in range(attempts):
