@@ -38,8 +38,8 @@ no CUDA kernels), one thread: the exact sum's time (on ``--exact-limit`` targets
 scaled beyond), the tree's build and the better of two calls once the threshold's
 search has settled (the first call calibrates it; where a raise failed, up to five more
 may each probe a threshold between, a second traversal: the calls are made until one
-traverses once, ``TreeIDW.last_traversals_``), the measured error at 2,000 targets against float64 exact sums,
-the peak memory of the build and the calls per mesh node (N_t + N_c), fitted exponents
+traverses once, ``TreeIDW.last_traversals_``), the measured error at 2,000 targets
+against float64 exact sums, the peak memory of the build and the calls per mesh node (N_t + N_c), fitted exponents
 and the largest mesh in 24 GB extrapolated from that memory; plot
 docs/scaling_tree_cpu.png (``--png``).
 
