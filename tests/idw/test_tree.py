@@ -53,6 +53,33 @@ def relative_error(result, exact):
     return float((result.double() - exact).norm() / exact.norm())
 
 
+def graded_sphere(monkeypatch):
+    """2,000 controls on the sphere and 20,000 targets graded towards it, with 64 sampled
+    targets: their blocks are then a small part of all (a first sampled call tunes there)."""
+    import torchmorph.idw.tree as tree_module
+
+    monkeypatch.setattr(tree_module, "SAMPLE_TARGETS", 64)
+    generator = torch.Generator().manual_seed(5)
+    controls = sphere(2000, generator)
+    exponent = torch.rand(20000, 1, generator=generator, dtype=torch.float64) * 4
+    return controls, sphere(20000, generator) * (1 - 10 ** (-exponent))
+
+
+def record_traversals(monkeypatch):
+    """(a list that each traversal appends its (η, blocks) to, the unpatched apply)."""
+    from torchmorph.idw._tree_operator import _TreeOperator
+
+    traversed: list = []
+    apply = _TreeOperator.apply
+
+    def recording(self, values, eta, single=False, blocks=None):
+        traversed.append((eta, blocks))
+        return apply(self, values, eta, single, blocks)
+
+    monkeypatch.setattr(_TreeOperator, "apply", recording)
+    return traversed, apply
+
+
 @pytest.mark.parametrize("tolerance", [1e-2, 1e-4, 1e-6])
 @pytest.mark.parametrize("kind", ["uniform", "surface", "graded"])
 def test_certified_tolerance_holds_against_exact_float64(kind, tolerance):
@@ -214,28 +241,14 @@ def test_a_first_sampled_call_tunes_on_the_sampled_targets_blocks(monkeypatch):
     (their rows are those of a whole traversal, to the bit), then traverses every block
     once; the result holds the tolerance against exact float64 sums; the next call keeps
     that η."""
-    import torchmorph.idw.tree as tree_module
-    from torchmorph.idw._tree_operator import _TreeOperator
-
-    monkeypatch.setattr(tree_module, "SAMPLE_TARGETS", 64)
-    generator = torch.Generator().manual_seed(5)
-    controls = sphere(2000, generator)
-    exponent = torch.rand(20000, 1, generator=generator, dtype=torch.float64) * 4
-    targets = sphere(20000, generator) * (1 - 10 ** (-exponent))
+    controls, targets = graded_sphere(monkeypatch)
     module = TreeIDW(controls, targets, tolerance=1e-4, error_control="sampled")
     operator = module._operator
     blocks = module._sample_blocks
     assert blocks is not None and 4 * blocks.size <= operator.block_starts.size - 1
-    traversed = []
-    apply = _TreeOperator.apply
-
-    def recording(self, values, eta, single=False, blocks=None):
-        traversed.append(blocks)
-        return apply(self, values, eta, single, blocks)
-
-    monkeypatch.setattr(_TreeOperator, "apply", recording)
+    traversed, apply = record_traversals(monkeypatch)
     result = module(field(controls))
-    assert sum(blocks is None for blocks in traversed) == 1 and len(traversed) >= 2
+    assert sum(b is None for _, b in traversed) == 1 and len(traversed) >= 2
     assert relative_error(result, brute_force(controls, targets, field(controls), 4.0)) <= 1e-4
     values, eta = field(controls).numpy(), module._applied[0]
     positions = operator.target_rank[module._sample_rows().numpy()]
@@ -243,7 +256,7 @@ def test_a_first_sampled_call_tunes_on_the_sampled_targets_blocks(monkeypatch):
     assert np.array_equal(apply(operator, values, eta, blocks=blocks)[0][positions], whole)
     traversed.clear()
     module(field(controls))  # later calls: one whole traversal at the tuned η
-    assert traversed == [None] and module._applied[0] == eta
+    assert [b for _, b in traversed] == [None] and module._applied[0] == eta
 
 
 @pytest.mark.parametrize(
@@ -287,32 +300,20 @@ def test_a_ceiling_is_eased_after_quiet_calls(monkeypatch):
 
 
 def _step_cloud(monkeypatch):
-    """The 20,000 graded targets of the sampled-blocks test, 64 sampled, and an error
-    that jumps past the goal at η = 2 (1e-4 of the goal below it)."""
+    """The cloud of :func:`graded_sphere` and an error that jumps past the goal at η = 2
+    (1e-4 of the goal below it)."""
     import torchmorph.idw.tree as tree_module
-    from torchmorph.idw._tree_operator import _TreeOperator
 
-    monkeypatch.setattr(tree_module, "SAMPLE_TARGETS", 64)
-    generator = torch.Generator().manual_seed(5)
-    controls = sphere(2000, generator)
-    exponent = torch.rand(20000, 1, generator=generator, dtype=torch.float64) * 4
-    targets = sphere(20000, generator) * (1 - 10 ** (-exponent))
-    tried: list[tuple[float, bool]] = []  # (η, whole traversal)
-    apply = _TreeOperator.apply
-
-    def recording(self, values, eta, single=False, blocks=None):
-        tried.append((eta, blocks is None))
-        return apply(self, values, eta, single, blocks)
-
-    monkeypatch.setattr(_TreeOperator, "apply", recording)
+    controls, targets = graded_sphere(monkeypatch)
+    traversed, _ = record_traversals(monkeypatch)
     goal = 1e-3 / SAMPLE_SAFETY
 
     def step(*arguments):  # the error of the last traversal's η
-        return [1e-4 * goal if tried[-1][0] < 2.0 else 10 * goal]
+        return [1e-4 * goal if traversed[-1][0] < 2.0 else 10 * goal]
 
     monkeypatch.setattr(tree_module, "_sampled", step)
     module = TreeIDW(controls, targets, tolerance=1e-3, error_control="sampled")
-    return module, controls, tried
+    return module, controls, traversed
 
 
 def test_a_first_sampled_call_narrows_a_failed_threshold_on_the_sampled_blocks(monkeypatch):
@@ -321,35 +322,28 @@ def test_a_first_sampled_call_narrows_a_failed_threshold_on_the_sampled_blocks(m
     next calls traverse once, probing nothing."""
     module, controls, tried = _step_cloud(monkeypatch)
     module(field(controls))
-    assert sum(whole for _, whole in tried) == 1 and len(tried) > 3
+    assert sum(blocks is None for _, blocks in tried) == 1 and len(tried) > 3
     assert module._applied[0] < 2.0 <= module._ceiling * (module._applied[0] / module._calibration)
     assert module._ceiling < module._calibration * RAISE_LEAST**2
     for _ in range(3):
         tried.clear()
         module(field(controls))
-        assert len(tried) == 1 and tried[0][1]
+        assert len(tried) == 1 and tried[0][1] is None
 
 
 def test_a_call_that_never_meets_the_goal_warns_and_keeps_its_last_threshold(monkeypatch):
     """Every trial over the goal: the call warns, returns the last traversal's result and
     keeps that traversal's η (the transposed pass must use the same operator)."""
     import torchmorph.idw.tree as tree_module
-    from torchmorph.idw._tree_operator import _TreeOperator
 
     generator = torch.Generator().manual_seed(5)
     controls, targets = cloud("graded", generator)
     module = TreeIDW(controls, targets, tolerance=1e-3, error_control="sampled")
-    tried = []
-    apply = _TreeOperator.apply
-
-    def recording(self, values, eta, single=False, blocks=None):
-        tried.append(eta)
-        return apply(self, values, eta, single, blocks)
-
-    monkeypatch.setattr(_TreeOperator, "apply", recording)
+    traversed, apply = record_traversals(monkeypatch)
     monkeypatch.setattr(tree_module, "_sampled", lambda *arguments: [math.inf])
     with pytest.warns(UserWarning, match="could not be brought below"):
         result = module(field(controls))
+    tried = [eta for eta, _ in traversed]
     assert module.last_traversals_ == len(tried) > 1 and module._applied[0] == tried[-1]
     expected = apply(module._operator, field(controls).numpy(), tried[-1])[0]
     assert np.allclose(result.numpy(), expected[module._operator.target_rank])

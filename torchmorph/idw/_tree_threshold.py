@@ -70,10 +70,9 @@ def search(
         last = (eta, kept)
         if worst <= goal:
             best, best_error, start = last, worst, eta
-        elif best is not None:  # the raise went too far: back to the last η within it
+        else:  # η failed: later raises stay below it
             ceiling = eta if ceiling is None else min(ceiling, eta)
-        else:  # none within the goal yet: lower η
-            ceiling = eta if ceiling is None else min(ceiling, eta)
+        if best is None:  # none within the goal yet: lower η
             factor = max(0.5 * goal / worst, 1 / 64) if math.isfinite(worst) else 1 / 4
             eta = start = min(largest, eta * factor)
             continue
