@@ -18,7 +18,7 @@ pytest.importorskip("numba")
 
 from torchmorph.idw.backends.numba import kernels
 
-POWERS = [0.5, 1.0, 2.0, 3.0, 4.0, 7.5]
+POWERS = [0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 7.5]  # every power code
 DTYPES = [torch.float32, torch.float64]
 RADIUS2 = 1e-20  # (1e-10 × a unit diagonal)²: the library's default coincidence radius
 

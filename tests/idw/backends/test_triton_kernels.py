@@ -63,7 +63,8 @@ TOLERANCES = {torch.float32: dict(rtol=2e-5, atol=2e-6), F64: dict(rtol=1e-11, a
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize(
     ("power", "dim", "columns"),
-    [(4.0, 3, 3), (2.0, 3, 1), (1.0, 2, 2), (0.5, 3, 3), (7.5, 3, 5), (4.0, 3, 20)],
+    [(4.0, 3, 3), (2.0, 3, 1), (1.0, 2, 2), (0.5, 3, 3), (7.5, 3, 5), (4.0, 3, 20)]
+    + [(3.0, 3, 3), (5.0, 2, 1), (6.0, 3, 2), (7.0, 3, 3), (8.0, 3, 1)],  # every power code
 )
 def test_apply_and_transposed_match_brute_force(kernels, dtype, power, dim, columns):
     # sizes that are not multiples of the tiles: masked rows and columns
@@ -128,7 +129,8 @@ def test_nearest_squared(kernels):
 def test_one_power_code_for_every_backend():
     from torchmorph.idw.backends import power_code
 
-    assert [power_code(p) for p in (4, 2.0, 1, 3.0, 0.5)] == [4, 2, 1, 0, 0]
+    powers = (4, 2.0, 1, 3.0, 5, 6, 7, 8.0, 0.5, 7.5, 9, 12)
+    assert [power_code(p) for p in powers] == [4, 2, 1, 3, 5, 6, 7, 8, 0, 0, 0, 0]
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])

@@ -11,9 +11,14 @@ __all__ = ["Backend", "power_code"]
 
 
 def power_code(power: float) -> int:
-    """A compile-time code for the ratio power ``(m/d²)^(p/2)``: 4 → its square, 2 → the
-    ratio itself, 1 → its square root, 0 → any other ``p`` (a general power)."""
-    return {4.0: 4, 2.0: 2, 1.0: 1}.get(float(power), 0)
+    """A compile-time code for the ratio power ``(m/d²)^(p/2)``: ``p`` itself for the
+    integers 1 to 8 (products and at most one square root in every kernel), 0 for any
+    other ``p`` (the general power: a logarithm and an exponential)."""
+    power = float(power)
+    return int(power) if power in _INTEGER_POWERS else 0
+
+
+_INTEGER_POWERS = frozenset(float(k) for k in range(1, 9))
 
 
 @runtime_checkable

@@ -85,11 +85,39 @@ def _smallest(squared, best):
     return best
 
 
+@njit(inline="always", **_OPTIONS)
+def ratio_power(ratio, half_power, mode):
+    """``ratio^(p/2)`` for ``mode`` = :func:`~torchmorph.idw.backends.power_code` of p:
+    products and one square root for the integer powers 1 to 8, the general power (a
+    logarithm and an exponential, about ten times slower) for ``mode`` 0. The callers
+    branch on ``mode`` outside their loops (4 and 2 written out), so a loop calling this
+    is compiled once per mode."""
+    if mode == 0:
+        return ratio**half_power
+    if mode == 2:
+        return ratio
+    square = ratio * ratio
+    if mode == 4:
+        return square
+    if mode == 6:
+        return square * ratio
+    if mode == 8:
+        return square * square
+    root = np.sqrt(ratio)  # the odd powers
+    if mode == 1:
+        return root
+    if mode == 3:
+        return ratio * root
+    if mode == 5:
+        return square * root
+    return square * ratio * root  # 7
+
+
 @njit(**_OPTIONS)
 def _ratio_powers(nearest, buffer, width, mode, params):
     """buffer[k] <- r_ik from buffer[k] = d²_ik, for one row whose m_i is ``nearest``;
-    ``mode`` is :func:`~torchmorph.idw.backends.power_code` (4 and 2 special-cased, any
-    other code through the general power)."""
+    ``mode`` is :func:`~torchmorph.idw.backends.power_code` (4 and 2 written out, the
+    other codes through :func:`ratio_power`)."""
     tiny, radius2, half_power, zero, one = params[0], params[1], params[2], params[3], params[4]
     if nearest <= radius2:  # coincident row: the controls within the radius, equally
         for k in range(width):
@@ -103,7 +131,7 @@ def _ratio_powers(nearest, buffer, width, mode, params):
             buffer[k] = nearest / max(buffer[k], tiny)
     else:
         for k in range(width):
-            buffer[k] = (nearest / max(buffer[k], tiny)) ** half_power
+            buffer[k] = ratio_power(nearest / max(buffer[k], tiny), half_power, mode)
 
 
 @njit(**_OPTIONS)
@@ -223,7 +251,7 @@ def _apply_streaming_kernel(
                         elif mode == 2:
                             scale = ratio
                         else:
-                            scale = ratio ** np.float64(half_power)
+                            scale = ratio_power(ratio, np.float64(half_power), mode)
                         total[local] *= scale
                         for column in range(columns):
                             accumulated[local, column] *= scale
@@ -275,7 +303,7 @@ def _transposed_kernel(controls, targets_t, scaled_t, nearest2, params, mode, ou
                         buffer[k] = within if floored[k] <= radius2 else ratio
                 else:
                     for k in range(width):
-                        power = (floored[k] / max(buffer[k], tiny)) ** half_power
+                        power = ratio_power(floored[k] / max(buffer[k], tiny), half_power, mode)
                         within = one if buffer[k] <= radius2 else zero
                         buffer[k] = within if floored[k] <= radius2 else power
                 for column in range(columns):

@@ -42,7 +42,7 @@ else:
             return lambda function: function
 
 
-from torchmorph.idw.backends.numba._jit import _OPTIONS  # cached, vectorised sums
+from torchmorph.idw.backends.numba._jit import _OPTIONS, ratio_power  # cached, vectorised sums
 from torchmorph.idw.backends.numba._kd_jit import STACK
 from torchmorph.idw.backends.numba._tree_terms import (
     _far_field3,
@@ -90,13 +90,11 @@ def _remainder_fast(theta, power, mode):
 
 @njit(**_OPTIONS)
 def _power(ratio, power, mode):
-    """ratio^p, as a product for p = 4 and 2."""
+    """ratio^p, by products (and a square root for odd p) for the integer p up to 8."""
     if mode == 4:
         square = ratio * ratio
         return square * square
-    if mode == 2:
-        return ratio * ratio
-    return ratio**power
+    return ratio_power(ratio * ratio, 0.5 * power, mode)
 
 
 @njit(**_OPTIONS)
@@ -209,7 +207,7 @@ def _visit_block(
                     weight[t] = ref2 * inverse2[t]
             else:
                 for t in range(rows):
-                    weight[t] = (ref2 * inverse2[t]) ** half_power
+                    weight[t] = ratio_power(ref2 * inverse2[t], half_power, mode)
             if not transpose:
                 for t in range(rows):
                     bounds[first_target + t] += effective[node] * node_bound[t]

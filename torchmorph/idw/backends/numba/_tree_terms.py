@@ -8,7 +8,9 @@ so that their acceptance decisions agree to the bit."""
 
 from __future__ import annotations
 
-from torchmorph.idw.backends.numba._jit import _OPTIONS, njit  # numba's, or stand-ins
+import numpy as np
+
+from torchmorph.idw.backends.numba._jit import _OPTIONS, njit, ratio_power  # numba's, or stand-ins
 
 
 @njit(**_OPTIONS)
@@ -38,7 +40,7 @@ def _weights(chunk, width, ref2, half_power, mode):
             chunk[k] = ref2 / chunk[k]
     else:
         for k in range(width):
-            chunk[k] = (ref2 / chunk[k]) ** half_power
+            chunk[k] = ratio_power(np.float64(ref2 / chunk[k]), half_power, mode)
 
 
 @njit(**_OPTIONS)
@@ -203,12 +205,11 @@ def _leaf_field3_transposed(
 
 @njit(**_OPTIONS)
 def _power_of_ratio(ratio, half_power, mode):
-    """ratio^(p/2) for ratio = ref²/d² (a product for p = 4 and 2)."""
-    if mode == 4:
-        return ratio * ratio
-    if mode == 2:
-        return ratio
-    return ratio**half_power
+    """ratio^(p/2) for ratio = ref²/d², in float64
+    (:func:`~torchmorph.idw.backends.numba._jit.ratio_power`): against a block's
+    reference distance a float32 leaf's ratio can lie far from 1, and its sixth power
+    outside float32's range."""
+    return ratio_power(np.float64(ratio), half_power, mode)
 
 
 @njit(inline="always", **_OPTIONS)

@@ -49,6 +49,17 @@ def _ratio_power(nearest2, dist2, half_power, KIND: tl.constexpr, FAST: tl.const
         result = ratio
     elif KIND == 1:
         result = tl.sqrt(ratio)
+    elif KIND == 3:
+        result = ratio * tl.sqrt(ratio)
+    elif KIND == 5:
+        result = ratio * ratio * tl.sqrt(ratio)
+    elif KIND == 6:
+        result = ratio * ratio * ratio
+    elif KIND == 7:
+        result = ratio * ratio * ratio * tl.sqrt(ratio)
+    elif KIND == 8:
+        square = ratio * ratio
+        result = square * square
     else:
         result = tl.exp2(half_power * tl.log2(ratio))
     return result
