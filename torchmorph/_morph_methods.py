@@ -90,8 +90,15 @@ def check_method_options(method: str, mode: str, options: dict[str, Any]) -> dic
                 f"mode: solver={solver!r} may fit the partition-of-unity or the sparse RBF, "
                 f"which have no dense or matrix-free choice; leave mode='auto' (got {mode!r})"
             )
-    if options.get("stiffening_length") is not None and mode == "tree":
-        raise ValueError("mode: near-wall stiffening (stiffening_length) has no tree mode")
+    if options.get("stiffening_length") is not None:
+        if mode == "tree":
+            raise ValueError("mode: near-wall stiffening (stiffening_length) has no tree mode")
+        for name in ("tolerance", "error_control"):  # auto with a tolerance: exact
+            if options.get(name) is not None and (name, mode) != ("tolerance", "auto"):
+                raise ValueError(
+                    f"{name}: the tree's, and near-wall stiffening (stiffening_length) has "
+                    f"no tree mode (got mode={mode!r})"
+                )
     return {
         name: default if options.get(name) is None else options[name]
         for name, default in own.items()
@@ -164,7 +171,7 @@ def build_interpolant(
         if length is not None:
             kind = StiffenedIDW
             options.update(stiffening_length=length, stiffening_power=steep)
-            for name in ("tolerance", "error_control"):  # tree mode only, refused above
+            for name in ("tolerance", "error_control"):  # exact; refused above but in auto
                 options.pop(name)
     return kind(
         controls,

@@ -44,6 +44,23 @@ def test_tree_mode_keeps_its_tolerance(tmp_path, case, capsys):
     np.testing.assert_array_equal(field[mesh.boundary_nodes.numpy()], boundary.numpy())
 
 
+def test_auto_mode_takes_the_tree_by_its_tolerance(tmp_path, case, capsys, monkeypatch):
+    """``--tree-tolerance`` with the default ``--mode auto``: the tree where it pays
+    (here from 1,000 pairs, the threshold lowered), the exact morph below that."""
+    import torchmorph.idw._tree_mode as tree_mode
+
+    path, mesh, boundary = case
+    exact = MeshMorph(mesh)(boundary).numpy()
+    code, field = run(tmp_path, path, "--tree-tolerance", "1e-3")
+    assert code == EXIT_OK and "tree:" not in capsys.readouterr().out
+    np.testing.assert_allclose(field, exact, rtol=0, atol=1e-12)
+    monkeypatch.setattr(tree_mode, "AUTO_TREE_PAIRS", ((1e-5, 1000),))
+    code, field = run(tmp_path, path, "--tree-tolerance", "1e-3")
+    assert code == EXIT_OK
+    assert "tree: far controls by clusters, tolerance 0.001" in capsys.readouterr().out
+    assert np.linalg.norm(field - exact) <= 1e-3 * np.linalg.norm(exact)
+
+
 def test_partition_solver_equals_the_library(tmp_path, case, capsys):
     path, mesh, boundary = case
     code, field = run(tmp_path, path, "--method", "rbf", "--rbf-solver", "partition")
@@ -68,7 +85,8 @@ def test_sparse_solver_equals_the_library(tmp_path, case, capsys):
 @pytest.mark.parametrize(
     ("options", "message"),
     [
-        (["--tree-tolerance", "1e-3"], "--tree-tolerance: needs --mode tree"),
+        (["--mode", "dense", "--tree-tolerance", "1e-3"], "--tree-tolerance: needs --mode tree"),
+        (["--method", "rbf", "--tree-tolerance", "1e-3"], "--tree-tolerance: the IDW tree's"),
         (["--rbf-solver", "partition"], "--rbf-solver: an RBF option"),
         (["--method", "rbf", "--mode", "tree"], "--mode: tree is IDW's"),
         (

@@ -114,9 +114,67 @@ def test_tree_mode_vector_jacobian_product_is_the_transpose_within_tolerance():
 
 def test_tolerance_with_another_mode_is_refused():
     controls, targets = surface_cloud(controls=20, targets=10)
-    for mode in ("auto", "dense", "matrix_free"):
-        with pytest.raises(ValueError, match=f"^tolerance: only mode='tree'.*mode='{mode}'"):
+    for mode in ("dense", "matrix_free"):
+        match = f"^tolerance: only mode='tree' or 'auto' takes.*mode='{mode}'"
+        with pytest.raises(ValueError, match=match):
             IDW(controls, targets, mode=mode, tolerance=1e-3)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="^error_control: only mode='tree' takes.*mode='auto'"):
+        IDW(controls, targets, error_control="sampled")
+    with pytest.raises(ValueError, match="^tolerance must lie in"):
+        IDW(controls, targets, tolerance=1.5)
+
+
+def test_auto_mode_takes_the_tree_where_it_pays():
+    """The rule at its measured thresholds (no points needed): p = 4, 3-D, the fused CPU
+    kernels, points that do not require grad, from 10^9 pairs at 1e-5 and up, from 10^10
+    at 1e-7 and up, never below."""
+    from torchmorph.idw.module import auto_mode
+
+    cpu, f32 = torch.device("cpu"), torch.float32
+
+    def mode(targets, controls, tolerance, **options):
+        options = {"dtype": f32, "device": cpu, "tolerance": tolerance, **options}
+        return auto_mode(targets, controls, **options)
+
+    assert mode(10**5, 10**4, 1e-4) == mode(10**5, 10**4, 1e-5) == "tree"
+    assert mode(10**5, 10**4 - 1, 1e-4) == "matrix_free"  # below 10^9 pairs
+    assert mode(10**5, 10**4, None) == "matrix_free"  # no tolerance: exact
+    assert mode(10**5, 10**4, 1e-6) == "matrix_free"
+    assert mode(10**6, 10**4, 1e-6) == mode(10**6, 10**4, 1e-7) == "tree"
+    assert mode(10**7, 10**6, 1e-8) == "matrix_free"  # never below 1e-7
+    for options in ({"power": 3.0}, {"dim": 2}, {"requires_grad": True}):
+        assert mode(10**6, 10**5, 1e-4, **options) == "matrix_free", options
+    assert mode(10**6, 10**5, 1e-4, implementation="torch") == "matrix_free"
+    on_gpu = {"device": torch.device("cuda"), "dense_bytes": 10**9}  # no CUDA tree
+    assert mode(10**6, 10**5, 1e-4, **on_gpu) == "matrix_free"
+
+
+def test_auto_mode_with_a_tolerance_builds_the_sampled_tree(monkeypatch):
+    """Above the (here lowered) threshold ``IDW(c, t, tolerance=...)`` is the sampled tree,
+    within the tolerance, whose state loads into an explicit tree module; below it, the
+    exact morph, with no tolerance kept."""
+    import torchmorph.idw._tree_mode as tree_mode
+
+    controls, targets = surface_cloud()
+    displacements = field(controls)
+    exact = IDW(controls, targets, mode="matrix_free")(displacements)
+    below = IDW(controls, targets, tolerance=1e-3)
+    assert below.mode == "matrix_free" and below.tolerance is None
+    assert below.error_control is None
+    torch.testing.assert_close(below(displacements), exact, rtol=0, atol=0)
+    monkeypatch.setattr(tree_mode, "AUTO_TREE_PAIRS", ((1e-5, 300 * 900),))
+    auto = IDW(controls, targets, tolerance=1e-3)
+    assert (auto.mode, auto.tolerance, auto.error_control) == ("tree", 1e-3, "sampled")
+    result = auto(displacements)
+    assert 0 < relative_error(result, exact) <= 1e-3
+    tree = IDW(controls, targets, mode="tree", tolerance=1e-3, error_control="sampled")
+    tree.load_state_dict(auto.state_dict())
+    torch.testing.assert_close(tree(displacements), result, rtol=0, atol=0)
+    assert IDW(controls.float(), targets.float(), tolerance=1e-3).mode == "tree"
+    steep = IDW(controls, targets, tolerance=1e-3, power=3.0)
+    assert steep.mode == "matrix_free"
+    moving = IDW(controls.clone().requires_grad_(True), targets, tolerance=1e-3)
+    assert moving.mode == "matrix_free"
 
 
 @pytest.mark.parametrize("tolerance", [0.0, 1.0, -1e-3])
@@ -214,6 +272,27 @@ def test_mesh_morph_in_tree_mode_matches_the_exact_morph():
     interior = exact.interior_nodes
     expected = exact(displacement)[interior]
     assert relative_error(tree(displacement)[interior], expected) <= DEFAULT_TOLERANCE
+
+
+def test_mesh_morph_auto_with_a_tolerance(monkeypatch):
+    """MeshMorph passes ``tolerance`` to auto (the tree above the lowered threshold);
+    near-wall stiffening has no tree, so with auto it stays exact, and with an exact mode
+    the tolerance is refused."""
+    import torchmorph.idw._tree_mode as tree_mode
+
+    monkeypatch.setattr(tree_mode, "AUTO_TREE_PAIRS", ((1e-5, 1000),))
+    mesh = box_mesh(6)
+    morph = MeshMorph(mesh, tolerance=1e-3)
+    assert (morph.idw.mode, morph.idw.error_control) == ("tree", "sampled")
+    stiff = MeshMorph(mesh, tolerance=1e-3, stiffening_length=0.1)
+    exact = MeshMorph(mesh, stiffening_length=0.1)
+    boundary = mesh.points[exact.boundary_nodes]
+    displacement = 0.05 * torch.sin(3 * boundary)
+    torch.testing.assert_close(stiff(displacement), exact(displacement), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="^tolerance: the tree's, and near-wall stiffening"):
+        MeshMorph(mesh, mode="matrix_free", tolerance=1e-3, stiffening_length=0.1)
+    with pytest.raises(ValueError, match="^error_control: the tree's"):
+        MeshMorph(mesh, error_control="sampled", stiffening_length=0.1)
 
 
 def test_mesh_morph_adjoint_in_tree_mode_is_the_exact_adjoint_within_tolerance():

@@ -88,7 +88,8 @@ def add_method_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="TOL",
         help="with --mode tree: the relative error of the morph (default 1e-4), kept by "
-        "exact sums at sampled nodes (the library's error_control='sampled')",
+        "exact sums at sampled nodes (the library's error_control='sampled'); with --mode "
+        "auto: lets auto take the tree where it was measured faster than the exact sum",
     )
     group.add_argument(
         "--rbf-solver",
@@ -136,8 +137,10 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
     """MeshMorph's method keyword arguments from the options; ``args.parser.error`` (exit
     code 2) for a combination that does not go together."""
     error = args.parser.error
-    if args.tree_tolerance is not None and args.mode != "tree":
-        error("argument --tree-tolerance: needs --mode tree")
+    if args.tree_tolerance is not None and args.mode not in ("tree", "auto"):
+        error("argument --tree-tolerance: needs --mode tree or auto")
+    if args.tree_tolerance is not None and args.method != "idw":
+        error("argument --tree-tolerance: the IDW tree's; not with --method rbf")
     if args.method == "idw" and args.rbf_solver is not None:
         error("argument --rbf-solver: an RBF option; needs --method rbf")
     if args.method == "idw":
@@ -150,6 +153,8 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
             if args.stiffening is not None:
                 error("argument --stiffening: near-wall stiffening has no --mode tree")
             options.update(tolerance=args.tree_tolerance or 1e-4, error_control="sampled")
+        elif args.tree_tolerance is not None:  # auto: the tree where it pays, else exact
+            options.update(tolerance=args.tree_tolerance)
         if args.stiffening_power is not None and args.stiffening is None:
             error("argument --stiffening-power: needs --stiffening LENGTH")
         if args.stiffening is not None:

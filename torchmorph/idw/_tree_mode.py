@@ -11,7 +11,16 @@ from torch import Tensor
 if TYPE_CHECKING:
     from torchmorph.idw.tree import TreeIDW
 
-__all__ = ["TreeOperator"]
+__all__ = ["AUTO_TREE_PAIRS", "TreeOperator", "tree_pays"]
+
+AUTO_TREE_PAIRS: tuple[tuple[float, float], ...] = ((1e-5, 1e9), (1e-7, 1e10))
+"""``IDW(mode="auto", tolerance=...)`` takes the tree (sampled error control) from this many
+target–control pairs on, by the tolerance: (the smallest tolerance, the pairs). Measured
+at p = 4 in 3-D, controls on a sphere and targets graded towards it, one thread
+(``benchmarks/README.md``, "The default path"): at 10^5 × 10^4 and 1e-4 the tree's first
+call (the build and the threshold's tuning) costs what the exact sum's does and the later
+ones a third of it, in float32 and float64; at 1e-6 the tree pays from 3·10^5 × 3·10^4 on.
+Below 1e-7, the exact modes only."""
 
 
 class TreeOperator:
@@ -96,3 +105,15 @@ class TreeOperator:
             )
             self._cache = (key, tree)
         return self._cache[1]
+
+
+def tree_pays(pairs: int, *, tolerance: float, power: float, dim: int) -> bool:
+    """Whether ``mode="auto"`` takes the tree for ``pairs`` target–control pairs at the
+    relative ``tolerance`` (:data:`AUTO_TREE_PAIRS`), where the fused CPU kernels run.
+
+    Only where it was measured faster than the exact sum: p = 4 (at 10^5 × 10^4, 1e-4,
+    float32, a settled tree call took 1.3–4.4 times an exact call at p = 2, 3, 5, 6 and 8,
+    against 0.36 times at p = 4) and three dimensions."""
+    if power != 4.0 or dim != 3:
+        return False
+    return any(tolerance >= least and pairs >= most for least, most in AUTO_TREE_PAIRS)

@@ -35,7 +35,7 @@ from torchmorph.idw._geometry import (
     prepare,
     warn_duplicate_controls,
 )
-from torchmorph.idw._tree_mode import TreeOperator
+from torchmorph.idw._tree_mode import TreeOperator, tree_pays
 from torchmorph.idw.functional import (
     DEFAULT_COINCIDENCE_TOLERANCE,
     Implementation,
@@ -60,9 +60,17 @@ def auto_mode(
     device: torch.device,
     dense_bytes: int | None = DEFAULT_DENSE_BYTES,
     implementation: str = "auto",
-) -> Literal["dense", "matrix_free"]:
-    """What ``mode="auto"`` resolves to: ``"dense"`` or ``"matrix_free"``.
+    tolerance: float | None = None,
+    power: float = 4.0,
+    dim: int = 3,
+    requires_grad: bool = False,
+) -> Literal["dense", "matrix_free", "tree"]:
+    """What ``mode="auto"`` resolves to: ``"dense"``, ``"matrix_free"`` or ``"tree"``.
 
+    ``"tree"`` only when a ``tolerance`` is given, where the fused CPU kernels run, for
+    points that do not require grad, and where the tree was measured faster than the
+    exact sum (:func:`~torchmorph.idw._tree_mode.tree_pays`: p = 4, 3-D, from 10^9
+    target–control pairs at tolerances from 1e-5 up, from 10^10 at 1e-7 up).
     Matrix-free when W (num_targets × num_controls) would take more than ``dense_bytes``
     (default: half the device's free memory), in float32 (on a GPU a stored float32 W is
     applied by float32 BLAS, 5–17× less accurate than the fused kernels, measured against
@@ -77,13 +85,16 @@ def auto_mode(
     Dense otherwise (a GPU in float64, the torch implementation), where a stored W is
     applied by one GEMM.
     """
+    fused = device.type == "cpu" and implementation != "torch" and fused_available(device)
+    if tolerance is not None and fused and not requires_grad:
+        pairs = num_targets * num_controls
+        if tree_pays(pairs, tolerance=tolerance, power=power, dim=dim):
+            return "tree"
     budget = free_memory(device) // 2 if dense_bytes is None else dense_bytes
     size = num_targets * num_controls * torch.finfo(dtype).bits // 8
     if size > budget or dtype == torch.float32:
         return "matrix_free"
-    if device.type == "cpu" and implementation != "torch" and fused_available(device):
-        return "matrix_free"
-    return "dense"
+    return "matrix_free" if fused else "dense"
 
 
 class IDW(nn.Module):
@@ -101,9 +112,13 @@ class IDW(nn.Module):
         ``dense`` assembles and stores W (N_t, N_c) once; ``matrix_free``
         recomputes weights on every call and never stores W; ``tree`` applies a
         :class:`~torchmorph.idw.tree.TreeIDW` built once (far clusters of controls summed
-        by a quadrupole expansion, to the relative error ``tolerance``; CPU only, never
-        chosen by ``auto``); ``auto`` picks between the two exact modes
-        (:func:`auto_mode`): matrix-free where the fused CPU kernels run (a fused
+        by a quadrupole expansion, to the relative error ``tolerance``; CPU only);
+        ``auto`` with a ``tolerance`` takes the tree, with sampled error control, where it
+        was measured faster than the exact sum (:func:`auto_mode`: the fused CPU kernels,
+        p = 4, 3-D, from 10^9 target–control pairs at tolerances from 1e-5 up and from
+        10^10 at 1e-7 up; its first call then costs about the exact sum's, later ones a
+        third at 1e-4), and otherwise one of the two exact modes, which meet any
+        tolerance: matrix-free where the fused CPU kernels run (a fused
         pass costs about 1.4× a stored-W product, so W repays its assembly only over
         many morphs) and in float32 (on a GPU a float32 W sums in float32 BLAS, 5–17×
         less accurately than the kernels' float64 partial sums); elsewhere dense when W
@@ -111,9 +126,12 @@ class IDW(nn.Module):
         (``torch.compile``, thousands of morphs of one geometry, repeated large batches
         on a GPU).
     tolerance : float, optional
-        ``mode="tree"`` only (default :data:`~torchmorph.idw.tree.DEFAULT_TOLERANCE`,
-        1e-4): the relative error ``‖u_tree - u‖ / ‖u‖`` (2-norm over the targets, per
-        displacement field) that the tree keeps.
+        ``mode="tree"`` (default :data:`~torchmorph.idw.tree.DEFAULT_TOLERANCE`, 1e-4) or
+        ``"auto"``: the relative error ``‖u_tree - u‖ / ‖u‖`` (2-norm over the targets,
+        per displacement field) that the tree keeps. With ``"auto"`` it allows the tree
+        (above), whose sampled error control estimates that error at sampled targets
+        rather than bounding it (:class:`~torchmorph.idw.tree.TreeIDW`); where auto
+        picks an exact mode, ``tolerance`` is ``None`` afterwards.
     error_control : {"certified", "sampled"}, optional
         ``mode="tree"`` only: how the tree keeps ``tolerance``
         (:class:`~torchmorph.idw.tree.TreeIDW`). ``"certified"`` (default) by a worst-case
@@ -149,8 +167,9 @@ class IDW(nn.Module):
     ValueError
         For bad points or options; ``mode="dense"`` when W does not fit in the
         memory the device has free (before allocating; the message names
-        ``mode="matrix_free"``); ``tolerance`` given with a mode other than
-        ``"tree"``; in tree mode, points off the CPU or that require grad.
+        ``mode="matrix_free"``); ``tolerance`` given with a mode other than ``"tree"``
+        or ``"auto"``, ``error_control`` with a mode other than ``"tree"``; in tree mode,
+        points off the CPU or that require grad.
 
     Notes
     -----
@@ -212,10 +231,12 @@ class IDW(nn.Module):
         targets = as_points(targets, "targets", dim=controls.shape[1], allow_empty=True)
         check_same_device_dtype(controls, "controls", targets, "targets")
         check_choice(mode, "mode", ("auto", "dense", "matrix_free", "tree"))
+        takes = {"tolerance": ("tree", "auto"), "error_control": ("tree",)}
         for name, value in (("tolerance", tolerance), ("error_control", error_control)):
-            if value is not None and mode != "tree":
+            if value is not None and mode not in takes[name]:
+                modes = " or ".join(repr(kind) for kind in takes[name])
                 raise ValueError(
-                    f"{name}: only mode='tree' takes {name} (the other modes are exact), "
+                    f"{name}: only mode={modes} takes {name} (the other modes are exact), "
                     f"got mode={mode!r}"
                 )
         self.power = check_power(power)
@@ -229,6 +250,10 @@ class IDW(nn.Module):
         self.implementation = _check_implementation(implementation)
         size = targets.shape[0] * controls.shape[0] * controls.element_size()
         if mode == "auto":
+            if tolerance is not None:
+                from torchmorph.idw.tree import _check_tolerance as _check_tree_tolerance
+
+                tolerance = _check_tree_tolerance(tolerance)
             mode = auto_mode(
                 targets.shape[0],
                 controls.shape[0],
@@ -236,7 +261,15 @@ class IDW(nn.Module):
                 device=controls.device,
                 dense_bytes=self.dense_bytes,
                 implementation=self.implementation,
+                tolerance=tolerance,
+                power=self.power,
+                dim=controls.shape[1],
+                requires_grad=controls.requires_grad or targets.requires_grad,
             )
+            if mode == "tree":  # the fast error control; the exact modes ignore tolerance
+                error_control = "sampled"
+            else:
+                tolerance = None
         elif mode == "dense":
             free = free_memory(controls.device)
             if size > free:
