@@ -101,10 +101,9 @@ class MeshMorph(nn.Module):
         Passed to :class:`~torchmorph.idw.IDW` or :class:`~torchmorph.rbf.RBF`
         (``"tree"`` is IDW's only).
     tolerance, error_control : optional
-        IDW's, passed to :class:`~torchmorph.idw.IDW`: with ``mode="tree"`` the tree's
-        relative error (default 1e-4) and ``"certified"`` or the faster ``"sampled"``;
-        ``tolerance`` with ``mode="auto"`` lets it take the tree (sampled) where that was
-        measured faster than the exact sum (near-wall stiffening stays exact).
+        IDW's (:class:`~torchmorph.idw.IDW`): the tree's relative error (default 1e-4) and
+        ``"certified"`` or the faster ``"sampled"`` in tree mode; a ``tolerance`` lets
+        ``mode="auto"`` take the sampled tree where faster (stiffening stays exact).
     generator : torch.Generator, optional
         Randomness of the selection (random start points and strategy).
     block_bytes, dense_bytes : int, optional
