@@ -150,6 +150,30 @@ def test_powers(power, error_control):
     assert relative_error(result, exact) <= 1e-3
 
 
+@pytest.mark.parametrize("power", [1, 2, 3, 4, 5, 6, 7, 8, 2.5])
+def test_remainder_bounds_the_expansion_from_above(power):
+    """T2(θ) = (1-θ)^-p - 1 - pθ - p(p+1)θ²/2 in closed form for the integer p (and by
+    expm1/log1p otherwise) against exact rational arithmetic: never below, and within
+    1e-10 relative (the certified bound rests on it)."""
+    from fractions import Fraction
+
+    from torchmorph.idw.backends import power_code
+    from torchmorph.idw.backends.numba._tree_jit import _remainder_fast
+
+    for theta in [*np.linspace(1e-4, 0.999, 400), 1e-6, 1e-2, 0.5]:
+        value = _remainder_fast(float(theta), float(power), power_code(power))
+        t = Fraction(float(theta))
+        if float(power).is_integer():
+            p = int(power)
+            exact = 1 / (1 - t) ** p - 1 - p * t - Fraction(p * (p + 1), 2) * t * t
+            assert 0 <= (Fraction(value) - exact) / exact <= 1e-10, (theta, value)
+        else:  # no closed form: against a float64 evaluation of (1-θ)^-p (float rounding)
+            whole = (1 - float(theta)) ** -power - 1 - power * theta
+            exact_float = whole - power * (power + 1) / 2 * theta * theta
+            assert value == pytest.approx(exact_float, rel=1e-6, abs=1e-15)
+    assert _remainder_fast(1.0, float(power), power_code(power)) == np.inf
+
+
 @pytest.mark.parametrize("power", [3.0, 5.0, 6.0, 8.0])
 def test_integer_powers_in_single_precision(power):
     """The integer powers are products and square roots in the kernels. Against its

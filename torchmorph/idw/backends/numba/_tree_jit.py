@@ -72,7 +72,7 @@ def remainder(theta, power):
 
 @njit(**_OPTIONS)
 def _remainder_fast(theta, power, mode):
-    """T2(θ) as :func:`remainder`, in closed form for p = 4 and 2 (no log/exp)."""
+    """T2(θ) as :func:`remainder`, in closed form for the integer p from 1 to 8 (no log/exp)."""
     if mode == 4:
         if theta >= 1.0:
             return np.inf
@@ -85,7 +85,32 @@ def _remainder_fast(theta, power, mode):
             return np.inf
         gap = 1.0 - theta
         return theta**3 * (4.0 - 3.0 * theta) / (gap * gap) * (1.0 + 1e-12) + 1e-300
-    return remainder(theta, power)
+    if mode == 0:
+        return remainder(theta, power)
+    if theta >= 1.0:
+        return np.inf
+    # the other integer p: T2 = θ³ q(θ) / (1-θ)^p with q's integer coefficients (1 - (1-θ)^p
+    # (1 + pθ + p(p+1)θ²/2) = θ³ q(θ)); Horner's rounding stays below 3e-13 relative
+    if mode == 1:
+        q = 1.0
+    elif mode == 3:
+        q = 10.0 - theta * (15.0 - 6.0 * theta)
+    elif mode == 5:
+        q = 35.0 - theta * (105.0 - theta * (126.0 - theta * (70.0 - 15.0 * theta)))
+    elif mode == 6:
+        q = 120.0 - 21.0 * theta
+        q = 56.0 - theta * (210.0 - theta * (336.0 - theta * (280.0 - theta * q)))
+    elif mode == 7:
+        q = 540.0 - theta * (189.0 - 28.0 * theta)
+        q = 84.0 - theta * (378.0 - theta * (756.0 - theta * (840.0 - theta * q)))
+    else:  # 8
+        q = 1800.0 - theta * (945.0 - theta * (280.0 - 36.0 * theta))
+        q = 120.0 - theta * (630.0 - theta * (1512.0 - theta * (2100.0 - theta * q)))
+    gap = 1.0 - theta
+    denominator = 1.0
+    for _ in range(mode):
+        denominator *= gap
+    return theta**3 * q / denominator * (1.0 + 1e-11) + 1e-300
 
 
 @njit(**_OPTIONS)
