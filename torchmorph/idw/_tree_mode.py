@@ -17,10 +17,10 @@ AUTO_TREE_PAIRS: tuple[tuple[float, float], ...] = ((1e-5, 1e9), (1e-7, 1e10))
 """``IDW(mode="auto", tolerance=...)`` takes the tree (sampled error control) from this many
 target–control pairs on, by the tolerance: (the smallest tolerance, the pairs). Measured
 at p = 4 in 3-D, controls on a sphere and targets graded towards it, one thread
-(``benchmarks/README.md``, "The default path"): at 10^5 × 10^4 and 1e-4 the tree's first
-call (the build and the threshold's tuning) costs what the exact sum's does and the later
-ones a third of it, in float32 and float64; at 1e-6 the tree pays from 3·10^5 × 3·10^4 on.
-Below 1e-7, the exact modes only."""
+(``benchmarks/README.md``, "When auto takes the tree"): at 10^5 × 10^4 and 1e-4 the
+tree's first call (the build and the threshold's tuning) costs what the exact sum's does
+and the later ones a third of it, in float32 and float64; at 1e-6 the tree pays from
+3·10^5 × 3·10^4 on. Below 1e-7, the exact modes only."""
 
 
 class TreeOperator:
