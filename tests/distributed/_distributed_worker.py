@@ -149,6 +149,7 @@ def _equivalence(rank: int, outdir: str, results: dict) -> None:
         save_partitioned,
         sharded_pod_basis,
     )
+    from torchmorph.idw import _tree_mode as tree_mode
 
     controls, targets, displacements, weights = idw_data()
     for split, sizes in SPLITS.items():
@@ -186,6 +187,14 @@ def _equivalence(rank: int, outdir: str, results: dict) -> None:
         results[f"idw/{split}/tree/adjoint"] = sharded.adjoint(weights[:, rows])
         pod = ShardedPOD(num_modes=4).fit(sharded, training(controls))
         results[f"pod/{split}/tree/forward"] = pod.gather(pod(displacements))
+        # a tolerance with auto: each rank's sampled tree by its own pairs (threshold lowered)
+        saved = tree_mode.AUTO_TREE_PAIRS
+        tree_mode.AUTO_TREE_PAIRS = ((1e-5, 1),)
+        sharded = ShardedIDW(controls, targets[rows], tolerance=1e-3)
+        tree_mode.AUTO_TREE_PAIRS = saved
+        gathered = sharded.gather(sharded(displacements), dst=None)
+        results[f"idw/{split}/auto_tree/gathered"] = gathered
+        results[f"idw/{split}/auto_tree/kind"] = (sharded.idw.mode, sharded.idw.error_control)
 
     mesh, boundary, node_weights = mesh_data()
     for layout in ("default", "interleaved", "empty"):
@@ -266,6 +275,12 @@ def _mismatches(rank: int, outdir: str, results: dict) -> None:
         ),
         "nan_target": lambda: ShardedIDW(controls, nan_targets),
         "mode": lambda: ShardedIDW(controls, mine, mode="bogus" if other else "dense"),
+        "tree_tolerance": lambda: ShardedIDW(
+            controls, mine, mode="tree", tolerance=1e-3 if other else 1e-4
+        ),
+        "error_control": lambda: ShardedIDW(
+            controls, mine, mode="tree", error_control="sampled" if other else None
+        ),
         "not_a_tensor": lambda: ShardedIDW(controls, mine.tolist() if other else mine),
     }
 

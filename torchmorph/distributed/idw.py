@@ -46,6 +46,18 @@ def _points(value: Any, name: str, like: Tensor | None = None) -> Tensor:
     return points
 
 
+def _check_tree_options(tolerance: Any, error_control: Any) -> tuple[float | None, int]:
+    """The tree's ``tolerance`` (None, or in (0, 1)) and ``error_control`` as a number
+    the ranks can compare (-1 for None, 0 certified, 1 sampled)."""
+    from torchmorph.idw.tree import _check_tolerance as check_tree_tolerance
+
+    controls = (None, "certified", "sampled")
+    if error_control not in controls:
+        raise ValueError(f"error_control must be 'certified' or 'sampled', got {error_control!r}")
+    checked = None if tolerance is None else check_tree_tolerance(tolerance)
+    return checked, controls.index(error_control) - 1
+
+
 def _check_tolerance(value: Any) -> float:
     tolerance = float(value)
     if not math.isfinite(tolerance) or tolerance < 0:
@@ -96,6 +108,11 @@ class ShardedIDW(nn.Module):
     power, mode, block_bytes, dense_bytes, coincidence_tolerance, implementation
         As in :class:`~torchmorph.idw.IDW`; ``power`` and ``coincidence_tolerance``
         must be the same on every rank, ``mode="auto"`` decides per rank.
+    tolerance, error_control : optional
+        As in :class:`~torchmorph.idw.IDW` (the tree's), the same on every rank: each
+        rank's tree keeps the relative error on its own targets, so the gathered result
+        keeps it too (the squared errors and norms add up over the ranks); with
+        ``mode="auto"`` each rank takes the tree by its own pairs.
     group : ProcessGroup, optional
         Default: the world.
 
@@ -115,11 +132,12 @@ class ShardedIDW(nn.Module):
     ------
     ValueError
         On every rank at once (no rank is left waiting for another): if
-        ``controls``, ``power`` or ``coincidence_tolerance`` differ across ranks (in
-        shape, dtype or value; the message names each), ``target_rows`` is given on
-        some ranks only or does not partition the targets, or a rank's own inputs
-        are malformed (NaN targets on one rank, say): that rank raises its own error,
-        the others one naming the argument and the rank.
+        ``controls``, ``power``, ``coincidence_tolerance``, ``tolerance`` or
+        ``error_control`` differ across ranks (in shape, dtype or value; the message
+        names each), ``target_rows`` is given on some ranks only or does not partition
+        the targets, or a rank's own inputs are malformed (NaN targets on one rank,
+        say): that rank raises its own error, the others one naming the argument and
+        the rank.
 
     Notes
     -----
@@ -148,6 +166,8 @@ class ShardedIDW(nn.Module):
         dense_bytes: int | None = None,
         coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
         implementation: Implementation = "auto",
+        tolerance: float | None = None,
+        error_control: str | None = None,
         group: Any = None,
     ) -> None:
         super().__init__()
@@ -160,9 +180,11 @@ class ShardedIDW(nn.Module):
             "targets", _points, targets, "targets", checked_controls
         )
         checked_power = agreement.attempt("power", check_positive, power, "power")
-        tolerance = agreement.attempt(
+        coincidence = agreement.attempt(
             "coincidence_tolerance", _check_tolerance, coincidence_tolerance
         )
+        options = agreement.attempt("tolerance", _check_tree_options, tolerance, error_control)
+        tree_tolerance, tree_control = options or (None, -1)
         count = 0 if checked_targets is None else checked_targets.shape[0]
         rows = None
         if target_rows is not None:
@@ -171,18 +193,20 @@ class ShardedIDW(nn.Module):
             )
         agreement.same_tensor("controls", checked_controls)
         agreement.same("power", checked_power)
-        agreement.same("coincidence_tolerance", tolerance)
+        agreement.same("coincidence_tolerance", coincidence)
+        agreement.same("tolerance", tree_tolerance)
+        agreement.same("error_control (-1: None, 0: 'certified', 1: 'sampled')", tree_control)
         agreement.same_presence("target_rows", target_rows is not None)
         agreement.per_rank("targets", count)
         counts = [int(value) for value in agreement.exchange()["targets"]]
         # exchange() raised on every rank if a check above failed on one
         assert checked_controls is not None and checked_targets is not None
-        assert checked_power is not None and tolerance is not None
+        assert checked_power is not None and coincidence is not None
         controls, targets, power = checked_controls, checked_targets, checked_power
 
         self.num_global_targets = sum(counts)
-        self.coincidence_tolerance = tolerance
-        scaled = _global_tolerance(controls, targets, tolerance, group)
+        self.coincidence_tolerance = coincidence
+        scaled = _global_tolerance(controls, targets, coincidence, group)
         failure: tuple[str, Exception] | None = None
         if rows is None:
             start = sum(counts[: self.rank])
@@ -204,6 +228,8 @@ class ShardedIDW(nn.Module):
                     dense_bytes=dense_bytes,
                     coincidence_tolerance=scaled,
                     implementation=implementation,
+                    tolerance=tree_tolerance,
+                    error_control=error_control,
                 )
             except Exception as error:  # noqa: BLE001  raised below, on every rank
                 failure = ("IDW(controls, targets)", error)
