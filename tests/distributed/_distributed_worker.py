@@ -218,6 +218,13 @@ def _equivalence(rank: int, outdir: str, results: dict) -> None:
                 results[f"{key}/pod_state"] = pod.state_dict()
             if layout == "interleaved" and mode == "dense":
                 morph.save(Path(outdir) / "parts", out)
+    # a tolerance under auto (threshold lowered): each rank's sampled tree, gathered
+    saved = tree_mode.AUTO_TREE_PAIRS
+    tree_mode.AUTO_TREE_PAIRS = ((1e-5, 1),)
+    morph = ShardedMeshMorph(mesh, tolerance=1e-3)
+    tree_mode.AUTO_TREE_PAIRS = saved
+    results["mesh/auto_tree/gathered"] = morph.gather(morph(boundary), dst=None)
+    results["mesh/auto_tree/kind"] = (morph.idw.mode, morph.idw.error_control)
     results["gather_batched"] = gather_rows(
         torch.full((2, 3 - rank, 2), float(rank)), torch.arange(3 - rank) * 2 + rank, 5
     )

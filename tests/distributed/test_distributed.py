@@ -189,6 +189,19 @@ def test_sharded_mesh_morph_equals_single_process(ranks, layout, mode):
     assert results[1][f"mesh/{layout}/{mode}/gathered"] is None
 
 
+@pytest.mark.slow  # two spawned processes
+def test_sharded_mesh_morph_takes_the_tree_by_its_tolerance(ranks):
+    """ShardedMeshMorph(mesh, tolerance=...) under auto (the threshold lowered in the
+    workers): each rank's sampled tree, the gathered morph within the tolerance."""
+    results, _ = ranks
+    mesh, boundary, _ = worker.mesh_data()
+    reference = MeshMorph(mesh)(boundary)
+    for result in results:
+        assert result["mesh/auto_tree/kind"] == ("tree", "sampled")
+        gathered = result["mesh/auto_tree/gathered"]
+        assert 0 < float((gathered - reference).norm() / reference.norm()) <= 1e-3
+
+
 @pytest.mark.parametrize("mode", ["dense", "matrix_free"])
 @pytest.mark.parametrize("layout", ["default", "interleaved", "empty"])
 @pytest.mark.slow  # two spawned processes

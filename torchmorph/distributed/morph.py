@@ -111,6 +111,9 @@ class ShardedMeshMorph(nn.Module):
         As in :class:`~torchmorph.morph.MeshMorph` and :class:`~torchmorph.idw.IDW`
         (``generator`` is used on rank 0 only; ``power`` and ``coincidence_tolerance``
         must be the same on every rank).
+    tolerance, error_control : optional
+        The tree's, as in :class:`~torchmorph.distributed.ShardedIDW` (the same on every
+        rank; checked there, after the mesh).
     group : ProcessGroup, optional
         Default: the world.
 
@@ -161,6 +164,8 @@ class ShardedMeshMorph(nn.Module):
         dense_bytes: int | None = None,
         coincidence_tolerance: float = DEFAULT_COINCIDENCE_TOLERANCE,
         implementation: Implementation = "auto",
+        tolerance: float | None = None,
+        error_control: str | None = None,
         group: Any = None,
     ) -> None:
         super().__init__()
@@ -176,7 +181,7 @@ class ShardedMeshMorph(nn.Module):
         cells = () if points is None else [f"{b.kind}:{b.nodes.shape[0]}" for b in mesh.cells]
         num_nodes = 0 if points is None else points.shape[0]
         checked_power = agreement.attempt("power", check_positive, power, "power")
-        tolerance = agreement.attempt(
+        coincidence = agreement.attempt(
             "coincidence_tolerance", _check_tolerance, coincidence_tolerance
         )
         owned = None
@@ -188,12 +193,12 @@ class ShardedMeshMorph(nn.Module):
         agreement.same_tensor("mesh.boundary_nodes", boundary)
         agreement.same_digest("mesh.cells", *cells)
         agreement.same("power", checked_power)
-        agreement.same("coincidence_tolerance", tolerance)
+        agreement.same("coincidence_tolerance", coincidence)
         agreement.same_presence("owned_nodes", owned_nodes is not None)
         agreement.exchange()
         # exchange() raised on every rank if a check above failed on one
         assert points is not None and boundary is not None
-        assert checked_power is not None and tolerance is not None
+        assert checked_power is not None and coincidence is not None
 
         interior = mesh.interior_nodes.cpu()
 
@@ -259,8 +264,10 @@ class ShardedMeshMorph(nn.Module):
             mode=mode,
             block_bytes=block_bytes,
             dense_bytes=dense_bytes,
-            coincidence_tolerance=tolerance,
+            coincidence_tolerance=coincidence,
             implementation=implementation,
+            tolerance=tolerance,
+            error_control=error_control,
             group=group,
         )
         self.idw = self.sharded.idw
