@@ -49,13 +49,13 @@ def _points(value: Any, name: str, like: Tensor | None = None) -> Tensor:
 def _check_tree_options(tolerance: Any, error_control: Any) -> tuple[float | None, int]:
     """The tree's ``tolerance`` (None, or in (0, 1)) and ``error_control`` as a number
     the ranks can compare (-1 for None, 0 certified, 1 sampled)."""
+    from torchmorph.idw._geometry import check_error_control
     from torchmorph.idw.tree import _check_tolerance as check_tree_tolerance
 
-    controls = (None, "certified", "sampled")
-    if error_control not in controls:
-        raise ValueError(f"error_control must be 'certified' or 'sampled', got {error_control!r}")
     checked = None if tolerance is None else check_tree_tolerance(tolerance)
-    return checked, controls.index(error_control) - 1
+    if error_control is None:
+        return checked, -1
+    return checked, ("certified", "sampled").index(check_error_control(error_control))
 
 
 def _check_tolerance(value: Any) -> float:

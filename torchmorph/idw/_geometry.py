@@ -34,6 +34,13 @@ def check_tolerance(tolerance: float) -> float:
     return tolerance
 
 
+def check_error_control(error_control: str) -> str:
+    """The tree's error control, ``"certified"`` or ``"sampled"``; else ``ValueError``."""
+    if error_control not in ("certified", "sampled"):
+        raise ValueError(f"error_control must be 'certified' or 'sampled', got {error_control!r}")
+    return error_control
+
+
 def normalise(
     targets: Tensor, controls: Tensor, tolerance: float
 ) -> tuple[Tensor, Tensor, float | Tensor]:

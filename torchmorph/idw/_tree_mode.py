@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING
 
 from torch import Tensor
 
+from torchmorph.idw._geometry import check_error_control
+
 if TYPE_CHECKING:
     from torchmorph.idw.tree import TreeIDW
 
@@ -54,11 +56,9 @@ class TreeOperator:
         self.power = power
         self.coincidence_tolerance = coincidence_tolerance
         self.tolerance = _check_tolerance(DEFAULT_TOLERANCE if tolerance is None else tolerance)
-        self.error_control = "certified" if error_control is None else error_control
-        if self.error_control not in ("certified", "sampled"):
-            raise ValueError(
-                f"error_control must be 'certified' or 'sampled', got {error_control!r}"
-            )
+        self.error_control = check_error_control(
+            "certified" if error_control is None else error_control
+        )
         self._cache: tuple[tuple, TreeIDW] | None = None
 
     def operator(self, controls: Tensor, targets: Tensor) -> TreeIDW:

@@ -122,7 +122,7 @@ from torchmorph._checks import (
     dim_of,
 )
 from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
-from torchmorph.idw._geometry import check_tolerance, normalise
+from torchmorph.idw._geometry import check_error_control, check_tolerance, normalise
 from torchmorph.idw._tree_operator import TARGET_BLOCK, _TreeApply, _TreeOperator
 from torchmorph.idw._tree_threshold import CEILING_CALLS, CEILING_EASE, search
 from torchmorph.idw.backends.numba.kernels import available
@@ -274,11 +274,7 @@ class TreeIDW(nn.Module):
         self.tolerance = _check_tolerance(tolerance)
         self.coincidence_tolerance = check_tolerance(coincidence_tolerance)
         self.leaf_size = _check_leaf_size(leaf_size)
-        if error_control not in ("certified", "sampled"):
-            raise ValueError(
-                f"error_control must be 'certified' or 'sampled', got {error_control!r}"
-            )
-        self.error_control = error_control
+        self.error_control = check_error_control(error_control)
         self.register_buffer("controls", controls.detach().clone())
         self.register_buffer("targets", targets.detach().clone())
         self._build()

@@ -116,9 +116,6 @@ def _remainder_fast(theta, power, mode):
 @njit(**_OPTIONS)
 def _power(ratio, power, mode):
     """ratio^p, by products (and a square root for odd p) for the integer p up to 8."""
-    if mode == 4:
-        square = ratio * ratio
-        return square * square
     return ratio_power(ratio * ratio, 0.5 * power, mode)
 
 
