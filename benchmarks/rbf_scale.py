@@ -121,7 +121,9 @@ def timed(function):
     return result, time.perf_counter() - start
 
 
-def compare(counts, targets: int, coarse_sizes, patch_size: int, overlap: float) -> None:
+def compare(
+    counts, targets: int, coarse_sizes, patch_size: int, overlap: float, tolerances
+) -> None:
     print(
         f"(a) Against the global fit, {targets:,} targets, patch_size={patch_size}, "
         f"overlap={overlap:g}\n"
@@ -140,20 +142,28 @@ def compare(counts, targets: int, coarse_sizes, patch_size: int, overlap: float)
             f"| {count:,} | global dense | {seconds(fit)} | "
             f"{seconds(morph)} | {seconds(total)} | 1 | — |"
         )
-        for coarse in coarse_sizes:
+        runs = [(coarse, None) for coarse in coarse_sizes]
+        runs += [(coarse_sizes[-1], tolerance) for tolerance in tolerances]
+        for coarse, tolerance in runs:
             module, fit = timed(
-                lambda coarse=coarse: PartitionRBF(
+                lambda coarse=coarse, tolerance=tolerance: PartitionRBF(
                     points,
                     volume_points,
                     patch_size=patch_size,
                     overlap=overlap,
                     coarse_size=coarse,
+                    tolerance=tolerance,
                 )
             )
             result, morph = timed(lambda module=module: module(values))
             error = float((result - reference).norm() / reference.norm())
+            refined = (
+                "" if tolerance is None
+                else f", global to {tolerance:g} ({module.last_iterations_} iterations)"
+            )  # fmt: skip
             print(
-                f"| {count:,} | partition, coarse {coarse:,}, {module.num_patches} patches | "
+                f"| {count:,} | partition, coarse {coarse:,}, {module.num_patches} patches"
+                f"{refined} | "
                 f"{seconds(fit)} | {seconds(morph)} | {seconds(fit + morph)} | "
                 f"{(fit + morph) / total:.3f} | {error:.1e} |"
             )
@@ -161,12 +171,19 @@ def compare(counts, targets: int, coarse_sizes, patch_size: int, overlap: float)
         print("", flush=True)
 
 
-def large(controls: int, targets: int, coarse: int, patch_size: int, overlap: float, repeats):
+def large(
+    controls: int, targets: int, coarse: int, patch_size: int, overlap: float, repeats, tolerance
+):
     points, volume_points, values = case(controls, targets)
     before = peak_memory_gb()
     module, fit = timed(
         lambda: PartitionRBF(
-            points, volume_points, patch_size=patch_size, overlap=overlap, coarse_size=coarse
+            points,
+            volume_points,
+            patch_size=patch_size,
+            overlap=overlap,
+            coarse_size=coarse,
+            tolerance=tolerance,
         )
     )
     _, first = timed(lambda: module(values))
@@ -178,8 +195,11 @@ def large(controls: int, targets: int, coarse: int, patch_size: int, overlap: fl
     )
     print(
         f"(b) {controls:,} controls x {targets:,} targets, coarse {coarse:,}, "
-        f"patch_size={patch_size}, overlap={overlap:g}, {module.num_patches} patches\n"
-    )
+        f"patch_size={patch_size}, overlap={overlap:g}, {module.num_patches} patches"
+        + ("" if tolerance is None else f", global fit to {tolerance:g} "
+           f"({module.last_iterations_} iterations)")
+        + "\n"
+    )  # fmt: skip
     print("| fit | first morph | fit + first morph | later morph (median) | peak memory | state |")
     print("|---:|---:|---:|---:|---:|---:|")
     print(
@@ -250,6 +270,15 @@ def main(argv=None) -> None:
     parser.add_argument("--overlap", type=float, default=1.5)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument(
+        "--tolerances",
+        type=float,
+        nargs="*",
+        default=[],
+        metavar="TOL",
+        help="(a): rows of the global fit to these tolerances (PartitionRBF(tolerance=...), "
+        "the last --coarse); (b): the first of them",
+    )
+    parser.add_argument(
         "--sparse",
         type=float,
         nargs="*",
@@ -274,7 +303,8 @@ def main(argv=None) -> None:
                args.repeats)  # fmt: skip
         return
     if args.compare:
-        compare(args.compare, args.compare_targets, args.coarse, args.patch_size, args.overlap)
+        compare(args.compare, args.compare_targets, args.coarse, args.patch_size, args.overlap,
+                args.tolerances)  # fmt: skip
     if args.controls:
         large(
             args.controls,
@@ -283,6 +313,7 @@ def main(argv=None) -> None:
             args.patch_size,
             args.overlap,
             args.repeats,
+            args.tolerances[0] if args.tolerances else None,
         )
 
 

@@ -1,7 +1,8 @@
 """What every module of torchmorph does with its state: one error for use before
 ``fit`` (:class:`NotFittedError`), one rule for loading a saved state
-(:func:`check_saved_hyperparameters`), and buffers that take the saved shapes
-(:func:`resize_buffers_for_load`).
+(:func:`check_saved_hyperparameters`), buffers that take the saved shapes
+(:func:`resize_buffers_for_load`), and lists of tensors packed into one buffer
+(:func:`pack_tensors`, :func:`unpack_tensor`).
 
 The load rule: a state holds the module's hyper-parameters beside its buffers. Those
 that change the result (``power``, ``coincidence_tolerance``, ``energy_tolerance``,
@@ -24,7 +25,9 @@ __all__ = [
     "NotFittedError",
     "apply_keeping_dtypes",
     "check_saved_hyperparameters",
+    "pack_tensors",
     "resize_buffers_for_load",
+    "unpack_tensor",
 ]
 
 
@@ -90,3 +93,23 @@ def apply_keeping_dtypes(module: nn.Module, fn, recurse: bool, names: Iterable[s
         after = module._buffers[name]
         if before is not None and after is not None and after.dtype != before.dtype:
             module._buffers[name] = before.to(device=after.device)
+
+
+def pack_tensors(tensors: list[Tensor], like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Tensors of one or two dimensions packed for a module's state: (flat, shapes (P, 2)
+    with a second size of -1 for a vector, offsets (P + 1,))."""
+    shapes = torch.tensor(
+        [[t.shape[0], t.shape[1] if t.ndim == 2 else -1] for t in tensors], dtype=torch.int64
+    ).reshape(-1, 2)
+    sizes = torch.tensor([t.numel() for t in tensors], dtype=torch.int64)
+    offsets = torch.zeros(len(tensors) + 1, dtype=torch.int64)
+    offsets[1:] = torch.cumsum(sizes, 0)
+    flat = torch.cat([t.reshape(-1) for t in tensors]) if tensors else like.new_zeros(0)
+    return flat, shapes, offsets
+
+
+def unpack_tensor(flat: Tensor, shapes: list[list[int]], offsets: list[int], index: int) -> Tensor:
+    """Tensor ``index`` of :func:`pack_tensors`'s flat buffer."""
+    rows, columns = shapes[index]
+    part = flat[offsets[index] : offsets[index + 1]]
+    return part.reshape(rows) if columns < 0 else part.reshape(rows, columns)

@@ -14,7 +14,7 @@ import torch
 from torchmorph.rbf import RBF, PartitionRBF, _numba, build_rbf
 from torchmorph.rbf import partition as partition_module
 from torchmorph.rbf._parallel import tps_apply_parallel
-from torchmorph.rbf.patches import kd_split, midpoint_split, wendland_weight
+from torchmorph.rbf.patches import build_patches, kd_split, midpoint_split, wendland_weight
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -186,6 +186,25 @@ def test_the_splits():
     assert wendland_weight(np.array([0.0, 1.0, 2.0])).tolist() == [1.0, 0.0, 0.0]
 
 
+def test_every_patch_holds_its_cell_and_the_local_polynomial_terms_more():
+    """Small cells, thin overlap: without the ``extra`` rule a patch held its 5 own
+    controls and 2 more, so its local fit (4 polynomial terms) left 3 free coefficients for
+    5 own controls, and the global fit's preconditioner was singular."""
+    points = torch.cat([sphere(40), box_walls(3)]).numpy()
+    for extra in (0, 4):
+        patches = build_patches(points, 12, 1.5, 6, extra)
+        for index in range(patches.centres.shape[0]):
+            held = patches.members[
+                patches.member_offsets[index] : patches.member_offsets[index + 1]
+            ]
+            own = int((patches.owner == index).sum())
+            assert np.isin(np.flatnonzero(patches.owner == index), held).all()
+            assert held.shape[0] >= min(own + extra, points.shape[0])
+    short = build_patches(points, 12, 1.5, 6, 0)
+    counts = np.diff(short.member_offsets) - np.bincount(short.owner)
+    assert counts.min() < 4  # the case the rule is for
+
+
 def saved(module) -> dict:
     buffer = io.BytesIO()
     torch.save(module.state_dict(), buffer)
@@ -228,6 +247,9 @@ def test_a_mismatched_hyperparameter_is_refused(field, options):
         ({"coarse_size": 0}, ValueError, "^coarse_size must be an integer >= 4"),
         ({"kernel": "tps"}, ValueError, "^kernel must be one of"),
         ({"kernel": "gaussian"}, ValueError, "^epsilon must be given"),
+        ({"tolerance": 0.0}, ValueError, "^tolerance must be"),
+        ({"tolerance": float("nan")}, ValueError, "^tolerance must be"),
+        ({"max_iterations": 0}, ValueError, r"^max_iterations must be an integer >= 1, got 0"),
     ],
 )
 def test_bad_arguments(options, error, message):
@@ -271,3 +293,73 @@ def test_close_to_the_global_fit_with_walls():
     error = float((moved - reference).norm() / reference.norm())
     assert error < 1e-3
     torch.testing.assert_close(moved[-108:], values[::50], rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("tolerance", [1e-4, 1e-9])
+def test_a_tolerance_gives_the_global_fit(tolerance):
+    """The body inside walls with few coarse controls (the partition alone is 1e-2 from the
+    global fit here): the preconditioned iterations reach the global dense fit to about
+    the tolerance in a few iterations, and the morph stays exact at the controls."""
+    controls = body_and_walls()
+    targets = torch.cat([shell(400, outer=2.4), controls[::7]])
+    values = smooth_field(controls)
+    values[300:] = 0
+    reference = RBF(controls, targets)(values)
+    alone = PartitionRBF(controls, targets, **SMALL)(values)
+    assert float((alone - reference).norm() / reference.norm()) > 1e-3
+    module = PartitionRBF(controls, targets, tolerance=tolerance, **SMALL)
+    moved = module(values)
+    error = float((moved - reference).norm() / reference.norm())
+    assert error < 10 * tolerance
+    assert 1 <= module.last_iterations_ <= 20
+    assert module.last_residual_.shape == (3,)
+    assert (module.last_residual_ <= tolerance).all()
+    torch.testing.assert_close(moved[-len(controls[::7]) :], values[::7], rtol=0, atol=1e-10)
+
+
+def test_a_tolerance_with_other_kernels_batches_and_affine_motions():
+    controls, targets = body_and_walls(), shell(150, outer=3.0)
+    for options in ({"kernel": "cubic"}, {"kernel": "gaussian", "epsilon": 4.0, "degree": -1}):
+        reference = RBF(controls, targets, **options)
+        module = PartitionRBF(controls, targets, tolerance=1e-10, **options, **SMALL)
+        values = smooth_field(controls)
+        torch.testing.assert_close(module(values), reference(values), rtol=0, atol=1e-9)
+    module = PartitionRBF(controls, targets, tolerance=1e-8, **SMALL)
+    batch = torch.from_numpy(np.random.default_rng(3).normal(size=(2, controls.shape[0], 3)))
+    together = module(batch)
+    for index in range(2):
+        torch.testing.assert_close(together[index], module(batch[index]), rtol=0, atol=1e-7)
+    matrix = torch.tensor([[0.1, -0.3, 0.2], [0.05, 0.2, -0.1], [0.3, 0.0, 0.15]], dtype=F64)
+    moved = module(controls @ matrix.T)
+    torch.testing.assert_close(moved, targets @ matrix.T, rtol=0, atol=1e-10)
+    assert module.last_iterations_ == 0  # the coarse fit reproduces it: no iteration
+
+
+def test_a_tolerance_gradcheck_and_the_stopped_solve_warns():
+    controls = torch.cat([sphere(40), box_walls(3)])
+    module = PartitionRBF(
+        controls, shell(15, outer=2.0), patch_size=12, coarse_size=20, tolerance=1e-13
+    )
+    values = smooth_field(controls).requires_grad_()
+    assert torch.autograd.gradcheck(module, (values,), eps=1e-6, atol=1e-7, fast_mode=True)
+    short = PartitionRBF(
+        controls, shell(15, outer=2.0), patch_size=12, coarse_size=20, tolerance=1e-14,
+        max_iterations=1,
+    )  # fmt: skip
+    with pytest.warns(RuntimeWarning, match=r"^PartitionRBF: the global fit stopped at "
+                      r"max_iterations=1 with a relative residual of .* > tolerance=1e-14"):  # fmt: skip
+        short(smooth_field(controls))
+    assert short.last_iterations_ == 1
+
+
+def test_a_tolerance_is_part_of_the_state():
+    controls, targets = body_and_walls(), shell(30)
+    state = PartitionRBF(controls, targets, tolerance=1e-6, **SMALL).state_dict()
+    with pytest.raises(ValueError, match="^tolerance: the state was saved with tolerance="):
+        PartitionRBF(controls, targets, **SMALL).load_state_dict(state)
+    loaded = PartitionRBF(sphere(60), shell(4), tolerance=1e-6, **SMALL)
+    loaded.load_state_dict(state)
+    assert torch.equal(loaded.patch_owner, PartitionRBF(controls, targets, **SMALL).patch_owner)
+    values = smooth_field(controls)
+    original = PartitionRBF(controls, targets, tolerance=1e-6, **SMALL)
+    torch.testing.assert_close(loaded(values), original(values), rtol=0, atol=0)

@@ -18,13 +18,15 @@ from torch import Tensor
 
 from torchmorph._threads import numba_threads
 from torchmorph.rbf import _numba
+from torchmorph.rbf.functional import evaluate
+from torchmorph.rbf.kernels import fused
 
 try:
     from numba import njit, prange
 except ImportError:  # pragma: no cover - exercised where numba is missing
     njit = prange = None  # type: ignore[assignment,misc]
 
-__all__ = ["CHUNK_TARGETS", "one_torch_thread", "tps_apply_parallel"]
+__all__ = ["CHUNK_TARGETS", "kernel_sum", "one_torch_thread", "tps_apply_parallel"]
 
 #: Targets per ``prange`` iteration (one scratch row per chunk).
 CHUNK_TARGETS = 256
@@ -87,3 +89,51 @@ def tps_apply_parallel(
     with numba_threads(threads):
         _apply_chunks(tx, ty, tz, cx, cy, cz, scale * scale, weights_t, out.numpy(), CHUNK_TARGETS)
     return out
+
+
+class _ParallelFused(torch.autograd.Function):
+    """``Φ(points, centres) @ weights`` by the thin-plate spline's fused pass on numba's
+    threads, differentiable in the weights (the backward pass swaps the point sets)."""
+
+    @staticmethod
+    def forward(ctx, points, centres, scale, weights, threads):  # type: ignore[override]
+        ctx.save_for_backward(points, centres)
+        ctx.scale, ctx.threads = scale, threads
+        return tps_apply_parallel(points, centres, scale, weights, threads)
+
+    @staticmethod
+    def backward(ctx, grad):  # type: ignore[override]
+        points, centres = ctx.saved_tensors
+        weights_grad = None
+        if ctx.needs_input_grad[3]:
+            weights_grad = tps_apply_parallel(centres, points, ctx.scale, grad, ctx.threads)
+        return None, None, None, weights_grad, None
+
+
+def kernel_sum(
+    points: Tensor,
+    centres: Tensor,
+    weights: Tensor,
+    kernel: str,
+    scale: float,
+    block_bytes: int | None,
+    threads: int,
+) -> Tensor:
+    """``Σ_k weights_k φ(scale |x − centres_k|)`` at ``points`` (float64), shape (N, S):
+    the fused pass on ``threads`` of numba's threads for the thin-plate spline on the
+    CPU, torch blocks otherwise."""
+    if fused(kernel, centres) and points.shape[0]:
+        return _ParallelFused.apply(points, centres, scale, weights, threads)
+    empty = weights.new_zeros(0, weights.shape[1])
+    return evaluate(
+        points,
+        centres,
+        weights,
+        empty,
+        kernel=kernel,
+        scale=scale,
+        powers=[],
+        shift=centres.new_zeros(centres.shape[1]),
+        poly_scale=centres.new_ones(centres.shape[1]),
+        block_bytes=block_bytes,
+    )

@@ -20,30 +20,36 @@ from torchmorph._checks import (
     check_same_device_dtype,
     check_vectors,
 )
-from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
+from torchmorph._state import (
+    check_saved_hyperparameters,
+    pack_tensors,
+    resize_buffers_for_load,
+    unpack_tensor,
+)
 from torchmorph.rbf import _parallel
+from torchmorph.rbf._parallel import kernel_sum
 from torchmorph.rbf.functional import (
     check_distinct,
     check_options,
     columns_of,
     dim_of,
-    evaluate,
     from_columns,
 )
 from torchmorph.rbf.kernels import (
     WENDLAND,
-    fused,
     monomial_powers,
     polynomial_matrix,
     polynomial_scaling,
 )
 from torchmorph.rbf.module import RBF
 from torchmorph.rbf.patches import blend_weights, build_patches, coarse_subset, wendland_weight
+from torchmorph.rbf.refine import GlobalSolve, global_solver
 from torchmorph.rbf.sparse import SPARSE_NEIGHBOURS, SparseRBF, mean_neighbours
 from torchmorph.rbf.system import FACTOR_NAMES, factorise, solve
 
 __all__ = [
     "DEFAULT_COARSE_SIZE",
+    "DEFAULT_MAX_ITERATIONS",
     "DEFAULT_OVERLAP",
     "DEFAULT_PATCH_SIZE",
     "PARTITION_CONTROLS",
@@ -60,6 +66,9 @@ DEFAULT_OVERLAP = 1.5
 #: Controls of the global coarse fit (it sets the error against the global fit: 2.5e-3 at
 #: 10⁴ controls, 4.2e-3 at 3·10⁴ in ``benchmarks/rbf_scale.py``; 10⁵ × 10⁶ in 38 s).
 DEFAULT_COARSE_SIZE = 6000
+#: Most iterations of the global fit (``tolerance``): 5-6 reach 1e-4 on the benchmark's
+#: wing in a box of walls at 10⁴ and 3·10⁴ controls.
+DEFAULT_MAX_ITERATIONS = 100
 #: :func:`build_rbf` with ``solver="auto"`` fits the dense :class:`~torchmorph.rbf.RBF`
 #: up to this many controls, the :class:`PartitionRBF` beyond. Measured on two cores
 #: (``benchmarks/rbf_scale.py``): the dense fit took 8.7 s at 10⁴ controls and 368 s at
@@ -73,74 +82,6 @@ Solver = Literal["auto", "dense", "partition", "sparse"]
 #: second size of -1 for a vector) and ``patch_<name>_offsets`` (P + 1,).
 _PACKED = tuple(f"patch_{name}" for name in FACTOR_NAMES)
 _SOLVERS = ("cholesky", "lu")
-
-
-class _ParallelFused(torch.autograd.Function):
-    """``Φ(points, centres) @ weights`` by the thin-plate spline's fused pass on numba's
-    threads, differentiable in the weights (the backward pass swaps the point sets)."""
-
-    @staticmethod
-    def forward(ctx, points, centres, scale, weights, threads):  # type: ignore[override]
-        ctx.save_for_backward(points, centres)
-        ctx.scale, ctx.threads = scale, threads
-        return _parallel.tps_apply_parallel(points, centres, scale, weights, threads)
-
-    @staticmethod
-    def backward(ctx, grad):  # type: ignore[override]
-        points, centres = ctx.saved_tensors
-        weights_grad = None
-        if ctx.needs_input_grad[3]:
-            weights_grad = _parallel.tps_apply_parallel(
-                centres, points, ctx.scale, grad, ctx.threads
-            )
-        return None, None, None, weights_grad, None
-
-
-def kernel_sum(
-    points: Tensor,
-    centres: Tensor,
-    weights: Tensor,
-    kernel: str,
-    scale: float,
-    block_bytes: int | None,
-    threads: int,
-) -> Tensor:
-    """``Σ_k weights_k φ(scale |x − centres_k|)`` at ``points`` (float64), shape (N, S):
-    the fused pass on ``threads`` of numba's threads for the thin-plate spline on the
-    CPU, torch blocks otherwise."""
-    if fused(kernel, centres) and points.shape[0]:
-        return _ParallelFused.apply(points, centres, scale, weights, threads)
-    empty = weights.new_zeros(0, weights.shape[1])
-    return evaluate(
-        points,
-        centres,
-        weights,
-        empty,
-        kernel=kernel,
-        scale=scale,
-        powers=[],
-        shift=centres.new_zeros(centres.shape[1]),
-        poly_scale=centres.new_ones(centres.shape[1]),
-        block_bytes=block_bytes,
-    )
-
-
-def _pack(tensors: list[Tensor], like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(flat, shapes (P, 2), offsets (P + 1,)) of tensors of one or two dimensions."""
-    shapes = torch.tensor(
-        [[t.shape[0], t.shape[1] if t.ndim == 2 else -1] for t in tensors], dtype=torch.int64
-    ).reshape(-1, 2)
-    sizes = torch.tensor([t.numel() for t in tensors], dtype=torch.int64)
-    offsets = torch.zeros(len(tensors) + 1, dtype=torch.int64)
-    offsets[1:] = torch.cumsum(sizes, 0)
-    flat = torch.cat([t.reshape(-1) for t in tensors]) if tensors else like.new_zeros(0)
-    return flat, shapes, offsets
-
-
-def _unpack(flat: Tensor, shapes: list[list[int]], offsets: list[int], index: int) -> Tensor:
-    rows, columns = shapes[index]
-    part = flat[offsets[index] : offsets[index + 1]]
-    return part.reshape(rows) if columns < 0 else part.reshape(rows, columns)
 
 
 class PartitionRBF(nn.Module):
@@ -185,6 +126,18 @@ class PartitionRBF(nn.Module):
     coarse_size : int
         Controls of the coarse global fit (all of them when N_c is not larger: s = s_c,
         the global fit).
+    tolerance : float, optional
+        Fit the global interpolant instead (the dense :class:`~torchmorph.rbf.RBF`'s, to
+        this tolerance): flexible GMRES on the whole interpolation system, preconditioned
+        by the coarse fit and the patches (:mod:`~torchmorph.rbf.refine`), until its
+        residual at the controls is below ``tolerance`` times the displacements' norm,
+        per column; the last residual is then blended by the patches as above, so the
+        morph stays exact at the controls. Each call iterates (one product with the
+        N_c × N_c kernel matrix per iteration) and then sums all the controls at every
+        target: O(N_c² + N_t N_c) per morph. ``None`` (default): the partition alone.
+    max_iterations : int
+        Most iterations for ``tolerance`` (a call that stops short warns, naming the
+        residual reached).
     block_bytes : int, optional
         Byte budget of the torch blocks of pairwise temporaries.
 
@@ -192,6 +145,8 @@ class PartitionRBF(nn.Module):
     ----------
     fit_time : float
         Seconds of the fit (patches, factorisations, blend weights).
+    last_iterations_, last_residual_ : int, Tensor
+        With ``tolerance``: the last call's iterations and relative residual per column.
 
     Raises
     ------
@@ -241,6 +196,7 @@ class PartitionRBF(nn.Module):
     patch_flat: Tensor
     patch_members: Tensor
     patch_member_offsets: Tensor
+    patch_owner: Tensor
     patch_solver: Tensor
     blend_targets: Tensor
     blend_offsets: Tensor
@@ -258,6 +214,8 @@ class PartitionRBF(nn.Module):
         patch_size: int = DEFAULT_PATCH_SIZE,
         overlap: float = DEFAULT_OVERLAP,
         coarse_size: int = DEFAULT_COARSE_SIZE,
+        tolerance: float | None = None,
+        max_iterations: int = DEFAULT_MAX_ITERATIONS,
         block_bytes: int | None = None,
     ) -> None:
         super().__init__()
@@ -273,6 +231,10 @@ class PartitionRBF(nn.Module):
         self.patch_size = _integer(patch_size, "patch_size", minimum)
         self.coarse_size = _integer(coarse_size, "coarse_size", max(len(self.powers), 1))
         self.overlap = check_positive(overlap, "overlap")
+        self.tolerance = None if tolerance is None else check_positive(tolerance, "tolerance")
+        self.max_iterations = _integer(max_iterations, "max_iterations", 1)
+        self.last_iterations_ = 0
+        self.last_residual_: Tensor | None = None
         if not self.overlap > 1.0:
             raise ValueError(f"overlap must be > 1 (patches must overlap), got {overlap!r}")
         self.block_bytes = (
@@ -302,7 +264,9 @@ class PartitionRBF(nn.Module):
         buffers.update({f"coarse_{name}": factors[name] for name in FACTOR_NAMES})
         partial = coarse.shape[0] < points.shape[0]
         patches = (
-            build_patches(points, self.patch_size, self.overlap, self.patch_size // 2)
+            build_patches(
+                points, self.patch_size, self.overlap, self.patch_size // 2, len(self.powers)
+            )
             if partial
             else None
         )
@@ -317,7 +281,7 @@ class PartitionRBF(nn.Module):
                 for name in FACTOR_NAMES:
                     packed[name].append(local[name])
         for name in FACTOR_NAMES:
-            flat, shapes, offsets = _pack(packed[name], work)
+            flat, shapes, offsets = pack_tensors(packed[name], work)
             if name == "pivots":
                 flat = flat.to(torch.int32)
             buffers[f"patch_{name}"] = flat
@@ -332,6 +296,7 @@ class PartitionRBF(nn.Module):
             buffers["patch_flat"] = torch.zeros(0, dim, dtype=torch.bool)
             buffers["patch_members"] = torch.zeros(0, dtype=torch.int64)
             buffers["patch_member_offsets"] = torch.zeros(1, dtype=torch.int64)
+            buffers["patch_owner"] = torch.zeros(0, dtype=torch.int64)
             radii = np.zeros(0)
             centres = np.zeros((0, dim))
         else:
@@ -342,6 +307,7 @@ class PartitionRBF(nn.Module):
             buffers["patch_flat"] = torch.from_numpy(patches.flat)
             buffers["patch_members"] = torch.from_numpy(patches.members)
             buffers["patch_member_offsets"] = torch.from_numpy(patches.member_offsets)
+            buffers["patch_owner"] = torch.from_numpy(patches.owner)
             radii, centres = patches.radii, patches.centres
         buffers["patch_solver"] = torch.tensor(kinds, dtype=torch.int8)
         floor = float(wendland_weight(np.array(1.0 / self.overlap)))
@@ -395,7 +361,12 @@ class PartitionRBF(nn.Module):
 
     def _patch_factors(self, index: int, layout) -> dict[str, Tensor]:
         return {
-            name: _unpack(self._buffers[f"patch_{name}"], layout[name][0], layout[name][1], index)  # type: ignore[arg-type]
+            name: unpack_tensor(
+                self._buffers[f"patch_{name}"],  # type: ignore[arg-type]
+                layout[name][0],
+                layout[name][1],
+                index,
+            )
             for name in FACTOR_NAMES
         }
 
@@ -409,6 +380,8 @@ class PartitionRBF(nn.Module):
             "patch_size": self.patch_size,
             "overlap": self.overlap,
             "coarse_size": self.coarse_size,
+            "tolerance": self.tolerance,
+            "max_iterations": self.max_iterations,
         }
 
     def get_extra_state(self) -> dict:
@@ -430,6 +403,7 @@ class PartitionRBF(nn.Module):
         sizes = {
             "coarse_indices": None,
             "patch_members": self.patch_member_offsets[-1],
+            "patch_owner": self.num_controls if self.num_patches else 0,
             "blend_targets": self.blend_offsets[-1],
         }
         for name, size in sizes.items():
@@ -437,9 +411,8 @@ class PartitionRBF(nn.Module):
             assert held is not None
             if size is not None and held.shape[0] != int(size):
                 error_msgs.append(f"{name}: {held.shape[0]} entries, its offsets say {int(size)}")
-            if held.numel() and int(held.max()) >= (
-                self.num_targets if name == "blend_targets" else self.num_controls
-            ):
+            bound = {"blend_targets": self.num_targets, "patch_owner": self.num_patches}
+            if held.numel() and int(held.max()) >= bound.get(name, self.num_controls):
                 error_msgs.append(f"{name}: indices beyond the stored points")
 
     # ---------------------------------------------------------------- forward
@@ -466,8 +439,11 @@ class PartitionRBF(nn.Module):
         coarse = controls[self.coarse_indices]
         kind = _SOLVERS[int(self.coarse_solver)]
         factors = {name: self._buffers[f"coarse_{name}"] for name in FACTOR_NAMES}
-        weights, tail = solve(kind, factors, values[self.coarse_indices])  # type: ignore[arg-type]
         threads = torch.get_num_threads()
+        if self.tolerance is not None and self.num_patches:
+            result = self._global(values, controls, targets, threads)
+            return from_columns(result.to(displacements.dtype), displacements)
+        weights, tail = solve(kind, factors, values[self.coarse_indices])  # type: ignore[arg-type]
         result = self._coarse_value(targets, coarse, weights, tail, threads)
         if self.num_patches:
             residual = values - self._coarse_value(controls, coarse, weights, tail, threads)
@@ -484,16 +460,77 @@ class PartitionRBF(nn.Module):
             value = value + poly @ tail
         return value
 
-    def _blend(self, residual: Tensor, controls: Tensor, targets: Tensor, threads: int) -> Tensor:
-        """Σ_j ŵ_j s_j at the targets, s_j the local fit of the residual in patch j (the
-        kernel sums on ``threads`` of numba's threads)."""
-        layout = {
+    def _layout(self) -> dict[str, tuple[list, list]]:
+        return {
             name: (
                 self._buffers[f"patch_{name}_shapes"].tolist(),  # type: ignore[union-attr]
                 self._buffers[f"patch_{name}_offsets"].tolist(),  # type: ignore[union-attr]
             )
             for name in FACTOR_NAMES
         }
+
+    def _global(self, values: Tensor, controls: Tensor, targets: Tensor, threads: int) -> Tensor:
+        """The global fit of ``values`` (:mod:`~torchmorph.rbf.refine`) at the targets, its
+        last residual at the controls blended by the patches."""
+        size, coarse = controls.shape[0], controls[self.coarse_indices]
+        kind = _SOLVERS[int(self.coarse_solver)]
+        factors = {name: self._buffers[f"coarse_{name}"] for name in FACTOR_NAMES}
+        poly = polynomial_matrix(controls, self.powers, self.coarse_shift, self.coarse_scale)
+        basis = torch.linalg.qr(poly)[0]  # the patches' coefficients projected to Pᵀλ = 0
+
+        def kernel(points: Tensor, weights: Tensor) -> Tensor:
+            return kernel_sum(
+                points, controls, weights, self.kernel, self.scale, self.block_bytes, threads
+            )
+
+        def apply(solution: Tensor) -> Tensor:  # [Φ P; Pᵀ 0] [λ; β]
+            weights, tail = solution[:size], solution[size:]
+            return torch.cat([kernel(controls, weights) + poly @ tail, poly.T @ weights])
+
+        def precondition(vector: Tensor) -> Tensor:  # the coarse fit, then the patches
+            weights, tail = solve(kind, factors, vector[self.coarse_indices])  # type: ignore[arg-type]
+            rest = vector[:size] - self._coarse_value(controls, coarse, weights, tail, threads)
+            local = self._local_coefficients(rest)
+            local = local.index_add(0, self.coarse_indices, weights)
+            return torch.cat([local - basis @ (basis.T @ local), tail])
+
+        with torch.no_grad():  # the coarse fit
+            weights, tail = solve(kind, factors, values.detach()[self.coarse_indices])  # type: ignore[arg-type]
+            start = torch.cat(
+                [values.new_zeros(values.shape).index_add(0, self.coarse_indices, weights), tail]
+            )
+        rhs = torch.cat([values, values.new_zeros(len(self.powers), values.shape[1])])
+        solver = global_solver(apply, precondition, self, "PartitionRBF")
+        solution = GlobalSolve.apply(rhs, start, solver)
+        weights, tail = solution[:size], solution[size:]
+        residual = values - kernel(controls, weights) - poly @ tail
+        value = (
+            kernel(targets, weights)
+            + polynomial_matrix(targets, self.powers, self.coarse_shift, self.coarse_scale) @ tail
+        )
+        with _parallel.one_torch_thread():
+            return value + self._blend(residual, controls, targets, threads)
+
+    def _local_coefficients(self, values: Tensor) -> Tensor:
+        """Each control's coefficient from its own cell's patch's local fit of ``values``
+        (the restricted additive Schwarz step of the preconditioner)."""
+        layout, members = self._layout(), self.patch_member_offsets.tolist()
+        solvers = self.patch_solver.tolist()
+        out = values.new_zeros(values.shape)
+        with _parallel.one_torch_thread():
+            for index in range(self.num_patches):
+                held = self._buffers["patch_members"][members[index] : members[index + 1]]  # type: ignore[index]
+                weights, _ = solve(
+                    _SOLVERS[solvers[index]], self._patch_factors(index, layout), values[held]
+                )
+                own = self.patch_owner[held] == index
+                out[held[own]] = weights[own]
+        return out
+
+    def _blend(self, residual: Tensor, controls: Tensor, targets: Tensor, threads: int) -> Tensor:
+        """Σ_j ŵ_j s_j at the targets, s_j the local fit of the residual in patch j (the
+        kernel sums on ``threads`` of numba's threads)."""
+        layout = self._layout()
         members = self.patch_member_offsets.tolist()
         blends = self.blend_offsets.tolist()
         solvers = self.patch_solver.tolist()

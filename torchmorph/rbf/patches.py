@@ -96,7 +96,8 @@ class Patches:
     strictly inside each ball (CSR: ``member_offsets`` (P + 1,)); ``frames`` (P, D, D)
     the principal axes (columns) of each patch's members about its centre;
     ``spreads`` (P, D) their half spreads along them (1 along a flat axis); ``flat``
-    (P, D) which axes are flat (:data:`FLAT_TOLERANCE`)."""
+    (P, D) which axes are flat (:data:`FLAT_TOLERANCE`); ``owner`` (N,) the patch whose
+    cell holds each control (every patch holds its own cell's controls)."""
 
     centres: np.ndarray
     radii: np.ndarray
@@ -105,6 +106,7 @@ class Patches:
     frames: np.ndarray
     spreads: np.ndarray
     flat: np.ndarray
+    owner: np.ndarray
 
 
 def _inside(
@@ -142,25 +144,38 @@ def midpoint_split(points: np.ndarray, capacity: int) -> list[np.ndarray]:
     return leaves
 
 
-def build_patches(controls: np.ndarray, patch_size: int, overlap: float, least: int) -> Patches:
+def build_patches(
+    controls: np.ndarray, patch_size: int, overlap: float, least: int, extra: int = 0
+) -> Patches:
     """Cover the controls (N, D) by patches: the cells of :func:`midpoint_split` with
     ``patch_size`` controls at most, each enlarged to the ball about its bounding box's
     centre whose radius is ``overlap`` times the distance to its farthest control, or
-    larger when that holds fewer than ``least`` controls (then the ``least`` nearest the
-    centre). Every control lies at a scaled distance <= 1 / overlap from its own cell's
-    centre."""
+    larger when that holds fewer than ``least`` controls, or fewer than ``extra`` more
+    than its own cell's (then the ``least`` or cell-plus-``extra`` nearest the centre).
+    Every control lies at a scaled distance <= 1 / overlap from its own cell's centre.
+
+    ``extra``: the local fits' polynomial terms. A local fit's coefficients satisfy one
+    moment condition per term, so they have ``held − extra`` free values; the global
+    fit's preconditioner (:mod:`~torchmorph.rbf.refine`) takes a coefficient for each of
+    the cell's own controls from them, which needs ``held >= own + extra``."""
     cells = midpoint_split(controls, patch_size)
     count, dim = len(cells), controls.shape[1]
+    owner = np.empty(controls.shape[0], dtype=np.int64)
     centres = np.empty((count, dim))
     radii = np.empty(count)
     for index, cell in enumerate(cells):
         part = controls[cell]
+        owner[cell] = index
         centres[index] = (part.min(axis=0) + part.max(axis=0)) / 2
         farthest = np.sqrt(((part - centres[index]) ** 2).sum(axis=1)).max()
         radii[index] = overlap * max(farthest, np.finfo(np.float64).tiny)
     tree = cKDTree(controls)
-    nearest, _ = tree.query(centres, k=min(least, controls.shape[0]))
-    nearest = nearest.reshape(count, -1)[:, -1] * (1.0 + 1e-6)  # the least-th nearest inside
+    needed = np.minimum(
+        np.maximum(least, np.array([cell.shape[0] for cell in cells]) + extra), controls.shape[0]
+    )
+    nearest, _ = tree.query(centres, k=int(needed.max()))
+    nearest = nearest.reshape(count, -1)[np.arange(count), needed - 1]
+    nearest = nearest * (1.0 + 1e-6)  # the needed-th nearest inside
     radii = np.maximum(radii, nearest)
     members = _inside(tree, controls, centres, radii)
     frames = np.empty((count, dim, dim))
@@ -172,7 +187,7 @@ def build_patches(controls: np.ndarray, patch_size: int, overlap: float, least: 
         spreads[index] = np.where(flat[index], 1.0, spread)
     offsets = np.zeros(count + 1, dtype=np.int64)
     offsets[1:] = np.cumsum([held.shape[0] for held in members])
-    return Patches(centres, radii, np.concatenate(members), offsets, frames, spreads, flat)
+    return Patches(centres, radii, np.concatenate(members), offsets, frames, spreads, flat, owner)
 
 
 def blend_weights(
