@@ -17,7 +17,8 @@ from torchmorph.idw.stiffened import StiffenedIDW
 from torchmorph.rbf import partition
 from torchmorph.rbf.kernels import WENDLAND
 from torchmorph.rbf.module import RBF
-from torchmorph.rbf.partition import PARTITION_CONTROLS, PartitionRBF, sparse_fits
+from torchmorph.rbf.partition import PartitionRBF
+from torchmorph.rbf.solvers import PARTITION_CONTROLS, sparse_fits
 from torchmorph.rbf.sparse import SparseRBF
 
 __all__ = [

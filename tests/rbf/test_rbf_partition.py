@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from torchmorph.rbf import RBF, PartitionRBF, _numba, build_rbf
-from torchmorph.rbf import partition as partition_module
+from torchmorph.rbf import solvers as solvers_module
 from torchmorph.rbf._parallel import tps_apply_parallel
 from torchmorph.rbf.patches import build_patches, kd_split, midpoint_split, wendland_weight
 
@@ -269,7 +269,7 @@ def test_build_rbf_picks_by_the_control_count(monkeypatch):
     controls, targets = sphere(60), shell(5)
     assert type(build_rbf(controls, targets)) is RBF
     assert type(build_rbf(controls, targets, solver="partition", patch_size=20)) is PartitionRBF
-    monkeypatch.setattr(partition_module, "PARTITION_CONTROLS", 50)
+    monkeypatch.setattr(solvers_module, "PARTITION_CONTROLS", 50)
     assert type(build_rbf(controls, targets, coarse_size=20)) is PartitionRBF
     assert type(build_rbf(controls, targets, solver="dense", mode="dense")) is RBF
     with pytest.raises(ValueError, match="^solver must be one of"):

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from torchmorph.rbf import RBF, PartitionRBF, SparseRBF, build_rbf
-from torchmorph.rbf import partition as partition_module
+from torchmorph.rbf import solvers as solvers_module
 from torchmorph.rbf.kernels import WENDLAND
 from torchmorph.rbf.sparse import _Pairs, mean_neighbours
 
@@ -194,13 +194,13 @@ def test_build_rbf_picks_the_sparse_fit_for_a_wendland_kernel(monkeypatch):
     options = {"kernel": "wendland_c2", "support_radius": 0.5}
     assert type(build_rbf(controls, targets, **options)) is RBF
     assert type(build_rbf(controls, targets, solver="sparse", **options)) is SparseRBF
-    monkeypatch.setattr(partition_module, "PARTITION_CONTROLS", 50)
+    monkeypatch.setattr(solvers_module, "PARTITION_CONTROLS", 50)
     assert type(build_rbf(controls, targets, **options)) is SparseRBF
     assert mean_neighbours(controls, 0.5) == pytest.approx(
         float((torch.cdist(controls, controls) < 0.5).sum()) / 60
     )
     # a support holding more controls than SPARSE_NEIGHBOURS on average: the partition
-    monkeypatch.setattr(partition_module, "SPARSE_NEIGHBOURS", 10)
+    monkeypatch.setattr(solvers_module, "SPARSE_NEIGHBOURS", 10)
     assert mean_neighbours(controls, 0.5) > 10
     chosen = build_rbf(controls, targets, patch_size=20, coarse_size=30, **options)
     assert type(chosen) is PartitionRBF

@@ -5,7 +5,7 @@ The kernels and the matrices built from them (:mod:`torchmorph.rbf.kernels`), th
 factorised interpolation system (:mod:`torchmorph.rbf.system`), the functional core
 (:mod:`torchmorph.rbf.functional`: :func:`rbf_interpolate`), the :class:`RBF` module
 (:mod:`torchmorph.rbf.module`) over them, the partition-of-unity :class:`PartitionRBF`
-for many controls (:mod:`torchmorph.rbf.partition`, :func:`build_rbf` choosing it, the
+for many controls (:mod:`torchmorph.rbf.partition`; :func:`build_rbf` of :mod:`torchmorph.rbf.solvers` choosing it, the
 sparse fit or the dense one), the :class:`SparseRBF` of a compactly supported kernel
 (:mod:`torchmorph.rbf.sparse`), and greedy reduction
 (:mod:`torchmorph.rbf.greedy`: :class:`RBFErrorOracle`, the oracle of
@@ -20,7 +20,8 @@ from torchmorph.rbf.functional import (
 from torchmorph.rbf.greedy import RBFErrorOracle
 from torchmorph.rbf.kernels import KERNELS, MIN_DEGREE, SCALE_INVARIANT, WENDLAND
 from torchmorph.rbf.module import RBF
-from torchmorph.rbf.partition import PARTITION_CONTROLS, PartitionRBF, build_rbf
+from torchmorph.rbf.partition import PartitionRBF
+from torchmorph.rbf.solvers import PARTITION_CONTROLS, build_rbf
 from torchmorph.rbf.sparse import SparseRBF
 
 __all__ = [

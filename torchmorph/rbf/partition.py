@@ -1,13 +1,12 @@
 """The partition-of-unity RBF (:class:`PartitionRBF`): a global fit on a coarse subset of
 the controls plus local fits of its residual on overlapping patches, blended, for more
-controls than a dense factorisation affords; and :func:`build_rbf`, which picks it or
-the dense :class:`~torchmorph.rbf.RBF` by the number of controls."""
+controls than a dense factorisation affords (:func:`~torchmorph.rbf.solvers.build_rbf`
+picks it, the sparse or the dense fit)."""
 
 from __future__ import annotations
 
 import numbers
 import time
-from typing import Literal
 
 import numpy as np
 import torch
@@ -15,7 +14,6 @@ from torch import Tensor, nn
 
 from torchmorph._checks import (
     as_points,
-    check_choice,
     check_positive,
     check_same_device_dtype,
     check_vectors,
@@ -36,15 +34,12 @@ from torchmorph.rbf.functional import (
     from_columns,
 )
 from torchmorph.rbf.kernels import (
-    WENDLAND,
     monomial_powers,
     polynomial_matrix,
     polynomial_scaling,
 )
-from torchmorph.rbf.module import RBF
 from torchmorph.rbf.patches import blend_weights, build_patches, coarse_subset, wendland_weight
 from torchmorph.rbf.refine import GlobalSolve, global_solver
-from torchmorph.rbf.sparse import SPARSE_NEIGHBOURS, SparseRBF, mean_neighbours
 from torchmorph.rbf.system import FACTOR_NAMES, factorise, solve
 
 __all__ = [
@@ -52,11 +47,7 @@ __all__ = [
     "DEFAULT_MAX_ITERATIONS",
     "DEFAULT_OVERLAP",
     "DEFAULT_PATCH_SIZE",
-    "PARTITION_CONTROLS",
     "PartitionRBF",
-    "Solver",
-    "build_rbf",
-    "sparse_fits",
 ]
 
 #: Most controls in a cell of the patches' kd-split (a patch holds about 3 times as many).
@@ -69,13 +60,6 @@ DEFAULT_COARSE_SIZE = 6000
 #: Most iterations of the global fit (``tolerance``): 5-6 reach 1e-4 on the benchmark's
 #: wing in a box of walls at 10⁴ and 3·10⁴ controls.
 DEFAULT_MAX_ITERATIONS = 100
-#: :func:`build_rbf` with ``solver="auto"`` fits the dense :class:`~torchmorph.rbf.RBF`
-#: up to this many controls, the :class:`PartitionRBF` beyond. Measured on two cores
-#: (``benchmarks/rbf_scale.py``): the dense fit took 8.7 s at 10⁴ controls and 368 s at
-#: 3·10⁴ (O(N³), 7.2 GB of kernel matrix), the partition 9-13 s at either.
-PARTITION_CONTROLS = 20_000
-
-Solver = Literal["auto", "dense", "partition", "sparse"]
 
 #: The per-patch buffers of the local factorisations, packed: ``patch_<name>`` (all the
 #: patches' factors flattened, concatenated) with ``patch_<name>_shapes`` (P, 2) (a
@@ -577,43 +561,3 @@ def _integer(value, name: str, minimum: int) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
     return int(value)
-
-
-def sparse_fits(controls: Tensor, options: dict) -> bool:
-    """Whether ``solver="auto"`` takes the sparse fit: a Wendland kernel whose support
-    holds at most :data:`~torchmorph.rbf.sparse.SPARSE_NEIGHBOURS` controls on average."""
-    radius = options.get("support_radius")
-    if options.get("kernel") not in WENDLAND or radius is None:
-        return False
-    return mean_neighbours(as_points(controls, "controls", dim=dim_of(controls)),
-                           check_positive(radius, "support_radius")) <= SPARSE_NEIGHBOURS  # fmt: skip
-
-
-def build_rbf(
-    controls: Tensor,
-    targets: Tensor,
-    *,
-    solver: Solver = "auto",
-    **options,
-) -> RBF | PartitionRBF | SparseRBF:
-    """An RBF morph of ``targets`` by ``controls``: the dense :class:`~torchmorph.rbf.RBF`
-    (``solver="dense"``), the :class:`PartitionRBF` (``"partition"``) or the
-    :class:`~torchmorph.rbf.SparseRBF` (``"sparse"``, compactly supported kernels);
-    ``"auto"``: dense up to :data:`PARTITION_CONTROLS` controls, beyond that the sparse
-    fit for a Wendland kernel with at most
-    :data:`~torchmorph.rbf.sparse.SPARSE_NEIGHBOURS` controls within the support of a
-    control on average (the global fit, to rounding) and the partition of unity otherwise (exact at the controls, a few 1e-3 of relative 2-norm from the global fit
-    over volume targets, see :class:`PartitionRBF`'s notes). ``options`` go to the chosen
-    class (``TypeError`` for one it does not take)."""
-    check_choice(solver, "solver", ("auto", "dense", "partition", "sparse"))
-    count = len(controls)
-    if solver == "auto":
-        if count <= PARTITION_CONTROLS:
-            solver = "dense"
-        else:
-            solver = "sparse" if sparse_fits(controls, options) else "partition"
-    if solver == "dense":
-        return RBF(controls, targets, **options)
-    if solver == "sparse":
-        return SparseRBF(controls, targets, **options)
-    return PartitionRBF(controls, targets, **options)
