@@ -22,7 +22,7 @@ def system(size: int = 120, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
 def test_the_solution_of_a_nonsymmetric_system_column_by_column():
     matrix, rhs = system()
     rhs[:, 1] = 0  # an all-zero column stays zero
-    solution, iterations, residual = fgmres(
+    solution, iterations, residual, _ = fgmres(
         lambda x: matrix @ x, lambda x: x, rhs, torch.zeros_like(rhs),
         tolerance=1e-12, max_iterations=200,
     )  # fmt: skip
@@ -40,7 +40,7 @@ def test_restarts_and_a_changing_preconditioner_still_converge():
         calls.append(1)
         return vector / diagonal[:, None] if len(calls) % 2 else vector
 
-    solution, iterations, residual = fgmres(
+    solution, iterations, residual, _ = fgmres(
         lambda x: matrix @ x, precondition, rhs, torch.zeros_like(rhs),
         tolerance=1e-11, max_iterations=300, restart=5,
     )  # fmt: skip
@@ -59,19 +59,20 @@ def test_a_stopped_solve_reports_its_residual_and_repeats_to_the_bit():
         )  # fmt: skip
 
     runs = [run() for _ in range(3)]
-    solution, iterations, residual = runs[0]
+    solution, iterations, residual, vector = runs[0]
     assert iterations == 3
+    torch.testing.assert_close(vector, rhs - matrix @ solution, rtol=0, atol=1e-13)
     true = torch.linalg.vector_norm(rhs - matrix @ solution, dim=0) / rhs.norm(dim=0)
     torch.testing.assert_close(residual, true, rtol=1e-12, atol=0)
     assert (residual > 1e-14).all()
-    for other, _, _ in runs[1:]:
+    for other, *_ in runs[1:]:
         assert torch.equal(other, solution)
 
 
 def test_a_start_that_solves_it_takes_no_iteration():
     matrix, rhs = system(seed=3)
     exact = torch.linalg.solve(matrix, rhs)
-    _, iterations, residual = fgmres(
+    _, iterations, residual, _ = fgmres(
         lambda x: matrix @ x, lambda x: x, matrix @ exact, exact,
         tolerance=1e-8, max_iterations=10,
     )  # fmt: skip

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numbers
 import time
+import warnings
 
 import numpy as np
 import torch
@@ -14,6 +15,7 @@ from torch import Tensor, nn
 
 from torchmorph._checks import (
     as_points,
+    check_choice,
     check_positive,
     check_same_device_dtype,
     check_vectors,
@@ -39,7 +41,7 @@ from torchmorph.rbf.kernels import (
     polynomial_scaling,
 )
 from torchmorph.rbf.patches import blend_weights, build_patches, coarse_subset, wendland_weight
-from torchmorph.rbf.refine import GlobalSolve, global_solver
+from torchmorph.rbf.refine import SUMMATIONS, GlobalSolve, KernelSums, global_solver
 from torchmorph.rbf.system import FACTOR_NAMES, factorise, solve
 
 __all__ = [
@@ -122,6 +124,15 @@ class PartitionRBF(nn.Module):
     max_iterations : int
         Most iterations for ``tolerance`` (a call that stops short warns, naming the
         residual reached).
+    summation : {"auto", "exact", "treecode"}
+        How the global fit sums the kernel over the controls: exactly, or by the
+        treecode of :mod:`~torchmorph.rbf.treecode` (the thin-plate spline on the CPU; its
+        degree from ``tolerance``, :func:`~torchmorph.rbf.refine.treecode_degree`), each of
+        the two sums (at the controls, at the targets) by itself; ``"auto"`` takes the
+        treecode for the thin-plate spline from 10⁹ target-control pairs up. With the
+        treecode at the targets, targets on a control take its displacement, and every
+        call checks the sums at 32 targets against exact ones (``last_treecode_error_``;
+        above ``tolerance`` it warns).
     block_bytes : int, optional
         Byte budget of the torch blocks of pairwise temporaries.
 
@@ -131,6 +142,9 @@ class PartitionRBF(nn.Module):
         Seconds of the fit (patches, factorisations, blend weights).
     last_iterations_, last_residual_ : int, Tensor
         With ``tolerance``: the last call's iterations and relative residual per column.
+    last_treecode_error_ : float
+        With the treecode at the targets: the relative error its sums made in the last
+        call's morph at the sampled targets (0 otherwise).
 
     Raises
     ------
@@ -200,6 +214,7 @@ class PartitionRBF(nn.Module):
         coarse_size: int = DEFAULT_COARSE_SIZE,
         tolerance: float | None = None,
         max_iterations: int = DEFAULT_MAX_ITERATIONS,
+        summation: str = "auto",
         block_bytes: int | None = None,
     ) -> None:
         super().__init__()
@@ -217,8 +232,17 @@ class PartitionRBF(nn.Module):
         self.overlap = check_positive(overlap, "overlap")
         self.tolerance = None if tolerance is None else check_positive(tolerance, "tolerance")
         self.max_iterations = _integer(max_iterations, "max_iterations", 1)
+        self.summation = check_choice(summation, "summation", SUMMATIONS)
+        if self.summation == "treecode" and self.tolerance is None:
+            raise ValueError("summation='treecode' needs a tolerance (the global fit's)")
+        if self.summation == "treecode" and self.kernel != "thin_plate_spline":
+            raise ValueError(
+                f"summation='treecode' serves kernel='thin_plate_spline', got {self.kernel!r}"
+            )
         self.last_iterations_ = 0
         self.last_residual_: Tensor | None = None
+        self.last_treecode_error_ = 0.0
+        self._sums: KernelSums | None = None
         if not self.overlap > 1.0:
             raise ValueError(f"overlap must be > 1 (patches must overlap), got {overlap!r}")
         self.block_bytes = (
@@ -366,20 +390,28 @@ class PartitionRBF(nn.Module):
             "coarse_size": self.coarse_size,
             "tolerance": self.tolerance,
             "max_iterations": self.max_iterations,
+            "summation": self.summation,
         }
 
     def get_extra_state(self) -> dict:
         return self._hyperparameters()
 
     def set_extra_state(self, state: dict) -> None:
-        check_saved_hyperparameters("PartitionRBF", state, self._hyperparameters())
+        check_saved_hyperparameters("PartitionRBF", _with_defaults(state), self._hyperparameters())
+
+    def _apply(self, fn, recurse=True):
+        self._sums = None  # the treecode's lists hold the points: made again after a move
+        return super()._apply(fn, recurse)
 
     def _load_from_state_dict(
         self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
     ):
+        self._sums = None
         extra = state_dict.get(prefix + "_extra_state")
         if extra is not None:  # before anything is loaded
-            check_saved_hyperparameters("PartitionRBF", extra, self._hyperparameters())
+            check_saved_hyperparameters(
+                "PartitionRBF", _with_defaults(extra), self._hyperparameters()
+            )
         resize_buffers_for_load(self, state_dict, prefix, list(self._buffers))
         super()._load_from_state_dict(
             state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
@@ -460,23 +492,32 @@ class PartitionRBF(nn.Module):
         kind = _SOLVERS[int(self.coarse_solver)]
         factors = {name: self._buffers[f"coarse_{name}"] for name in FACTOR_NAMES}
         poly = polynomial_matrix(controls, self.powers, self.coarse_shift, self.coarse_scale)
-        basis = torch.linalg.qr(poly)[0]  # the patches' coefficients projected to Pᵀλ = 0
-
-        def kernel(points: Tensor, weights: Tensor) -> Tensor:
-            return kernel_sum(
-                points, controls, weights, self.kernel, self.scale, self.block_bytes, threads
-            )
+        basis, triangle = torch.linalg.qr(poly)  # P = QR: Pᵀλ = 0 is Qᵀλ = 0
+        if self._sums is None:
+            self._sums = KernelSums(
+                controls, targets, coarse, kernel=self.kernel, scale=self.scale,
+                block_bytes=self.block_bytes, summation=self.summation,
+                tolerance=self.tolerance,  # type: ignore[arg-type]
+            )  # fmt: skip
+        sums = self._sums
 
         def apply(solution: Tensor) -> Tensor:  # [Φ P; Pᵀ 0] [λ; β]
             weights, tail = solution[:size], solution[size:]
-            return torch.cat([kernel(controls, weights) + poly @ tail, poly.T @ weights])
+            return torch.cat([sums.at_controls(weights, threads) + poly @ tail, poly.T @ weights])
 
         def precondition(vector: Tensor) -> Tensor:  # the coarse fit, then the patches
             weights, tail = solve(kind, factors, vector[self.coarse_indices])  # type: ignore[arg-type]
-            rest = vector[:size] - self._coarse_value(controls, coarse, weights, tail, threads)
+            fitted = sums.coarse_at_controls(weights, threads)
+            if self.powers:
+                fitted = fitted + poly @ tail  # the coarse fit's tail (its shift and scale)
+            rest = vector[:size] - fitted
             local = self._local_coefficients(rest)
             local = local.index_add(0, self.coarse_indices, weights)
-            return torch.cat([local - basis @ (basis.T @ local), tail])
+            local = local - basis @ (basis.T @ local)  # the coefficients' moments vanish
+            if self.powers:  # the moment rows' residual s: + Q R⁻ᵀ s, whose moments are s
+                moments = torch.linalg.solve_triangular(triangle.T, vector[size:], upper=False)
+                local = local + basis @ moments
+            return torch.cat([local, tail])
 
         with torch.no_grad():  # the coarse fit
             weights, tail = solve(kind, factors, values.detach()[self.coarse_indices])  # type: ignore[arg-type]
@@ -487,13 +528,30 @@ class PartitionRBF(nn.Module):
         solver = global_solver(apply, precondition, self, "PartitionRBF")
         solution = GlobalSolve.apply(rhs, start, solver)
         weights, tail = solution[:size], solution[size:]
-        residual = values - kernel(controls, weights) - poly @ tail
+        if torch.is_grad_enabled() and solution.requires_grad:
+            residual = values - sums.at_controls(weights, threads) - poly @ tail
+        else:  # the solve's own last residual, the same sums
+            residual = solver.residual[:size]  # type: ignore[attr-defined]
+        summed = sums.at_targets(weights, threads)
         value = (
-            kernel(targets, weights)
+            summed
             + polynomial_matrix(targets, self.powers, self.coarse_shift, self.coarse_scale) @ tail
         )
         with _parallel.one_torch_thread():
-            return value + self._blend(residual, controls, targets, threads)
+            value = value + self._blend(residual, controls, targets, threads)
+        self.last_treecode_error_ = sums.sampled_error(weights, summed, value, threads)
+        if self.last_treecode_error_ > self.tolerance:  # type: ignore[operator]
+            warnings.warn(
+                f"PartitionRBF: the treecode's sums were {self.last_treecode_error_:.3g} off "
+                f"the exact ones at the sampled targets, > tolerance={self.tolerance:g}; "
+                "summation='exact' sums exactly",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+        if sums.coincident is not None and sums.coincident[0].numel():
+            on, control = sums.coincident
+            value = value.index_put((on,), values[control])  # exact at the controls
+        return value
 
     def _local_coefficients(self, values: Tensor) -> Tensor:
         """Each control's coefficient from its own cell's patch's local fit of ``values``
@@ -555,6 +613,15 @@ class PartitionRBF(nn.Module):
             f"kernel={self.kernel!r}, degree={self.degree}, patches={self.num_patches}, "
             f"coarse_size={int(self.coarse_indices.shape[0])}"
         )
+
+
+def _with_defaults(saved):
+    """A saved extra state with the fields added since 0.3.0's first partition of unity
+    (``tolerance``, ``max_iterations``, ``summation``) at their defaults when absent."""
+    if not isinstance(saved, dict):
+        return saved
+    defaults = {"tolerance": None, "max_iterations": DEFAULT_MAX_ITERATIONS, "summation": "auto"}
+    return {**defaults, **saved}
 
 
 def _integer(value, name: str, minimum: int) -> int:

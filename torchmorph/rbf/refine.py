@@ -1,6 +1,7 @@
 """The global RBF fit by preconditioned Krylov iterations: flexible GMRES (Saad, *Iterative
 Methods for Sparse Linear Systems*, 2nd ed., §9.4.1) on several right-hand sides at once,
-for :class:`~torchmorph.rbf.PartitionRBF` with a ``tolerance``.
+for :class:`~torchmorph.rbf.PartitionRBF` with a ``tolerance``; and its kernel sums,
+exact or by the treecode (:class:`KernelSums`).
 
 The system is the interpolation system of the whole fit, ``[Φ P; Pᵀ 0] [λ; β] = [d; 0]``
 (symmetric, indefinite with the polynomial), applied by kernel sums and never stored;
@@ -13,14 +14,46 @@ through the iterations.
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["GlobalSolve", "fgmres", "global_solver"]
+from torchmorph.rbf._parallel import kernel_sum
+from torchmorph.rbf.kernels import fused
+from torchmorph.rbf.treecode import DEFAULT_THETA, TreeCode, tree_sum
+
+__all__ = [
+    "MAX_TREECODE_DEGREE",
+    "SAMPLED_TARGETS",
+    "SUMMATIONS",
+    "TREECODE_PAIRS",
+    "GlobalSolve",
+    "KernelSums",
+    "fgmres",
+    "global_solver",
+    "treecode_degree",
+    "uses_treecode",
+]
+
+#: How :class:`~torchmorph.rbf.PartitionRBF`'s global fit sums the kernel over the
+#: controls (``summation=``): ``"auto"`` (the treecode from :data:`TREECODE_PAIRS`
+#: pairs), ``"exact"``, ``"treecode"``.
+SUMMATIONS = ("auto", "exact", "treecode")
+
+#: ``summation="auto"`` takes the treecode from this many target-control pairs up.
+TREECODE_PAIRS = 10**9
+
+#: The highest interpolation degree :func:`treecode_degree` gives.
+MAX_TREECODE_DEGREE = 16
+
+
+#: Targets at which the treecode's sums are checked against exact ones on every call.
+SAMPLED_TARGETS = 32
 
 Operator = Callable[[Tensor], Tensor]
 
@@ -34,7 +67,7 @@ def fgmres(
     tolerance: float,
     max_iterations: int,
     restart: int = 40,
-) -> tuple[Tensor, int, Tensor]:
+) -> tuple[Tensor, int, Tensor, Tensor]:
     """Solve ``apply(x) = rhs`` for each column of ``rhs`` (n, S), from ``start``, by
     right-preconditioned flexible GMRES restarted every ``restart`` iterations, until
     ``|rhs − apply(x)| <= tolerance |rhs|`` in every column or ``max_iterations`` products.
@@ -44,8 +77,8 @@ def fgmres(
     all zero, takes a zero direction. The small least-squares problem of each column is
     updated by Givens rotations (elementwise arithmetic, so that a solve repeats to the
     bit, which LAPACK's least squares does not on copies of the same data). Returns the
-    solution, the iterations made and the relative residual of each column (recomputed,
-    not the recurrence's)."""
+    solution, the iterations made, the relative residual of each column and the residual
+    ``rhs − apply(solution)`` itself (recomputed, not the recurrence's)."""
     scale = torch.linalg.vector_norm(rhs, dim=0)
     goal = tolerance * scale
     solution = start.clone()
@@ -110,7 +143,7 @@ def fgmres(
             solution = solution + direction * coefficients[:, index]
         residual = rhs - apply(solution)
     safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
-    return solution, done, torch.linalg.vector_norm(residual, dim=0) / safe_scale
+    return solution, done, torch.linalg.vector_norm(residual, dim=0) / safe_scale, residual
 
 
 class GlobalSolve(torch.autograd.Function):
@@ -133,12 +166,14 @@ def global_solver(
 ) -> Callable[[Tensor, Tensor], Tensor]:
     """A solver ``(b, start) -> x`` for :class:`GlobalSolve`: :func:`fgmres` to
     ``owner.tolerance`` in at most ``owner.max_iterations``, recording the iterations and
-    the relative residuals in ``owner.last_iterations_`` and ``owner.last_residual_``;
-    a solve that stops short warns (``RuntimeWarning``, naming ``name``)."""
+    the relative residuals in ``owner.last_iterations_`` and ``owner.last_residual_``
+    (and the residual itself in the solver's ``residual``, for a caller that needs no
+    gradient through it); a solve that stops short warns (``RuntimeWarning``, naming
+    ``name``)."""
 
     def solver(rhs: Tensor, start: Tensor) -> Tensor:
         with torch.no_grad():
-            solution, owner.last_iterations_, owner.last_residual_ = fgmres(
+            solution, owner.last_iterations_, owner.last_residual_, solver.residual = fgmres(  # type: ignore[attr-defined]
                 apply, precondition, rhs, start,
                 tolerance=owner.tolerance, max_iterations=owner.max_iterations,
             )  # fmt: skip
@@ -153,3 +188,127 @@ def global_solver(
         return solution
 
     return solver
+
+
+def treecode_degree(tolerance: float, theta: float = DEFAULT_THETA) -> int:
+    """The treecode's interpolation degree for a tolerance: the smallest n with θ^(n+1)
+    <= tolerance, between 6 and :data:`MAX_TREECODE_DEGREE` (θ^(n+1) is the size of the
+    interpolation error against the terms; measured 0.7 θ^(n+1) of the sum at degree 8,
+    see :mod:`~torchmorph.rbf.treecode`). On the wing in a box of walls at 3·10⁴
+    controls (``benchmarks/rbf_scale.py``), tolerance 1e-4 (degree 8) gave a morph
+    1.8e-4 from the global fit, degree 9 6.9e-5, degree 10 7.6e-6; below degree 6 the
+    iterations stall on the coarse sums at the controls (degree 6 at 10⁴ controls: 24
+    iterations, 6.6e-2)."""
+    wanted = math.ceil(math.log(tolerance) / math.log(theta)) - 1
+    return int(min(max(wanted, 6), MAX_TREECODE_DEGREE))
+
+
+def uses_treecode(summation: str, kernel: str, points: Tensor, pairs: int) -> bool:
+    """Whether kernel sums over ``pairs`` target-control pairs take the treecode:
+    ``"treecode"`` always, ``"auto"`` for the thin-plate spline on the CPU (numba
+    installed) from :data:`TREECODE_PAIRS` pairs up, ``"exact"`` never."""
+    if summation == "exact" or pairs == 0:
+        return False
+    if summation == "treecode":
+        return True
+    return fused(kernel, points.double()) and pairs >= TREECODE_PAIRS
+
+
+class KernelSums:
+    """``Σ_j φ(ε|x − y_j|) λ_j`` over the controls y, at the controls and at the targets,
+    for :class:`~torchmorph.rbf.PartitionRBF`'s global fit: exact (the fused pass or torch
+    blocks, :func:`~torchmorph.rbf._parallel.kernel_sum`) or by the treecode
+    (:mod:`~torchmorph.rbf.treecode`, built here once per pair of point sets), each set
+    of targets decided by :func:`uses_treecode`; and the coarse fit's sums at the
+    controls for the preconditioner (:meth:`coarse_at_controls`).
+
+    With the treecode at the targets, :meth:`sampled_error` compares its sums with exact
+    ones at :data:`SAMPLED_TARGETS` targets spread through them, and the targets that
+    coincide with a control are listed (``coincident``: target and control indices) so
+    that the morph can give them the control's displacement exactly.
+    """
+
+    def __init__(
+        self,
+        controls: Tensor,
+        targets: Tensor,
+        coarse: Tensor,
+        *,
+        kernel: str,
+        scale: float,
+        block_bytes: int | None,
+        summation: str,
+        tolerance: float,
+    ) -> None:
+        self.controls, self.targets, self.coarse = controls, targets, coarse
+        self.kernel, self.scale, self.block_bytes = kernel, scale, block_bytes
+        degree = treecode_degree(tolerance)
+        points = controls.detach().cpu().numpy()
+        count = controls.shape[0]
+        self.control_tree = (
+            TreeCode(points, points, scale, degree)
+            if uses_treecode(summation, kernel, controls, count * count)
+            else None
+        )
+        self.target_tree = (
+            TreeCode(points, targets.detach().cpu().numpy(), scale, degree)
+            if uses_treecode(summation, kernel, controls, count * targets.shape[0])
+            else None
+        )
+        self.coarse_tree = (
+            TreeCode(coarse.detach().cpu().numpy(), points, scale, degree)
+            if uses_treecode(summation, kernel, controls, count * coarse.shape[0])
+            else None
+        )
+        self.coincident: tuple[Tensor, Tensor] | None = None
+        self.samples = torch.zeros(0, dtype=torch.int64)
+        if self.target_tree is not None:
+            from scipy.spatial import cKDTree
+
+            distance, nearest = cKDTree(points).query(targets.detach().cpu().numpy(), k=1)
+            hit = np.flatnonzero(distance == 0)
+            self.coincident = (torch.from_numpy(hit), torch.from_numpy(nearest[hit]))
+            spread = np.linspace(0, targets.shape[0] - 1, min(SAMPLED_TARGETS, targets.shape[0]))
+            self.samples = torch.from_numpy(np.unique(spread.round().astype(np.int64)))
+
+    def _exact(self, points: Tensor, weights: Tensor, threads: int) -> Tensor:
+        return kernel_sum(
+            points, self.controls, weights, self.kernel, self.scale, self.block_bytes, threads
+        )
+
+    def at_controls(self, weights: Tensor, threads: int) -> Tensor:
+        if self.control_tree is None:
+            return self._exact(self.controls, weights, threads)
+        return tree_sum(self.control_tree, weights, threads)
+
+    def coarse_at_controls(self, weights: Tensor, threads: int) -> Tensor:
+        """``Σ_k φ(ε|x − c_k|) weights_k`` over the coarse controls c, at the controls x
+        (the preconditioner's). Flexible GMRES takes an inexact preconditioner, but its
+        error costs iterations: a treecode of degree 6 instead of 8 here took the wing in
+        a box at 3·10⁴ controls from 6 iterations to 11."""
+        if self.coarse_tree is None:
+            return kernel_sum(
+                self.controls, self.coarse, weights, self.kernel, self.scale, self.block_bytes,
+                threads,
+            )  # fmt: skip
+        return tree_sum(self.coarse_tree, weights, threads)
+
+    def at_targets(self, weights: Tensor, threads: int) -> Tensor:
+        if self.target_tree is None:
+            return self._exact(self.targets, weights, threads)
+        return tree_sum(self.target_tree, weights, threads)
+
+    def sampled_error(self, weights: Tensor, sums: Tensor, values: Tensor, threads: int) -> float:
+        """With the treecode at the targets: ‖sums − exact‖ / ‖values − sums + exact‖ over
+        the sampled targets (``sums`` the treecode's kernel sums at every target,
+        ``values`` the morph there), the relative error of the morph the treecode makes;
+        0 without it."""
+        if self.target_tree is None or not self.samples.numel():
+            return 0.0
+        with torch.no_grad():
+            exact = self._exact(self.targets[self.samples], weights.detach(), threads)
+            approximate = sums.detach()[self.samples]
+            reference = values.detach()[self.samples] - approximate + exact
+            scale = float(torch.linalg.vector_norm(reference))
+            error = float(torch.linalg.vector_norm(approximate - exact))
+        return error / scale if scale > 0 else error
