@@ -33,13 +33,21 @@ else:
 
 __all__ = [
     "CHUNK",
+    "PROXIES_FROM_PROXIES",
+    "PROXIES_FROM_SOURCES",
     "STACK",
-    "block_sums",
-    "block_sums_transposed",
+    "TARGETS_FROM_PROXIES",
+    "TARGETS_FROM_SOURCES",
     "charges",
     "charges_transposed",
-    "interaction_lists",
+    "dual_lists",
+    "group_sums",
+    "group_sums_transposed",
+    "interpolate",
+    "interpolate_transposed",
     "midpoint_tree",
+    "shift_down",
+    "shift_up",
 ]
 
 CHUNK = 512
@@ -104,67 +112,71 @@ def midpoint_tree(points, leaf_size, order, starts, stops, children):
     return count
 
 
+#: The kinds of interaction of :func:`dual_lists`: a target node's proxies from a source
+#: node's proxies or sources, a target node's targets from a source node's proxies or
+#: sources.
+PROXIES_FROM_PROXIES, PROXIES_FROM_SOURCES, TARGETS_FROM_PROXIES, TARGETS_FROM_SOURCES = range(4)
+
+
 @njit(cache=True)
-def _visit(centre, radius, node_centres, node_radii, children, expanded, theta, far, near, fill):
-    """Traverse the source tree for one block (``centre``, ``radius``): a node whose
-    ball is seen under ``theta`` (its radius < theta × (distance − block radius)) is far
-    when it has an expansion, near (summed directly, its whole range) otherwise; a
-    node seen too closely is opened, a leaf among them near. Writes the nodes into
-    ``far``/``near`` when ``fill``; returns the counts (far, near)."""
-    stack = np.empty(STACK, np.int64)
-    stack[0] = 0
+def dual_lists(target_centres, target_radii, target_children, target_expanded, source_centres,
+               source_radii, source_children, source_expanded, theta):  # fmt: skip
+    """The dual traversal of the target and source trees (Wilson, Vaughn and Krasny, *A
+    GPU-accelerated fast multipole method based on barycentric Lagrange interpolation
+    and dual tree traversal*, Comput. Phys. Commun. 265, 2021, Algorithm 2): a pair of
+    nodes whose balls are well separated, r_T + r_C < θ R, interacts through the
+    proxies of each side that has an expansion (more points than proxies); a pair too
+    close opens its larger node (a leaf pair interacts directly). Returns (kinds,
+    target nodes, source nodes) of the interactions."""
+    capacity = 1024
+    kinds = np.empty(capacity, np.int8)
+    targets = np.empty(capacity, np.int64)
+    sources = np.empty(capacity, np.int64)
+    count = 0
+    stack = np.empty((4 * STACK, 2), np.int64)
+    stack[0, 0], stack[0, 1] = 0, 0
     depth = 1
-    count_far = 0
-    count_near = 0
     while depth > 0:
         depth -= 1
-        node = stack[depth]
-        dx = node_centres[node, 0] - centre[0]
-        dy = node_centres[node, 1] - centre[1]
-        dz = node_centres[node, 2] - centre[2]
+        node, other = stack[depth, 0], stack[depth, 1]
+        dx = target_centres[node, 0] - source_centres[other, 0]
+        dy = target_centres[node, 1] - source_centres[other, 1]
+        dz = target_centres[node, 2] - source_centres[other, 2]
         distance = math.sqrt(dx * dx + dy * dy + dz * dz)
-        seen = node_radii[node] < theta * (distance - radius)
-        if seen and expanded[node]:
-            if fill:
-                far[count_far] = node
-            count_far += 1
-        elif seen or children[node, 0] < 0:
-            if fill:
-                near[count_near] = node
-            count_near += 1
-        else:
-            stack[depth] = children[node, 1]
-            stack[depth + 1] = children[node, 0]
+        target_leaf = target_children[node, 0] < 0
+        source_leaf = source_children[other, 0] < 0
+        kind = -1
+        if target_radii[node] + source_radii[other] < theta * distance:
+            if target_expanded[node]:
+                kind = PROXIES_FROM_PROXIES if source_expanded[other] else PROXIES_FROM_SOURCES
+            else:
+                kind = TARGETS_FROM_PROXIES if source_expanded[other] else TARGETS_FROM_SOURCES
+        elif target_leaf and source_leaf:
+            kind = TARGETS_FROM_SOURCES
+        elif source_leaf or (not target_leaf and target_radii[node] >= source_radii[other]):
+            stack[depth, 0], stack[depth, 1] = target_children[node, 1], other
+            stack[depth + 1, 0], stack[depth + 1, 1] = target_children[node, 0], other
             depth += 2
-    return count_far, count_near
+        else:
+            stack[depth, 0], stack[depth, 1] = node, source_children[other, 1]
+            stack[depth + 1, 0], stack[depth + 1, 1] = node, source_children[other, 0]
+            depth += 2
+        if kind >= 0:
+            if count == capacity:
+                capacity *= 2
+                kinds = _grown(kinds, capacity)
+                targets = _grown(targets, capacity)
+                sources = _grown(sources, capacity)
+            kinds[count], targets[count], sources[count] = kind, node, other
+            count += 1
+    return kinds[:count].copy(), targets[:count].copy(), sources[:count].copy()
 
 
-@njit(parallel=True, cache=True)
-def interaction_lists(block_centres, block_radii, node_centres, node_radii, children, expanded,
-                      theta):  # fmt: skip
-    """CSR lists per block: (far offsets, far nodes, near offsets, near nodes)."""
-    blocks = block_centres.shape[0]
-    far_counts = np.zeros(blocks + 1, np.int64)
-    near_counts = np.zeros(blocks + 1, np.int64)
-    empty = np.empty(0, np.int64)
-    for block in prange(blocks):
-        count_far, count_near = _visit(
-            block_centres[block], block_radii[block], node_centres, node_radii, children,
-            expanded, theta, empty, empty, False,
-        )  # fmt: skip
-        far_counts[block + 1] = count_far
-        near_counts[block + 1] = count_near
-    far_offsets = np.cumsum(far_counts)
-    near_offsets = np.cumsum(near_counts)
-    far = np.empty(far_offsets[-1], np.int64)
-    near = np.empty(near_offsets[-1], np.int64)
-    for block in prange(blocks):
-        _visit(
-            block_centres[block], block_radii[block], node_centres, node_radii, children,
-            expanded, theta, far[far_offsets[block] : far_offsets[block + 1]],
-            near[near_offsets[block] : near_offsets[block + 1]], True,
-        )  # fmt: skip
-    return far_offsets, far, near_offsets, near
+@njit(cache=True)
+def _grown(array, capacity):
+    out = np.empty(capacity, array.dtype)
+    out[: array.shape[0]] = array
+    return out
 
 
 @njit(fastmath=_numba._FLAGS, error_model="numpy", cache=True)
@@ -290,12 +302,14 @@ def _gather(block, far_offsets, far, near_offsets, near, proxy_offsets, proxies,
 
 
 @njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
-def block_sums(targets, block_starts, far_offsets, far, near_offsets, near, proxy_offsets,
-               proxies, charges_t, starts, stops, sources, values_t, scale2, out):  # fmt: skip
-    """``out[i] = Σ φ(|x_i − p|) q_p`` over block i's far proxies (charges ``charges_t``)
-    and near sources (``values_t``), targets and sources in tree order."""
+def group_sums(rows, group_starts, group_stops, far_offsets, far, near_offsets, near,
+               proxy_offsets, proxies, charges_t, starts, stops, sources, values_t, scale2,
+               out):  # fmt: skip
+    """``out[i] = Σ φ(|x_i − p|) q_p`` over the far proxies (charges ``charges_t``) and near
+    sources (``values_t``) of the group of row i (the rows of group g are
+    ``group_starts[g]:group_stops[g]``, each row in one group), sources in tree order."""
     columns = values_t.shape[0]
-    for block in prange(block_starts.shape[0] - 1):
+    for block in prange(group_starts.shape[0]):
         px, py, pz = _gather(block, far_offsets, far, near_offsets, near, proxy_offsets,
                              proxies, starts, stops, sources)  # fmt: skip
         total = px.shape[0]
@@ -313,7 +327,7 @@ def block_sums(targets, block_starts, far_offsets, far, near_offsets, near, prox
                 for column in range(columns):
                     weights_t[column, k] = values_t[column, j]
                 k += 1
-        first, last = block_starts[block], block_starts[block + 1]
+        first, last = group_starts[block], group_stops[block]
         sums = np.zeros((last - first, columns))
         row = np.empty(CHUNK)
         exponent = np.empty(CHUNK)
@@ -323,7 +337,7 @@ def block_sums(targets, block_starts, far_offsets, far, near_offsets, near, prox
             chunk = row[: end - begin]
             for i in range(first, last):
                 _numba._squared_row(
-                    targets[i, 0], targets[i, 1], targets[i, 2], px[begin:end], py[begin:end],
+                    rows[i, 0], rows[i, 1], rows[i, 2], px[begin:end], py[begin:end],
                     pz[begin:end], scale2, chunk,
                 )  # fmt: skip
                 _numba._tps_row(chunk, exponent[: end - begin], mantissa_bits[: end - begin])
@@ -353,22 +367,22 @@ def block_sums(targets, block_starts, far_offsets, far, near_offsets, near, prox
 
 
 @njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
-def block_sums_transposed(targets, block_starts, far_offsets, far, near_offsets, near,
-                          proxy_offsets, proxies, starts, stops, sources, grads_t, scale2,
-                          groups, potentials_t, out_t):  # fmt: skip
-    """The transpose of :func:`block_sums`: ``potentials_t[g, :, p] += Σ_i φ(|x_i − p|)
-    grads_t[:, i]`` for far proxy p and ``out_t[g, :, j] += ...`` for near source j, over
-    the targets i of the blocks of group g (``groups`` contiguous ranges of blocks, one
+def group_sums_transposed(rows, group_starts, group_stops, far_offsets, far, near_offsets,
+                          near, proxy_offsets, proxies, starts, stops, sources, grads_t, scale2,
+                          parts, potentials_t, out_t):  # fmt: skip
+    """The transpose of :func:`group_sums`: ``potentials_t[k, :, p] += Σ_i φ(|x_i − p|)
+    grads_t[:, i]`` for far proxy p and ``out_t[k, :, j] += ...`` for near source j, over
+    the rows i of the groups of part k (``parts`` contiguous ranges of groups, one
     private accumulator each; the caller sums them)."""
     columns = grads_t.shape[0]
-    blocks = block_starts.shape[0] - 1
-    for group in prange(groups):
-        for block in range(group * blocks // groups, (group + 1) * blocks // groups):
+    blocks = group_starts.shape[0]
+    for group in prange(parts):
+        for block in range(group * blocks // parts, (group + 1) * blocks // parts):
             px, py, pz = _gather(block, far_offsets, far, near_offsets, near, proxy_offsets,
                                  proxies, starts, stops, sources)  # fmt: skip
             total = px.shape[0]
             gathered = np.zeros((columns, total))
-            first, last = block_starts[block], block_starts[block + 1]
+            first, last = group_starts[block], group_stops[block]
             row = np.empty(CHUNK)
             exponent = np.empty(CHUNK)
             mantissa_bits = np.empty(CHUNK, dtype=np.int64)
@@ -377,8 +391,8 @@ def block_sums_transposed(targets, block_starts, far_offsets, far, near_offsets,
                 chunk = row[: end - begin]
                 for i in range(first, last):
                     _numba._squared_row(
-                        targets[i, 0], targets[i, 1], targets[i, 2], px[begin:end],
-                        py[begin:end], pz[begin:end], scale2, chunk,
+                        rows[i, 0], rows[i, 1], rows[i, 2], px[begin:end], py[begin:end],
+                        pz[begin:end], scale2, chunk,
                     )  # fmt: skip
                     _numba._tps_row(chunk, exponent[: end - begin], mantissa_bits[: end - begin])
                     for column in range(columns):
@@ -399,3 +413,153 @@ def block_sums_transposed(targets, block_starts, far_offsets, far, near_offsets,
                     for column in range(columns):
                         out_t[group, column, j] += gathered[column, k]
                     k += 1
+
+
+@njit(fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+def _shift_matrices(parent, child, axis_nodes, degrees):
+    """Per axis, the parent's Lagrange basis at the child's Chebyshev points: (3, n + 1,
+    n + 1), entry [axis, child point, parent point]."""
+    width = axis_nodes.shape[2]
+    out = np.zeros((3, width, width))
+    basis = np.empty(width)
+    for axis in range(3):
+        for point in range(degrees[child, axis] + 1):
+            _basis(axis_nodes[child, axis, point], axis_nodes[parent, axis], degrees[parent, axis],
+                   basis)  # fmt: skip
+            for k in range(degrees[parent, axis] + 1):
+                out[axis, point, k] = basis[k]
+    return out
+
+
+@njit(fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+def _contract(matrices, source, source_shape, target_shape, out, transpose):
+    """``out += (M0 ⊗ M1 ⊗ M2) source`` on grids of ``source_shape`` → ``target_shape``
+    (``transpose``: ``(M0 ⊗ M1 ⊗ M2)ᵀ``, the shapes swapped), axis by axis."""
+    a0, a1, a2 = source_shape[0], source_shape[1], source_shape[2]
+    b0, b1, b2 = target_shape[0], target_shape[1], target_shape[2]
+    first = np.zeros((a0, a1, b2))
+    for i in range(a0):
+        for j in range(a1):
+            for m in range(b2):
+                total = 0.0
+                for k in range(a2):
+                    weight = matrices[2, k, m] if transpose else matrices[2, m, k]
+                    total += weight * source[(i * a1 + j) * a2 + k]
+                first[i, j, m] = total
+    second = np.zeros((a0, b1, b2))
+    for i in range(a0):
+        for n in range(b1):
+            for j in range(a1):
+                weight = matrices[1, j, n] if transpose else matrices[1, n, j]
+                for m in range(b2):
+                    second[i, n, m] += weight * first[i, j, m]
+    for p in range(b0):
+        for i in range(a0):
+            weight = matrices[0, i, p] if transpose else matrices[0, p, i]
+            for n in range(b1):
+                for m in range(b2):
+                    out[(p * b1 + n) * b2 + m] += weight * second[i, n, m]
+
+
+@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+def shift_down(levels, level_offsets, parents, axis_nodes, degrees, proxy_offsets, potentials_t):
+    """Each expanded node's proxy potentials plus those of ``parents[node]`` (its nearest
+    expanded ancestor) interpolated at its proxies, from the top level down (``levels``:
+    the nodes that take them, by depth, CSR ``level_offsets``)."""
+    columns = potentials_t.shape[0]
+    for level in range(level_offsets.shape[0] - 1):
+        begin, end = level_offsets[level], level_offsets[level + 1]
+        for index in prange(end - begin):
+            node = levels[begin + index]
+            parent = parents[node]
+            matrices = _shift_matrices(parent, node, axis_nodes, degrees)
+            parent_shape = degrees[parent] + 1
+            node_shape = degrees[node] + 1
+            for column in range(columns):
+                source = potentials_t[column, proxy_offsets[parent] : proxy_offsets[parent + 1]]
+                target = potentials_t[column, proxy_offsets[node] : proxy_offsets[node + 1]]
+                _contract(matrices, source, parent_shape, node_shape, target, False)
+
+
+@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+def shift_up(levels, level_offsets, child_offsets, child_nodes, axis_nodes, degrees,
+             proxy_offsets, potentials_t):  # fmt: skip
+    """The transpose of :func:`shift_down`: from the deepest level up, each node gathers
+    the potentials of the nodes it shifts to (``levels``: those nodes' sources of shift,
+    by depth, CSR ``level_offsets``; ``child_nodes``, CSR ``child_offsets`` by position
+    in ``levels``)."""
+    columns = potentials_t.shape[0]
+    for level in range(level_offsets.shape[0] - 2, -1, -1):
+        begin, end = level_offsets[level], level_offsets[level + 1]
+        for index in prange(end - begin):
+            position = begin + index
+            parent = levels[position]
+            parent_shape = degrees[parent] + 1
+            for child in range(child_offsets[position], child_offsets[position + 1]):
+                node = child_nodes[child]
+                matrices = _shift_matrices(parent, node, axis_nodes, degrees)
+                node_shape = degrees[node] + 1
+                for column in range(columns):
+                    source = potentials_t[column, proxy_offsets[node] : proxy_offsets[node + 1]]
+                    target = potentials_t[column, proxy_offsets[parent] : proxy_offsets[parent + 1]]
+                    _contract(matrices, source, node_shape, parent_shape, target, True)
+
+
+@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+def interpolate(rows, owners, own_offsets, own_starts, own_stops, axis_nodes, degrees,
+                proxy_offsets, potentials_t, out):  # fmt: skip
+    """``out[i] += Σ_l L_l(x_i) potentials[l]`` over the proxies of the node that owns
+    target i (its lowest expanded ancestor; ``owners`` with CSR ``own_offsets`` into the
+    target ranges ``own_starts:own_stops`` each owns)."""
+    columns = potentials_t.shape[0]
+    for index in prange(owners.shape[0]):
+        node = owners[index]
+        d0, d1, d2 = degrees[node, 0], degrees[node, 1], degrees[node, 2]
+        first = np.empty(d0 + 1)
+        second = np.empty(d1 + 1)
+        third = np.empty(d2 + 1)
+        offset = proxy_offsets[node]
+        for span in range(own_offsets[index], own_offsets[index + 1]):
+            for i in range(own_starts[span], own_stops[span]):
+                _basis(rows[i, 0], axis_nodes[node, 0], d0, first)
+                _basis(rows[i, 1], axis_nodes[node, 1], d1, second)
+                _basis(rows[i, 2], axis_nodes[node, 2], d2, third)
+                for column in range(columns):
+                    total = 0.0
+                    k = offset
+                    for a in range(d0 + 1):
+                        for b in range(d1 + 1):
+                            inner = first[a] * second[b]
+                            for c in range(d2 + 1):
+                                total += inner * third[c] * potentials_t[column, k]
+                                k += 1
+                    out[i, column] += total
+
+
+@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+def interpolate_transposed(rows, owners, own_offsets, own_starts, own_stops, axis_nodes,
+                           degrees, proxy_offsets, grads_t, potentials_t):  # fmt: skip
+    """The transpose of :func:`interpolate`: ``potentials[l] += Σ_i L_l(x_i) grads[i]``
+    over the targets each owner owns."""
+    columns = grads_t.shape[0]
+    for index in prange(owners.shape[0]):
+        node = owners[index]
+        d0, d1, d2 = degrees[node, 0], degrees[node, 1], degrees[node, 2]
+        first = np.empty(d0 + 1)
+        second = np.empty(d1 + 1)
+        third = np.empty(d2 + 1)
+        offset = proxy_offsets[node]
+        for span in range(own_offsets[index], own_offsets[index + 1]):
+            for i in range(own_starts[span], own_stops[span]):
+                _basis(rows[i, 0], axis_nodes[node, 0], d0, first)
+                _basis(rows[i, 1], axis_nodes[node, 1], d1, second)
+                _basis(rows[i, 2], axis_nodes[node, 2], d2, third)
+                for column in range(columns):
+                    grad = grads_t[column, i]
+                    k = offset
+                    for a in range(d0 + 1):
+                        for b in range(d1 + 1):
+                            inner = first[a] * second[b] * grad
+                            for c in range(d2 + 1):
+                                potentials_t[column, k] += inner * third[c]
+                                k += 1

@@ -25,7 +25,7 @@ from torch import Tensor
 
 from torchmorph.rbf._parallel import kernel_sum
 from torchmorph.rbf.kernels import fused
-from torchmorph.rbf.treecode import DEFAULT_THETA, TreeCode, tree_sum
+from torchmorph.rbf.treecode import TreeCode, tree_sum
 
 __all__ = [
     "MAX_TREECODE_DEGREE",
@@ -34,6 +34,7 @@ __all__ = [
     "TREECODE_PAIRS",
     "GlobalSolve",
     "KernelSums",
+    "control_degree",
     "fgmres",
     "global_solver",
     "treecode_degree",
@@ -190,17 +191,28 @@ def global_solver(
     return solver
 
 
-def treecode_degree(tolerance: float, theta: float = DEFAULT_THETA) -> int:
-    """The treecode's interpolation degree for a tolerance: the smallest n with θ^(n+1)
-    <= tolerance, between 6 and :data:`MAX_TREECODE_DEGREE` (θ^(n+1) is the size of the
-    interpolation error against the terms; measured 0.7 θ^(n+1) of the sum at degree 8,
-    see :mod:`~torchmorph.rbf.treecode`). On the wing in a box of walls at 3·10⁴
-    controls (``benchmarks/rbf_scale.py``), tolerance 1e-4 (degree 8) gave a morph
-    1.8e-4 from the global fit, degree 9 6.9e-5, degree 10 7.6e-6; below degree 6 the
-    iterations stall on the coarse sums at the controls (degree 6 at 10⁴ controls: 24
-    iterations, 6.6e-2)."""
-    wanted = math.ceil(math.log(tolerance) / math.log(theta)) - 1
-    return int(min(max(wanted, 6), MAX_TREECODE_DEGREE))
+def treecode_degree(tolerance: float) -> int:
+    """The degree of the treecode at the targets for a tolerance: 8 for 1e-4 and one more
+    per tenth, between 4 and :data:`MAX_TREECODE_DEGREE`. Measured on the wing in a box
+    of ``benchmarks/rbf_scale.py`` (3·10⁴ controls, 10⁵ targets, tolerance 1e-4; the
+    morph's error against the exact sums' at the sampled targets): 5.2e-4 at degree 6,
+    2.4e-4 at 7, 7.5e-6 at 8. The sampled check of every call
+    (:meth:`KernelSums.sampled_error`) measures what it gives on yours.
+
+    The preconditioner's sums take two degrees fewer (an inexact preconditioner costs
+    iterations, not accuracy; degree 6 left them at 5-6 there), the sums at the
+    controls :func:`control_degree`."""
+    wanted = 8 + math.ceil(math.log10(1e-4 / tolerance) - 1e-9)
+    return int(min(max(wanted, 4), MAX_TREECODE_DEGREE))
+
+
+def control_degree(tolerance: float) -> int:
+    """The degree of the treecode at the controls (the iterations' products): one more
+    than :func:`treecode_degree`, and at least 9. The iterations multiply its error by
+    the interpolation matrix's condition number and stall when that is not small: on the
+    wing in a box, 17 iterations at degree 8 and 6 at 9 or 10 with 10⁵ controls, 72 at
+    degree 6 and 5 at 8 with 3·10⁴ (tolerance 1e-4)."""
+    return int(min(max(treecode_degree(tolerance) + 1, 9), MAX_TREECODE_DEGREE))
 
 
 def uses_treecode(summation: str, kernel: str, points: Tensor, pairs: int) -> bool:
@@ -246,7 +258,7 @@ class KernelSums:
         points = controls.detach().cpu().numpy()
         count = controls.shape[0]
         self.control_tree = (
-            TreeCode(points, points, scale, degree)
+            TreeCode(points, points, scale, control_degree(tolerance))
             if uses_treecode(summation, kernel, controls, count * count)
             else None
         )
@@ -256,7 +268,7 @@ class KernelSums:
             else None
         )
         self.coarse_tree = (
-            TreeCode(coarse.detach().cpu().numpy(), points, scale, degree)
+            TreeCode(coarse.detach().cpu().numpy(), points, scale, max(degree - 2, 4))
             if uses_treecode(summation, kernel, controls, count * coarse.shape[0])
             else None
         )
@@ -283,9 +295,7 @@ class KernelSums:
 
     def coarse_at_controls(self, weights: Tensor, threads: int) -> Tensor:
         """``Σ_k φ(ε|x − c_k|) weights_k`` over the coarse controls c, at the controls x
-        (the preconditioner's). Flexible GMRES takes an inexact preconditioner, but its
-        error costs iterations: a treecode of degree 6 instead of 8 here took the wing in
-        a box at 3·10⁴ controls from 6 iterations to 11."""
+        (the preconditioner's)."""
         if self.coarse_tree is None:
             return kernel_sum(
                 self.controls, self.coarse, weights, self.kernel, self.scale, self.block_bytes,

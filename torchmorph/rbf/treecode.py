@@ -1,41 +1,40 @@
 """A treecode for the thin-plate spline's kernel sums ``u_i = Σ_j φ(ε|x_i − y_j|) w_j``
-over many targets and sources: the barycentric Lagrange treecode (Wang, Krasny and
-Tlupova, *A kernel-independent treecode based on barycentric Lagrange interpolation*,
-Commun. Comput. Phys. 28, 2020), on the CPU (numba, in parallel over target blocks).
+over many targets and sources: barycentric Lagrange interpolation on both sides with a
+dual tree traversal (Wang, Krasny and Tlupova, *A kernel-independent treecode based on
+barycentric Lagrange interpolation*, Commun. Comput. Phys. 28, 2020; Wilson, Vaughn and
+Krasny, Comput. Phys. Commun. 265, 2021), on the CPU (numba, in parallel).
 
-The sources are split by a kd-tree (the widest side of each node's box halved, leaves
-of :data:`LEAF_SIZE`) and the targets the same way into blocks (leaves of
-:data:`TARGET_BLOCK`). A source
-node C of half-diagonal r_C seen from a block (centre c, half-diagonal r) at a distance
-R under the opening angle θ, r_C < θ (R − r), acts on the block's targets through
-proxies: the tensor grid of Chebyshev points of the second kind on its bounding box,
-with the proxy charges
+Sources and targets are split by kd-trees (the widest side of each node's box halved;
+leaves of :data:`LEAF_SIZE` sources, blocks of :data:`TARGET_BLOCK` targets). A node
+with more points than proxies has an expansion: the tensor grid of Chebyshev points of
+the second kind on its bounding box. For a source node C the proxy charges
 
     q_k = Σ_{j ∈ C} L_k(y_j) w_j
 
-(L_k the tensor-product Lagrange basis), so that Σ_{j ∈ C} φ(|x − y_j|) w_j ≈
-Σ_k φ(|x − t_k|) q_k: the interpolation of φ(|x − ·|) in the source variable, whose
-error falls with the degree n as ρ^-n, ρ ≈ 2/θ for a kernel analytic away from x. An
-axis along which the box is thin takes a lower degree (the smallest that keeps the
-error of that axis's factor, (θ h_a / r_C)^(n_a+1), below θ^(n+1)); a flat axis one
-point. A node with no more sources than proxies, and a leaf seen too closely, is summed
-directly. The charges are made for every call (they carry the values); the lists and
-the proxies once per pair of point sets.
+(L_k the tensor-product Lagrange basis) give Σ_{j ∈ C} φ(|x − y_j|) w_j ≈
+Σ_k φ(|x − t_k|) q_k, the interpolation of φ(|x − ·|) in the source variable; for a
+target node T the sums at its proxies, interpolated, give them at its targets. A pair
+of nodes whose balls are well separated under the opening angle θ, r_T + r_C < θ R,
+interacts through the proxies of each side that has them; a pair too close opens its
+larger node, and two leaves interact directly. A target node's proxy sums are passed
+down to the expanded nodes below it (interpolated at their proxies) and end at the
+targets. The kernel is analytic away from its centre, so the error of degree n falls as
+ρ^-n (ρ the Bernstein ellipse's parameter, about 2/θ); an axis along which a box is thin
+takes the lower degree that matches it (:func:`axis_degrees`), a flat one one point.
+The charges are made for every call (they carry the values); trees, lists and proxies
+once per pair of point sets.
 
 The approximation is linear in w: :meth:`TreeCode.apply_transposed` is its exact
-transpose (the same lists, the charges' basis applied backwards), so gradients through
+transpose (the same lists, each interpolation applied backwards), so gradients through
 :func:`tree_sum` are those of the approximate operator, to rounding.
 
-The error is relative to the size of the terms, not of the sum: thin-plate sums of
-coefficients with vanishing moments (an interpolant's) cancel, and their relative error
-is larger than the terms'. On the wing in a box of walls of ``benchmarks/rbf_scale.py``
-(3·10^4 controls, the global fit's coefficients, targets in the volume) degree 8 at
-θ = 0.35 gave 5e-5 of the sum, degree 10 2e-7.
+The error is relative to the size of the terms, not of the sum: thin-plate sums of an
+interpolant's coefficients (vanishing moments) cancel, and their relative error is
+larger than the terms'. Measured on the sums of the global fit's coefficients (see
+:data:`DEFAULT_THETA`): 7.1e-5 of the sum at degree 6, 8.0e-7 at degree 8.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 import torch
@@ -46,30 +45,45 @@ from torchmorph.rbf import _treecode_jit
 
 __all__ = ["DEFAULT_THETA", "LEAF_SIZE", "TARGET_BLOCK", "TreeCode", "axis_degrees", "tree_sum"]
 
-DEFAULT_THETA = 0.35
-"""The opening angle θ: a node acts through its proxies when its half-diagonal is below
-θ times its distance from the block (less the block's half-diagonal)."""
+DEFAULT_THETA = 0.7
+"""The opening angle θ: two nodes act through their proxies when the sum of their
+half-diagonals is below θ times the distance between their centres. On the wing in a box
+of ``benchmarks/rbf_scale.py`` (10^5 controls, 10^6 targets, the global fit's
+coefficients, one call on two threads): θ = 0.6 took 5.5 s at degree 6 (5.2e-5 of the
+sum) and 10.3 s at degree 8 (2.7e-7); θ = 0.7 3.4 s (7.1e-5) and 7.2 s (8.0e-7)."""
 
 LEAF_SIZE = 32
 """Most sources in a leaf of the source tree."""
 
 TARGET_BLOCK = 64
-"""Most targets in a block (a leaf of the target tree): a block shares one traversal
-and one list of far proxies and near sources."""
+"""Most targets in a block (a leaf of the target tree): a block's targets share one list
+of far proxies and near sources."""
 
 
 def axis_degrees(low: np.ndarray, high: np.ndarray, degree: int, theta: float) -> np.ndarray:
     """Per node and axis, the interpolation degree on the box [low, high] (K, 3): ``degree``
-    on the longest axes, 0 on a flat one, and in between the smallest n_a with
-    (θ h_a / r)^(n_a + 1) <= θ^(degree + 1), h_a the half-width and r the half-diagonal."""
+    on the longest axis, 0 on a flat one, and on a shorter axis the smallest n_a whose
+    error matches the longest axis's. The kernel seen from a box interacting under θ is
+    analytic in a Bernstein ellipse of parameter ρ(x) = x + √(x² + 1), x = (r / θ) / h,
+    about an axis of half-width h (r the box's half-diagonal, r / θ the least distance
+    of the other side): the error of degree n falls as ρ^-n (Trefethen, *Approximation
+    Theory and Approximation Practice*, Thm. 8.2), so n_a + 1 >= (n + 1) log ρ_max /
+    log ρ_a. (A rule on θ h_a / r instead, (θ h_a / r)^(n_a + 1) <= θ^(n + 1), gave thin
+    axes too few points: 2e-2 of the sum where the full degrees gave 2e-8.)"""
     half = (high - low) / 2
     radius = np.linalg.norm(half, axis=1, keepdims=True)
-    safe = np.where(radius > 0, radius, 1.0)
-    ratio = theta * half / safe
+    longest = half.max(axis=1, keepdims=True)
+    safe = np.where(half > 0, half, 1.0)
+    reach = radius / theta
+
+    def rho(width):
+        ratio = reach / np.where(width > 0, width, 1.0)
+        return ratio + np.sqrt(ratio * ratio + 1)
+
     with np.errstate(divide="ignore", invalid="ignore"):
-        needed = np.ceil((degree + 1) * math.log(theta) / np.log(ratio)) - 1
-    needed = np.where(ratio >= theta * (1 - 1e-12), degree, needed)
-    needed = np.where(half <= 1e-12 * safe, 0, needed)
+        needed = np.ceil((degree + 1) * np.log(rho(longest)) / np.log(rho(safe)) - 1e-9) - 1
+    needed = np.where(half >= longest * (1 - 1e-12), degree, needed)
+    needed = np.where(half <= 1e-12 * np.where(radius > 0, radius, 1.0), 0, needed)
     return np.clip(needed, 0, degree).astype(np.int64)
 
 
@@ -113,9 +127,90 @@ def _padded(points: np.ndarray) -> np.ndarray:
     return out
 
 
+class _Tree:
+    """One side's kd-tree (:func:`_midpoint_tree`, points in tree order, padded to 3-D):
+    node boxes, balls, depths, per-axis degrees, which nodes have an expansion (more
+    points than proxies) and their Chebyshev grids (``axis_nodes`` (K, 3, n + 1),
+    proxies in ``proxies[proxy_offsets[k]:proxy_offsets[k + 1]]``, the last axis
+    fastest)."""
+
+    def __init__(self, points: np.ndarray, leaf_size: int, degree: int, theta: float) -> None:
+        order, starts, stops, children = _midpoint_tree(points, leaf_size)
+        self.order, self.starts, self.stops, self.children = order, starts, stops, children
+        self.points = _padded(points[order])
+        nodes = starts.shape[0]
+        low, high = _boxes(self.points, starts, stops, children)
+        self.centres, self.radii = (low + high) / 2, np.linalg.norm(high - low, axis=1) / 2
+        self.degrees = axis_degrees(low, high, degree, theta)
+        counts = np.prod(self.degrees + 1, axis=1)
+        self.expanded = (stops - starts) > counts
+        self.expanded_nodes = np.flatnonzero(self.expanded)
+        self.proxy_offsets = np.zeros(nodes + 1, np.int64)
+        self.proxy_offsets[1:] = np.cumsum(np.where(self.expanded, counts, 0))
+        self.axis_nodes = np.zeros((nodes, 3, degree + 1))
+        self.proxies = np.empty((int(self.proxy_offsets[-1]), 3))
+        for node in self.expanded_nodes:
+            for axis in range(3):
+                used = self.degrees[node, axis]
+                half = (high[node, axis] - low[node, axis]) / 2
+                self.axis_nodes[node, axis, : used + 1] = (
+                    self.centres[node, axis] + half * np.cos(np.pi * np.arange(used + 1) / used)
+                    if used
+                    else self.centres[node, axis]
+                )
+            grids = [self.axis_nodes[node, a, : self.degrees[node, a] + 1] for a in range(3)]
+            mesh = np.stack(np.meshgrid(*grids, indexing="ij"), axis=-1).reshape(-1, 3)
+            self.proxies[self.proxy_offsets[node] : self.proxy_offsets[node + 1]] = mesh
+        self.parents = np.full(nodes, -1, np.int64)
+        self.depth = np.zeros(nodes, np.int64)
+        for parent in range(nodes):  # preorder: a parent before its children
+            if children[parent, 0] >= 0:
+                self.parents[children[parent]] = parent
+                self.depth[children[parent]] = self.depth[parent] + 1
+
+    def by_depth(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``nodes`` sorted by depth, with the CSR offsets of each depth."""
+        ordered = nodes[np.argsort(self.depth[nodes], kind="stable")]
+        offsets = np.searchsorted(self.depth[ordered], np.arange(int(self.depth.max()) + 2))
+        return ordered, offsets.astype(np.int64)
+
+    def leaves_under(self, nodes: np.ndarray, leaf_starts: np.ndarray):
+        """Per node, the range of positions in ``leaf_starts`` (the sorted starts of the
+        leaves) of the leaves under it."""
+        return (
+            np.searchsorted(leaf_starts, self.starts[nodes]),
+            np.searchsorted(leaf_starts, self.stops[nodes]),
+        )
+
+
+def _csr(groups: np.ndarray, items: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets (count + 1,), items ordered by group), stable within a group."""
+    order = np.argsort(groups, kind="stable")
+    offsets = np.zeros(count + 1, np.int64)
+    offsets[1:] = np.cumsum(np.bincount(groups, minlength=count))
+    return offsets, items[order]
+
+
+def _expand(nodes, items, first, last) -> tuple[np.ndarray, np.ndarray]:
+    """Each (node, item) pair repeated for the positions ``first[k]:last[k]``: (positions,
+    items)."""
+    counts = last - first
+    positions = np.repeat(first - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
+    return positions, np.repeat(items, counts)
+
+
 class TreeCode:
-    """The lists, proxies and orderings of one pair of point sets (float64 NumPy, (N, D),
+    """The trees, lists and proxies of one pair of point sets (float64 NumPy, (N, D),
     D = 2 or 3) for :meth:`apply` (targets × sources) and :meth:`apply_transposed`.
+
+    Both sides have trees and expansions; :func:`~torchmorph.rbf._treecode_jit.dual_lists`
+    pairs their nodes. A pair whose target node has an expansion adds to its proxy
+    potentials (from the source node's proxies or sources); those are shifted down to the
+    expanded nodes below it (interpolated at their proxies) and finally interpolated at
+    the targets of each target's lowest expanded node. Every other pair adds to the
+    targets directly. Target proxies and targets are one set of rows, each row in one
+    group (a leaf block's targets, or a node's proxies) with its lists of source nodes:
+    far (through their proxies) and near (their sources).
 
     Parameters
     ----------
@@ -131,7 +226,7 @@ class TreeCode:
     ----------
     pairs : int
         Kernel evaluations per value column of one :meth:`apply` (against N_t N_s for
-        the exact sum).
+        the exact sum), the proxies' included.
     """
 
     def __init__(
@@ -144,114 +239,167 @@ class TreeCode:
     ) -> None:
         self.scale2, self.degree, self.theta = float(scale) ** 2, int(degree), float(theta)
         self.num_sources, self.num_targets = sources.shape[0], targets.shape[0]
-        order, starts, stops, children = _midpoint_tree(sources, LEAF_SIZE)
-        self.source_order, self.starts, self.stops = order, starts, stops
-        self.sources = _padded(sources[order])
-        low, high = _boxes(self.sources, starts, stops, children)
-        centres, radii = (low + high) / 2, np.linalg.norm(high - low, axis=1) / 2
-        self.degrees = axis_degrees(low, high, self.degree, self.theta)
-        counts = np.prod(self.degrees + 1, axis=1)
-        expanded = (stops - starts) > counts
-        self.expanded_nodes = np.flatnonzero(expanded)
-        self.proxy_offsets = np.zeros(starts.shape[0] + 1, np.int64)
-        self.proxy_offsets[1:] = np.cumsum(np.where(expanded, counts, 0))
-        self.axis_nodes = np.zeros((starts.shape[0], 3, self.degree + 1))
-        for node in self.expanded_nodes:
-            for axis in range(3):
-                used = self.degrees[node, axis]
-                half = (high[node, axis] - low[node, axis]) / 2
-                points = (
-                    centres[node, axis] + half * np.cos(np.pi * np.arange(used + 1) / used)
-                    if used
-                    else centres[node, axis : axis + 1]
-                )
-                self.axis_nodes[node, axis, : used + 1] = points
-        self.proxies = np.empty((int(self.proxy_offsets[-1]), 3))
-        for node in self.expanded_nodes:
-            grids = [self.axis_nodes[node, a, : self.degrees[node, a] + 1] for a in range(3)]
-            mesh = np.stack(np.meshgrid(*grids, indexing="ij"), axis=-1).reshape(-1, 3)
-            self.proxies[self.proxy_offsets[node] : self.proxy_offsets[node + 1]] = mesh
-        depth = np.zeros(starts.shape[0], np.int64)
-        for parent in range(starts.shape[0]):  # preorder: a parent before its children
-            if children[parent, 0] >= 0:
-                depth[children[parent]] = depth[parent] + 1
-        by_depth = self.expanded_nodes[np.argsort(depth[self.expanded_nodes], kind="stable")]
-        self.levels = by_depth
-        self.level_offsets = np.searchsorted(
-            depth[by_depth], np.arange(int(depth.max(initial=0)) + 2)
-        ).astype(np.int64)
-        target_order, target_starts, _, target_children = _midpoint_tree(targets, TARGET_BLOCK)
-        self.target_order = target_order
-        self.targets = _padded(targets[target_order])
-        leaves = np.sort(target_starts[target_children[:, 0] < 0])
-        self.block_starts = np.append(leaves[: len(leaves) if targets.shape[0] else 0],
-                                      targets.shape[0]).astype(np.int64)  # fmt: skip
-        block_low, block_high = self._block_boxes()
-        block_centres = (block_low + block_high) / 2
-        block_radii = np.linalg.norm(block_high - block_low, axis=1) / 2
-        self.far_offsets, self.far, self.near_offsets, self.near = _treecode_jit.interaction_lists(
-            block_centres, block_radii, centres, radii, children, expanded, self.theta
-        )
-        sizes = np.diff(self.block_starts)
-        far_counts = np.diff(self.proxy_offsets)[self.far]
-        near_counts = (stops - starts)[self.near]
+        source = self.source = _Tree(sources, LEAF_SIZE, self.degree, self.theta)
+        target = self.target = _Tree(targets, TARGET_BLOCK, self.degree, self.theta)
+        self.source_levels, self.source_level_offsets = source.by_depth(source.expanded_nodes)
+        kinds, nodes, others = _treecode_jit.dual_lists(
+            target.centres, target.radii, target.children, target.expanded, source.centres,
+            source.radii, source.children, source.expanded, self.theta,
+        )  # fmt: skip
+        self.rows = np.concatenate([target.points, target.proxies])
+        self._groups(kinds, nodes, others)
+        self._shifts(nodes[kinds <= _treecode_jit.PROXIES_FROM_SOURCES])
+        sizes = self.group_stops - self.group_starts
+        far = np.diff(source.proxy_offsets)[self.far]
+        near = (source.stops - source.starts)[self.near]
         self.pairs = int(
-            (np.repeat(sizes, np.diff(self.far_offsets)) * far_counts).sum()
-            + (np.repeat(sizes, np.diff(self.near_offsets)) * near_counts).sum()
+            (np.repeat(sizes, np.diff(self.far_offsets)) * far).sum()
+            + (np.repeat(sizes, np.diff(self.near_offsets)) * near).sum()
         )
 
-    def _block_boxes(self) -> tuple[np.ndarray, np.ndarray]:
+    def _groups(self, kinds, nodes, others) -> None:
+        """The groups of rows and their far and near lists: first the leaf blocks (each
+        with the pairs of every node above it whose targets take them), then the target
+        nodes whose proxies take pairs."""
+        target, jit = self.target, _treecode_jit
+        leaves = np.flatnonzero(target.children[:, 0] < 0)
+        leaves = leaves[np.argsort(target.starts[leaves])]
         if self.num_targets == 0:
-            return np.zeros((0, 3)), np.zeros((0, 3))
-        first = self.block_starts[:-1]
-        return (
-            np.minimum.reduceat(self.targets, first, axis=0),
-            np.maximum.reduceat(self.targets, first, axis=0),
+            leaves = leaves[:0]
+        leaf_starts = target.starts[leaves]
+        blocks = leaves.shape[0]
+        direct = kinds >= jit.TARGETS_FROM_PROXIES
+        first, last = target.leaves_under(nodes[direct], leaf_starts)
+        positions, items = _expand(nodes[direct], others[direct], first, last)
+        far_kind = np.repeat(kinds[direct] == jit.TARGETS_FROM_PROXIES, last - first)
+        taking = np.unique(nodes[~direct])
+        slot = np.full(target.starts.shape[0], -1, np.int64)
+        slot[taking] = blocks + np.arange(taking.shape[0])
+        groups_far = np.concatenate(
+            [positions[far_kind], slot[nodes[kinds == jit.PROXIES_FROM_PROXIES]]]
         )
+        items_far = np.concatenate([items[far_kind], others[kinds == jit.PROXIES_FROM_PROXIES]])
+        groups_near = np.concatenate(
+            [positions[~far_kind], slot[nodes[kinds == jit.PROXIES_FROM_SOURCES]]]
+        )
+        items_near = np.concatenate([items[~far_kind], others[kinds == jit.PROXIES_FROM_SOURCES]])
+        count = blocks + taking.shape[0]
+        self.far_offsets, self.far = _csr(groups_far, items_far, count)
+        self.near_offsets, self.near = _csr(groups_near, items_near, count)
+        base = self.num_targets
+        self.group_starts = np.concatenate(
+            [leaf_starts, base + target.proxy_offsets[taking]]
+        ).astype(np.int64)
+        self.group_stops = np.concatenate(
+            [target.stops[leaves], base + target.proxy_offsets[taking + 1]]
+        ).astype(np.int64)
+        self.leaves = leaves
+
+    def _shifts(self, taking: np.ndarray) -> None:
+        """What carries target proxy potentials: each expanded node takes those of its
+        nearest expanded ancestor (``shift_parents``) when some node on that chain takes
+        pairs; each leaf block's targets interpolate those of its lowest expanded node."""
+        target = self.target
+        nodes = target.starts.shape[0]
+        carries = np.zeros(nodes, bool)
+        carries[taking] = True
+        nearest = np.full(nodes, -1, np.int64)  # the lowest expanded node at or above
+        self.shift_parents = np.full(nodes, -1, np.int64)
+        for node in range(nodes):  # preorder
+            parent = target.parents[node]
+            above = nearest[parent] if parent >= 0 else -1
+            if target.expanded[node]:
+                if above >= 0 and carries[above]:
+                    self.shift_parents[node] = above
+                    carries[node] = True
+                nearest[node] = node
+            else:
+                nearest[node] = above
+        shifted = np.flatnonzero(self.shift_parents >= 0)
+        self.shift_levels, self.shift_level_offsets = target.by_depth(shifted)
+        parents = np.unique(self.shift_parents[shifted])
+        self.up_levels, self.up_level_offsets = target.by_depth(parents)
+        position = np.full(nodes, -1, np.int64)
+        position[self.up_levels] = np.arange(self.up_levels.shape[0])
+        self.up_child_offsets, self.up_children = _csr(
+            position[self.shift_parents[shifted]], shifted, self.up_levels.shape[0]
+        )
+        owners = nearest[self.leaves] if self.leaves.shape[0] else self.leaves
+        used = (owners >= 0) & carries[np.maximum(owners, 0)]
+        self.owners, firsts = np.unique(owners[used], return_inverse=True)
+        self.own_offsets, spans = _csr(firsts, np.flatnonzero(used), self.owners.shape[0])
+        self.own_starts = target.starts[self.leaves[spans]].astype(np.int64)
+        self.own_stops = target.stops[self.leaves[spans]].astype(np.int64)
 
     def apply(self, values: np.ndarray, threads: int | None = None) -> np.ndarray:
         """``Σ_j φ(ε|x_i − y_j|) values_j`` at every target, approximated: (N_t, S) for
         ``values`` (N_s, S), both in the callers' order."""
-        values_t = np.ascontiguousarray(values[self.source_order].T)
+        source, target, jit = self.source, self.target, _treecode_jit
+        values_t = np.ascontiguousarray(values[source.order].T)
         columns = values_t.shape[0]
-        out = np.empty((self.num_targets, columns))
+        # the proxy rows of nodes that take no pair (they only carry) must start at 0
+        out = np.zeros((self.rows.shape[0], columns))
         with numba_threads(threads):
-            charges_t = np.zeros((columns, self.proxies.shape[0]))
-            _treecode_jit.charges(
-                self.sources, values_t, self.starts, self.stops, self.expanded_nodes,
-                self.axis_nodes, self.degrees, self.proxy_offsets, charges_t,
+            charges_t = np.zeros((columns, source.proxies.shape[0]))
+            jit.charges(
+                source.points, values_t, source.starts, source.stops, source.expanded_nodes,
+                source.axis_nodes, source.degrees, source.proxy_offsets, charges_t,
             )  # fmt: skip
-            _treecode_jit.block_sums(
-                self.targets, self.block_starts, self.far_offsets, self.far,
-                self.near_offsets, self.near, self.proxy_offsets, self.proxies, charges_t,
-                self.starts, self.stops, self.sources, values_t, self.scale2, out,
+            jit.group_sums(
+                self.rows, self.group_starts, self.group_stops, self.far_offsets, self.far,
+                self.near_offsets, self.near, source.proxy_offsets, source.proxies, charges_t,
+                source.starts, source.stops, source.points, values_t, self.scale2, out,
             )  # fmt: skip
-        result = np.empty_like(out)
-        result[self.target_order] = out
-        return result
+            potentials_t = np.ascontiguousarray(out[self.num_targets :].T)
+            jit.shift_down(
+                self.shift_levels, self.shift_level_offsets, self.shift_parents,
+                target.axis_nodes, target.degrees, target.proxy_offsets, potentials_t,
+            )  # fmt: skip
+            result = out[: self.num_targets]
+            jit.interpolate(
+                self.rows, self.owners, self.own_offsets, self.own_starts, self.own_stops,
+                target.axis_nodes, target.degrees, target.proxy_offsets, potentials_t, result,
+            )  # fmt: skip
+        unsorted = np.empty_like(result)
+        unsorted[target.order] = result
+        return unsorted
 
     def apply_transposed(self, grads: np.ndarray, threads: int | None = None) -> np.ndarray:
         """The exact transpose of :meth:`apply`: (N_s, S) for ``grads`` (N_t, S)."""
-        grads_t = np.ascontiguousarray(grads[self.target_order].T)
-        columns = grads_t.shape[0]
+        source, target, jit = self.source, self.target, _treecode_jit
+        columns = grads.shape[1]
+        grads_t = np.zeros((columns, self.rows.shape[0]))
+        grads_t[:, : self.num_targets] = grads[target.order].T
         with numba_threads(threads):
             import numba
 
-            groups = max(1, min(numba.get_num_threads(), self.block_starts.shape[0] - 1))
-            potentials = np.zeros((groups, columns, self.proxies.shape[0]))
-            near = np.zeros((groups, columns, self.num_sources))
-            _treecode_jit.block_sums_transposed(
-                self.targets, self.block_starts, self.far_offsets, self.far,
-                self.near_offsets, self.near, self.proxy_offsets, self.proxies, self.starts,
-                self.stops, self.sources, grads_t, self.scale2, groups, potentials, near,
+            potentials_t = np.zeros((columns, target.proxies.shape[0]))
+            jit.interpolate_transposed(
+                self.rows, self.owners, self.own_offsets, self.own_starts, self.own_stops,
+                target.axis_nodes, target.degrees, target.proxy_offsets, grads_t, potentials_t,
+            )  # fmt: skip
+            jit.shift_up(
+                self.up_levels, self.up_level_offsets, self.up_child_offsets, self.up_children,
+                target.axis_nodes, target.degrees, target.proxy_offsets, potentials_t,
+            )  # fmt: skip
+            grads_t[:, self.num_targets :] = potentials_t
+            parts = max(1, min(numba.get_num_threads(), self.group_starts.shape[0]))
+            charges = np.zeros((parts, columns, source.proxies.shape[0]))
+            near = np.zeros((parts, columns, self.num_sources))
+            jit.group_sums_transposed(
+                self.rows, self.group_starts, self.group_stops, self.far_offsets, self.far,
+                self.near_offsets, self.near, source.proxy_offsets, source.proxies,
+                source.starts, source.stops, source.points, grads_t, self.scale2, parts,
+                charges, near,
             )  # fmt: skip
             out_t = near.sum(axis=0)
-            _treecode_jit.charges_transposed(
-                self.sources, potentials.sum(axis=0), self.starts, self.stops, self.levels,
-                self.level_offsets, self.axis_nodes, self.degrees, self.proxy_offsets, out_t,
+            jit.charges_transposed(
+                source.points, charges.sum(axis=0), source.starts, source.stops,
+                self.source_levels, self.source_level_offsets, source.axis_nodes,
+                source.degrees, source.proxy_offsets, out_t,
             )  # fmt: skip
         result = np.empty((self.num_sources, columns))
-        result[self.source_order] = out_t.T
+        result[source.order] = out_t.T
         return result
 
 
