@@ -60,7 +60,7 @@ def test_the_sums_against_exact_ones_and_the_error_falls_with_the_degree():
     for degree in (2, 3, 4):
         tree = TreeCode(sources, targets, 0.7, degree)
         assert tree.far.shape[0] > 100  # far source nodes act through their proxies
-        assert tree.owners.shape[0] > 10  # and target nodes through theirs
+        assert tree.target_chains.owners.shape[0] > 10  # and target nodes through theirs
         result = tree.apply(values)
         errors.append(np.linalg.norm(result - reference) / np.linalg.norm(reference))
     assert errors[-1] < 2e-5  # measured 6.5e-3, 2.1e-4, 6.2e-6
@@ -74,14 +74,16 @@ def test_a_call_leaves_nothing_to_the_next():
     once, and a call read the previous call's sums there)."""
     sources, targets = sphere_and_walls(800), volume(30000)
     tree = TreeCode(sources, targets, 1.0, 3)
-    proxy_groups = tree.group_starts[tree.leaves.shape[0] :] - tree.num_targets
+    starts = tree.group_starts
+    proxy_groups = starts[starts >= tree.num_targets] - tree.num_targets
     taking = np.searchsorted(tree.target.proxy_offsets, proxy_groups, side="right") - 1
-    carrying = np.flatnonzero(~np.isin(tree.owners, taking))
+    chains = tree.target_chains
+    carrying = np.flatnonzero(~np.isin(chains.owners, taking))
     assert carrying.shape[0] > 0
     spans = np.concatenate(
-        [np.arange(tree.own_offsets[k], tree.own_offsets[k + 1]) for k in carrying]
+        [np.arange(chains.own_offsets[k], chains.own_offsets[k + 1]) for k in carrying]
     )
-    rows = np.concatenate([np.arange(tree.own_starts[k], tree.own_stops[k]) for k in spans])
+    rows = np.concatenate([np.arange(chains.own_starts[k], chains.own_stops[k]) for k in spans])
     checked = tree.target.order[rows]  # the carried targets, in the callers' order
     rng = np.random.default_rng(10)
     first, second = rng.normal(size=(2, sources.shape[0], 3))
@@ -103,8 +105,10 @@ def test_exact_where_every_node_is_near():
 def test_the_transpose_is_exact_and_gradcheck_passes():
     sources, targets = sphere_and_walls(800), volume(3000)
     tree = TreeCode(sources, targets, 1.0, 3)
-    assert tree.far.shape[0] > 0 and tree.owners.shape[0] > 0  # both sides' proxies act
-    assert tree.shift_levels.shape[0] > 0
+    assert (
+        tree.far.shape[0] > 0 and tree.target_chains.owners.shape[0] > 0
+    )  # both sides' proxies act
+    assert tree.target_chains.down_levels.shape[0] > 0
     rng = np.random.default_rng(4)
     values, grads = rng.normal(size=(800 + 200, 2)), rng.normal(size=(3000, 2))
     forward = float((grads * tree.apply(values)).sum())

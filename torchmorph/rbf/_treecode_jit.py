@@ -1,7 +1,8 @@
 """The numba kernels of the RBF treecode (:mod:`torchmorph.rbf.treecode`), float64: the
-interaction lists of the target blocks, the proxy charges of the source clusters (and
-their transpose), and the thin-plate sums of a block over its far clusters' proxies and
-its near sources (and their transpose), in parallel over blocks.
+kd-trees, the dual traversal's lists, the interpolation between points and their nodes'
+proxies and between the proxies of nested nodes (and their transposes), and the
+thin-plate sums of a group of rows over its far nodes' proxies and its near sources
+(and their transpose), in parallel.
 
 A block's sums take the points it interacts with (proxies, then near sources) gathered
 into contiguous rows, then chunks of :data:`CHUNK` of them against each of its targets
@@ -38,8 +39,6 @@ __all__ = [
     "STACK",
     "TARGETS_FROM_PROXIES",
     "TARGETS_FROM_SOURCES",
-    "charges",
-    "charges_transposed",
     "dual_lists",
     "group_sums",
     "group_sums_transposed",
@@ -203,73 +202,6 @@ def _basis(value, nodes, degree, out):
         total += out[k]
     for k in range(degree + 1):
         out[k] /= total
-
-
-@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
-def charges(sources, values_t, starts, stops, expanded_nodes, axis_nodes, degrees,
-            proxy_offsets, out):  # fmt: skip
-    """The proxy charges of each expanded node, ``out[:, proxies of node] = Σ_j L(y_j)
-    values_t[:, j]`` over its sources (tree order), L the tensor-product basis."""
-    columns = values_t.shape[0]
-    for index in prange(expanded_nodes.shape[0]):
-        node = expanded_nodes[index]
-        d0, d1, d2 = degrees[node, 0], degrees[node, 1], degrees[node, 2]
-        first = np.empty(d0 + 1)
-        second = np.empty(d1 + 1)
-        third = np.empty(d2 + 1)
-        offset = proxy_offsets[node]
-        count = (d0 + 1) * (d1 + 1) * (d2 + 1)
-        local = np.zeros((columns, count))
-        for j in range(starts[node], stops[node]):
-            _basis(sources[j, 0], axis_nodes[node, 0], d0, first)
-            _basis(sources[j, 1], axis_nodes[node, 1], d1, second)
-            _basis(sources[j, 2], axis_nodes[node, 2], d2, third)
-            for column in range(columns):
-                value = values_t[column, j]
-                k = 0
-                for a in range(d0 + 1):
-                    outer = first[a] * value
-                    for b in range(d1 + 1):
-                        inner = outer * second[b]
-                        for c in range(d2 + 1):
-                            local[column, k] += inner * third[c]
-                            k += 1
-        for column in range(columns):
-            for k in range(count):
-                out[column, offset + k] = local[column, k]
-
-
-@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
-def charges_transposed(sources, potentials_t, starts, stops, levels, level_offsets, axis_nodes,
-                       degrees, proxy_offsets, out_t):  # fmt: skip
-    """The transpose of :func:`charges`: ``out_t[:, j] += Σ_k L_k(y_j) potentials_t[:,
-    proxy k of node]`` over the expanded nodes holding source j, one depth at a time
-    (``levels`` the expanded nodes by depth, CSR ``level_offsets``: the nodes of one
-    depth hold disjoint sources, so their loop is parallel without races)."""
-    columns = potentials_t.shape[0]
-    for level in range(level_offsets.shape[0] - 1):
-        begin, end = level_offsets[level], level_offsets[level + 1]
-        for index in prange(end - begin):
-            node = levels[begin + index]
-            d0, d1, d2 = degrees[node, 0], degrees[node, 1], degrees[node, 2]
-            first = np.empty(d0 + 1)
-            second = np.empty(d1 + 1)
-            third = np.empty(d2 + 1)
-            offset = proxy_offsets[node]
-            for j in range(starts[node], stops[node]):
-                _basis(sources[j, 0], axis_nodes[node, 0], d0, first)
-                _basis(sources[j, 1], axis_nodes[node, 1], d1, second)
-                _basis(sources[j, 2], axis_nodes[node, 2], d2, third)
-                for column in range(columns):
-                    total = 0.0
-                    k = offset
-                    for a in range(d0 + 1):
-                        for b in range(d1 + 1):
-                            inner = first[a] * second[b]
-                            for c in range(d2 + 1):
-                                total += inner * third[c] * potentials_t[column, k]
-                                k += 1
-                    out_t[column, j] += total
 
 
 @njit(fastmath=_numba._FLAGS, error_model="numpy", cache=True)

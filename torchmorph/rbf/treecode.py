@@ -36,6 +36,8 @@ larger than the terms'. Measured on the sums of the global fit's coefficients (s
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -127,6 +129,25 @@ def _padded(points: np.ndarray) -> np.ndarray:
     return out
 
 
+class _Chains(NamedTuple):
+    """:meth:`_Tree.chains`: the shifts between expanded nodes (down: ``down_levels`` by
+    depth, each from ``shift_parents``; up: ``up_levels`` by depth, each gathering
+    ``child_nodes[child_offsets[k]:child_offsets[k + 1]]``) and the owners of the
+    points."""
+
+    shift_parents: np.ndarray
+    down_levels: np.ndarray
+    down_offsets: np.ndarray
+    up_levels: np.ndarray
+    up_offsets: np.ndarray
+    child_offsets: np.ndarray
+    child_nodes: np.ndarray
+    owners: np.ndarray
+    own_offsets: np.ndarray
+    own_starts: np.ndarray
+    own_stops: np.ndarray
+
+
 class _Tree:
     """One side's kd-tree (:func:`_midpoint_tree`, points in tree order, padded to 3-D):
     node boxes, balls, depths, per-axis degrees, which nodes have an expansion (more
@@ -167,6 +188,48 @@ class _Tree:
             if children[parent, 0] >= 0:
                 self.parents[children[parent]] = parent
                 self.depth[children[parent]] = self.depth[parent] + 1
+        leaves = np.flatnonzero(children[:, 0] < 0)
+        self.leaves = leaves[np.argsort(starts[leaves])] if points.shape[0] else leaves[:0]
+
+    def chains(self, taking: np.ndarray) -> _Chains:
+        """How proxy values pass between the expanded nodes: a node takes those of its
+        nearest expanded ancestor (``shift_parents``, -1 for none) when some node on that
+        chain is in ``taking``; each leaf's points belong to their lowest expanded node
+        (``owners``, CSR ``own_offsets`` into the point ranges ``own_starts:own_stops``)
+        when it carries anything."""
+        nodes = self.starts.shape[0]
+        carries = np.zeros(nodes, bool)
+        carries[taking] = True
+        nearest = np.full(nodes, -1, np.int64)  # the lowest expanded node at or above
+        shift_parents = np.full(nodes, -1, np.int64)
+        for node in range(nodes):  # preorder
+            parent = self.parents[node]
+            above = nearest[parent] if parent >= 0 else -1
+            if self.expanded[node]:
+                if above >= 0 and carries[above]:
+                    shift_parents[node] = above
+                    carries[node] = True
+                nearest[node] = node
+            else:
+                nearest[node] = above
+        shifted = np.flatnonzero(shift_parents >= 0)
+        down_levels, down_offsets = self.by_depth(shifted)
+        up_levels, up_offsets = self.by_depth(np.unique(shift_parents[shifted]))
+        position = np.full(nodes, -1, np.int64)
+        position[up_levels] = np.arange(up_levels.shape[0])
+        child_offsets, child_nodes = _csr(
+            position[shift_parents[shifted]], shifted, up_levels.shape[0]
+        )
+        leaves = self.leaves
+        owners = nearest[leaves]
+        used = (owners >= 0) & carries[np.maximum(owners, 0)]
+        owner_nodes, firsts = np.unique(owners[used], return_inverse=True)
+        own_offsets, spans = _csr(firsts, np.flatnonzero(used), owner_nodes.shape[0])
+        return _Chains(
+            shift_parents, down_levels, down_offsets, up_levels, up_offsets, child_offsets,
+            child_nodes, owner_nodes, own_offsets, self.starts[leaves[spans]],
+            self.stops[leaves[spans]],
+        )  # fmt: skip
 
     def by_depth(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``nodes`` sorted by depth, with the CSR offsets of each depth."""
@@ -241,14 +304,14 @@ class TreeCode:
         self.num_sources, self.num_targets = sources.shape[0], targets.shape[0]
         source = self.source = _Tree(sources, LEAF_SIZE, self.degree, self.theta)
         target = self.target = _Tree(targets, TARGET_BLOCK, self.degree, self.theta)
-        self.source_levels, self.source_level_offsets = source.by_depth(source.expanded_nodes)
+        self.source_chains = source.chains(source.expanded_nodes)  # the charges pass up
         kinds, nodes, others = _treecode_jit.dual_lists(
             target.centres, target.radii, target.children, target.expanded, source.centres,
             source.radii, source.children, source.expanded, self.theta,
         )  # fmt: skip
         self.rows = np.concatenate([target.points, target.proxies])
         self._groups(kinds, nodes, others)
-        self._shifts(nodes[kinds <= _treecode_jit.PROXIES_FROM_SOURCES])
+        self.target_chains = target.chains(nodes[kinds <= _treecode_jit.PROXIES_FROM_SOURCES])
         sizes = self.group_stops - self.group_starts
         far = np.diff(source.proxy_offsets)[self.far]
         near = (source.stops - source.starts)[self.near]
@@ -262,10 +325,7 @@ class TreeCode:
         with the pairs of every node above it whose targets take them), then the target
         nodes whose proxies take pairs."""
         target, jit = self.target, _treecode_jit
-        leaves = np.flatnonzero(target.children[:, 0] < 0)
-        leaves = leaves[np.argsort(target.starts[leaves])]
-        if self.num_targets == 0:
-            leaves = leaves[:0]
+        leaves = target.leaves
         leaf_starts = target.starts[leaves]
         blocks = leaves.shape[0]
         direct = kinds >= jit.TARGETS_FROM_PROXIES
@@ -284,89 +344,49 @@ class TreeCode:
         )
         items_near = np.concatenate([items[~far_kind], others[kinds == jit.PROXIES_FROM_SOURCES]])
         count = blocks + taking.shape[0]
-        self.far_offsets, self.far = _csr(groups_far, items_far, count)
-        self.near_offsets, self.near = _csr(groups_near, items_near, count)
         base = self.num_targets
-        self.group_starts = np.concatenate(
-            [leaf_starts, base + target.proxy_offsets[taking]]
-        ).astype(np.int64)
-        self.group_stops = np.concatenate(
-            [target.stops[leaves], base + target.proxy_offsets[taking + 1]]
-        ).astype(np.int64)
-        self.leaves = leaves
-
-    def _shifts(self, taking: np.ndarray) -> None:
-        """What carries target proxy potentials: each expanded node takes those of its
-        nearest expanded ancestor (``shift_parents``) when some node on that chain takes
-        pairs; each leaf block's targets interpolate those of its lowest expanded node."""
-        target = self.target
-        nodes = target.starts.shape[0]
-        carries = np.zeros(nodes, bool)
-        carries[taking] = True
-        nearest = np.full(nodes, -1, np.int64)  # the lowest expanded node at or above
-        self.shift_parents = np.full(nodes, -1, np.int64)
-        for node in range(nodes):  # preorder
-            parent = target.parents[node]
-            above = nearest[parent] if parent >= 0 else -1
-            if target.expanded[node]:
-                if above >= 0 and carries[above]:
-                    self.shift_parents[node] = above
-                    carries[node] = True
-                nearest[node] = node
-            else:
-                nearest[node] = above
-        shifted = np.flatnonzero(self.shift_parents >= 0)
-        self.shift_levels, self.shift_level_offsets = target.by_depth(shifted)
-        parents = np.unique(self.shift_parents[shifted])
-        self.up_levels, self.up_level_offsets = target.by_depth(parents)
-        position = np.full(nodes, -1, np.int64)
-        position[self.up_levels] = np.arange(self.up_levels.shape[0])
-        self.up_child_offsets, self.up_children = _csr(
-            position[self.shift_parents[shifted]], shifted, self.up_levels.shape[0]
-        )
-        owners = nearest[self.leaves] if self.leaves.shape[0] else self.leaves
-        used = (owners >= 0) & carries[np.maximum(owners, 0)]
-        self.owners, firsts = np.unique(owners[used], return_inverse=True)
-        self.own_offsets, spans = _csr(firsts, np.flatnonzero(used), self.owners.shape[0])
-        self.own_starts = target.starts[self.leaves[spans]].astype(np.int64)
-        self.own_stops = target.stops[self.leaves[spans]].astype(np.int64)
+        starts = np.concatenate([leaf_starts, base + target.proxy_offsets[taking]])
+        stops = np.concatenate([target.stops[leaves], base + target.proxy_offsets[taking + 1]])
+        # the groups in a fixed shuffled order: numba's parallel loops hand each thread a
+        # contiguous range of iterations (its chunk size setting had no effect on the OpenMP
+        # layer, measured), so that ranges of cheap leaf blocks and of costly proxy groups
+        # left one thread idle (1.98 s where the two kinds apart took 1.47 s on 2 threads)
+        order = np.random.default_rng(0).permutation(count)
+        rank = np.empty(count, np.int64)
+        rank[order] = np.arange(count)
+        self.far_offsets, self.far = _csr(rank[groups_far], items_far, count)
+        self.near_offsets, self.near = _csr(rank[groups_near], items_near, count)
+        self.group_starts = starts[order].astype(np.int64)
+        self.group_stops = stops[order].astype(np.int64)
 
     def apply(self, values: np.ndarray, threads: int | None = None) -> np.ndarray:
         """``Σ_j φ(ε|x_i − y_j|) values_j`` at every target, approximated: (N_t, S) for
         ``values`` (N_s, S), both in the callers' order."""
-        source, target, jit = self.source, self.target, _treecode_jit
+        source, target = self.source, self.target
         values_t = np.ascontiguousarray(values[source.order].T)
         columns = values_t.shape[0]
         # the proxy rows of nodes that take no pair (they only carry) must start at 0
         out = np.zeros((self.rows.shape[0], columns))
         with numba_threads(threads):
             charges_t = np.zeros((columns, source.proxies.shape[0]))
-            jit.charges(
-                source.points, values_t, source.starts, source.stops, source.expanded_nodes,
-                source.axis_nodes, source.degrees, source.proxy_offsets, charges_t,
-            )  # fmt: skip
-            jit.group_sums(
+            _interpolate(source, self.source_chains, values_t, charges_t, transpose=True)
+            _shift(source, self.source_chains, charges_t, up=True)
+            _treecode_jit.group_sums(
                 self.rows, self.group_starts, self.group_stops, self.far_offsets, self.far,
                 self.near_offsets, self.near, source.proxy_offsets, source.proxies, charges_t,
                 source.starts, source.stops, source.points, values_t, self.scale2, out,
             )  # fmt: skip
             potentials_t = np.ascontiguousarray(out[self.num_targets :].T)
-            jit.shift_down(
-                self.shift_levels, self.shift_level_offsets, self.shift_parents,
-                target.axis_nodes, target.degrees, target.proxy_offsets, potentials_t,
-            )  # fmt: skip
+            _shift(target, self.target_chains, potentials_t, up=False)
             result = out[: self.num_targets]
-            jit.interpolate(
-                self.rows, self.owners, self.own_offsets, self.own_starts, self.own_stops,
-                target.axis_nodes, target.degrees, target.proxy_offsets, potentials_t, result,
-            )  # fmt: skip
+            _interpolate(target, self.target_chains, potentials_t, result, transpose=False)
         unsorted = np.empty_like(result)
         unsorted[target.order] = result
         return unsorted
 
     def apply_transposed(self, grads: np.ndarray, threads: int | None = None) -> np.ndarray:
         """The exact transpose of :meth:`apply`: (N_s, S) for ``grads`` (N_t, S)."""
-        source, target, jit = self.source, self.target, _treecode_jit
+        source, target = self.source, self.target
         columns = grads.shape[1]
         grads_t = np.zeros((columns, self.rows.shape[0]))
         grads_t[:, : self.num_targets] = grads[target.order].T
@@ -374,33 +394,56 @@ class TreeCode:
             import numba
 
             potentials_t = np.zeros((columns, target.proxies.shape[0]))
-            jit.interpolate_transposed(
-                self.rows, self.owners, self.own_offsets, self.own_starts, self.own_stops,
-                target.axis_nodes, target.degrees, target.proxy_offsets, grads_t, potentials_t,
-            )  # fmt: skip
-            jit.shift_up(
-                self.up_levels, self.up_level_offsets, self.up_child_offsets, self.up_children,
-                target.axis_nodes, target.degrees, target.proxy_offsets, potentials_t,
-            )  # fmt: skip
+            _interpolate(target, self.target_chains, grads_t, potentials_t, transpose=True)
+            _shift(target, self.target_chains, potentials_t, up=True)
             grads_t[:, self.num_targets :] = potentials_t
             parts = max(1, min(numba.get_num_threads(), self.group_starts.shape[0]))
             charges = np.zeros((parts, columns, source.proxies.shape[0]))
             near = np.zeros((parts, columns, self.num_sources))
-            jit.group_sums_transposed(
+            _treecode_jit.group_sums_transposed(
                 self.rows, self.group_starts, self.group_stops, self.far_offsets, self.far,
                 self.near_offsets, self.near, source.proxy_offsets, source.proxies,
                 source.starts, source.stops, source.points, grads_t, self.scale2, parts,
                 charges, near,
             )  # fmt: skip
-            out_t = near.sum(axis=0)
-            jit.charges_transposed(
-                source.points, charges.sum(axis=0), source.starts, source.stops,
-                self.source_levels, self.source_level_offsets, source.axis_nodes,
-                source.degrees, source.proxy_offsets, out_t,
-            )  # fmt: skip
+            charges_t = np.ascontiguousarray(charges.sum(axis=0))
+            _shift(source, self.source_chains, charges_t, up=False)
+            out = np.ascontiguousarray(near.sum(axis=0).T)
+            _interpolate(source, self.source_chains, charges_t, out, transpose=False)
         result = np.empty((self.num_sources, columns))
-        result[source.order] = out_t.T
+        result[source.order] = out
         return result
+
+
+def _shift(tree: _Tree, chains: _Chains, values_t: np.ndarray, up: bool) -> None:
+    """Proxy values along the chains, in place: up (each node gathers those of the nodes
+    below it, interpolated at its proxies' basis) or down (the transpose)."""
+    if up:
+        _treecode_jit.shift_up(
+            chains.up_levels, chains.up_offsets, chains.child_offsets, chains.child_nodes,
+            tree.axis_nodes, tree.degrees, tree.proxy_offsets, values_t,
+        )  # fmt: skip
+    else:
+        _treecode_jit.shift_down(
+            chains.down_levels, chains.down_offsets, chains.shift_parents, tree.axis_nodes,
+            tree.degrees, tree.proxy_offsets, values_t,
+        )  # fmt: skip
+
+
+def _interpolate(tree: _Tree, chains: _Chains, values_t, out, transpose: bool) -> None:
+    """Points and their owners' proxies: ``out`` (points, S) += the owners' proxy values
+    ``values_t`` (S, proxies) interpolated at the points, or (``transpose``) ``out`` (S,
+    proxies) += the points' values ``values_t`` (S, points) spread on their owners'
+    proxies (the proxy charges)."""
+    arguments = (
+        tree.points if tree.points.shape[0] else np.zeros((0, 3)), chains.owners,
+        chains.own_offsets, chains.own_starts, chains.own_stops, tree.axis_nodes,
+        tree.degrees, tree.proxy_offsets, values_t, out,
+    )  # fmt: skip
+    if transpose:
+        _treecode_jit.interpolate_transposed(*arguments)
+    else:
+        _treecode_jit.interpolate(*arguments)
 
 
 class _TreeSum(torch.autograd.Function):
