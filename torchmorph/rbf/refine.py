@@ -23,8 +23,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchmorph.rbf import _parallel
 from torchmorph.rbf._parallel import kernel_sum
-from torchmorph.rbf.kernels import fused
+from torchmorph.rbf.kernels import fused, polynomial_matrix
+from torchmorph.rbf.system import FACTOR_NAMES, KINDS, solve
 from torchmorph.rbf.treecode import TreeCode, tree_sum
 
 __all__ = [
@@ -32,6 +34,7 @@ __all__ = [
     "SAMPLED_TARGETS",
     "SUMMATIONS",
     "TREECODE_PAIRS",
+    "GlobalFit",
     "GlobalSolve",
     "KernelSums",
     "control_degree",
@@ -322,3 +325,96 @@ class KernelSums:
             scale = float(torch.linalg.vector_norm(reference))
             error = float(torch.linalg.vector_norm(approximate - exact))
         return error / scale if scale > 0 else error
+
+
+class GlobalFit:
+    """The global fit of :class:`~torchmorph.rbf.PartitionRBF` with a ``tolerance`` (its
+    base: these methods use the partition's coarse factorisation, patches and blend)."""
+
+    _sums: KernelSums | None  # made on the first call, dropped on a move or a load
+
+    def _global(
+        self: Any, values: Tensor, controls: Tensor, targets: Tensor, threads: int
+    ) -> Tensor:
+        """The global fit of ``values`` (:mod:`~torchmorph.rbf.refine`) at the targets, its
+        last residual at the controls blended by the patches."""
+        size, coarse = controls.shape[0], controls[self.coarse_indices]
+        kind = KINDS[int(self.coarse_solver)]
+        factors = {name: self._buffers[f"coarse_{name}"] for name in FACTOR_NAMES}
+        poly = polynomial_matrix(controls, self.powers, self.coarse_shift, self.coarse_scale)
+        basis, triangle = torch.linalg.qr(poly)  # P = QR: Pᵀλ = 0 is Qᵀλ = 0
+        if self._sums is None:
+            self._sums = KernelSums(
+                controls, targets, coarse, kernel=self.kernel, scale=self.scale,
+                block_bytes=self.block_bytes, summation=self.summation,
+                tolerance=self.tolerance,  # type: ignore[arg-type]
+            )  # fmt: skip
+        sums = self._sums
+
+        def apply(solution: Tensor) -> Tensor:  # [Φ P; Pᵀ 0] [λ; β]
+            weights, tail = solution[:size], solution[size:]
+            return torch.cat([sums.at_controls(weights, threads) + poly @ tail, poly.T @ weights])
+
+        def precondition(vector: Tensor) -> Tensor:  # the coarse fit, then the patches
+            weights, tail = solve(kind, factors, vector[self.coarse_indices])  # type: ignore[arg-type]
+            fitted = sums.coarse_at_controls(weights, threads)
+            if self.powers:
+                fitted = fitted + poly @ tail  # the coarse fit's tail (its shift and scale)
+            rest = vector[:size] - fitted
+            local = self._local_coefficients(rest)
+            local = local.index_add(0, self.coarse_indices, weights)
+            local = local - basis @ (basis.T @ local)  # the coefficients' moments vanish
+            if self.powers:  # the moment rows' residual s: + Q R⁻ᵀ s, whose moments are s
+                moments = torch.linalg.solve_triangular(triangle.T, vector[size:], upper=False)
+                local = local + basis @ moments
+            return torch.cat([local, tail])
+
+        with torch.no_grad():  # the coarse fit
+            weights, tail = solve(kind, factors, values.detach()[self.coarse_indices])  # type: ignore[arg-type]
+            start = torch.cat(
+                [values.new_zeros(values.shape).index_add(0, self.coarse_indices, weights), tail]
+            )
+        rhs = torch.cat([values, values.new_zeros(len(self.powers), values.shape[1])])
+        solver = global_solver(apply, precondition, self, "PartitionRBF")
+        solution = GlobalSolve.apply(rhs, start, solver)
+        weights, tail = solution[:size], solution[size:]
+        if torch.is_grad_enabled() and solution.requires_grad:
+            residual = values - sums.at_controls(weights, threads) - poly @ tail
+        else:  # the solve's own last residual, the same sums
+            residual = solver.residual[:size]  # type: ignore[attr-defined]
+        summed = sums.at_targets(weights, threads)
+        value = (
+            summed
+            + polynomial_matrix(targets, self.powers, self.coarse_shift, self.coarse_scale) @ tail
+        )
+        with _parallel.one_torch_thread():
+            value = value + self._blend(residual, controls, targets, threads)
+        self.last_treecode_error_ = sums.sampled_error(weights, summed, value, threads)
+        if self.last_treecode_error_ > self.tolerance:  # type: ignore[operator]
+            warnings.warn(
+                f"PartitionRBF: the treecode's sums were {self.last_treecode_error_:.3g} off "
+                f"the exact ones at the sampled targets, > tolerance={self.tolerance:g}; "
+                "summation='exact' sums exactly",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+        if sums.coincident is not None and sums.coincident[0].numel():
+            on, control = sums.coincident
+            value = value.index_put((on,), values[control])  # exact at the controls
+        return value
+
+    def _local_coefficients(self: Any, values: Tensor) -> Tensor:
+        """Each control's coefficient from its own cell's patch's local fit of ``values``
+        (the restricted additive Schwarz step of the preconditioner)."""
+        layout, members = self._layout(), self.patch_member_offsets.tolist()
+        solvers = self.patch_solver.tolist()
+        out = values.new_zeros(values.shape)
+        with _parallel.one_torch_thread():
+            for index in range(self.num_patches):
+                held = self._buffers["patch_members"][members[index] : members[index + 1]]  # type: ignore[index]
+                weights, _ = solve(
+                    KINDS[solvers[index]], self._patch_factors(index, layout), values[held]
+                )
+                own = self.patch_owner[held] == index
+                out[held[own]] = weights[own]
+        return out

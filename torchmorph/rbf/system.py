@@ -36,10 +36,13 @@ from torchmorph.rbf.kernels import (
     polynomial_matrix,
 )
 
-__all__ = ["FACTOR_NAMES", "factorise", "saddle_matrix", "solve"]
+__all__ = ["FACTOR_NAMES", "KINDS", "factorise", "saddle_matrix", "solve"]
 
 #: The buffers a factorisation is stored in (empty where its kind does not use them).
 FACTOR_NAMES = ("qr", "tau", "factor", "coupling", "pivots")
+
+#: The kinds of factorisation, in the order a module stores their index in.
+KINDS = ("cholesky", "lu")
 
 
 def saddle_matrix(
