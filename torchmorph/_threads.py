@@ -2,7 +2,7 @@
 
 Every numba kernel of the library with ``prange`` loops runs inside :func:`numba_threads`:
 torch's thread count by default (what a user sets with ``torch.set_num_threads``), or
-an explicit count, capped by numba's pool, its blocks handed out one at a time.
+an explicit count, capped by numba's pool.
 """
 
 from __future__ import annotations
@@ -23,9 +23,14 @@ __all__ = ["numba_threads"]
 @contextlib.contextmanager
 def numba_threads(count: int | None = None) -> Iterator[None]:
     """numba's thread count set to ``count`` (default ``torch.get_num_threads()``, capped
-    by numba's pool) for one call, and its blocks handed out one at a time
-    (``set_parallel_chunksize(1)``): a thread slowed by a competing process then takes
-    fewer blocks instead of holding up the others.
+    by numba's pool) for one call, and its blocks asked to be handed out one at a time
+    (``set_parallel_chunksize(1)``), so that a thread slowed by a competing process would
+    take fewer blocks instead of holding up the others. Measured with numba 0.68 on its
+    OpenMP and workqueue layers, the setting does not change how a ``prange`` loop is
+    split: each thread gets a contiguous range (a loop of 1,000 light then 1,000 heavy
+    iterations took 0.24 s on two threads with or without it, 0.27 s on one). A kernel
+    whose iterations differ in cost orders them so that ranges balance (the RBF
+    treecode's groups run in a shuffled order).
 
     torch's count is restored last: with numba's OpenMP layer both libraries share one
     OpenMP runtime, so restoring numba's count alone would also set torch's (a user's
