@@ -52,6 +52,7 @@ def exact(targets: np.ndarray, sources: np.ndarray, values: np.ndarray, scale=1.
     return phi @ values
 
 
+@pytest.mark.slow
 def test_the_sums_against_exact_ones_and_the_error_falls_with_the_degree():
     sources, targets = sphere_and_walls(4000), volume(6000)
     values = np.random.default_rng(2).normal(size=(sources.shape[0], 3))
@@ -208,6 +209,7 @@ def smooth(points: torch.Tensor) -> torch.Tensor:
 SMALL = {"patch_size": 40, "coarse_size": 100}
 
 
+@pytest.mark.slow
 def test_the_global_fit_through_the_treecode(monkeypatch):
     """At these sizes the degree a tolerance gives leaves no node far enough: lower
     degrees (through ``treecode_degree``) make the far field act, and the morph's error
