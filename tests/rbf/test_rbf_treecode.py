@@ -121,6 +121,16 @@ def test_the_transpose_is_exact_and_gradcheck_passes():
     assert torch.autograd.gradcheck(lambda w: tree_sum(small, w), (weights,), fast_mode=True)
 
 
+def test_tree_sum_keeps_the_values_dtype():
+    sources, targets = sphere_and_walls(800), volume(3000)
+    tree = TreeCode(sources, targets, 1.0, 3)
+    values = torch.from_numpy(np.random.default_rng(11).normal(size=(1000, 3)))
+    single = tree_sum(tree, values.float().requires_grad_())
+    assert single.dtype == torch.float32
+    torch.testing.assert_close(single.double(), tree_sum(tree, values), rtol=1e-5, atol=1e-4)
+    single.sum().backward()
+
+
 def test_threads_give_the_same_sums():
     sources, targets = sphere_and_walls(3000), volume(2000)
     values = np.random.default_rng(5).normal(size=(sources.shape[0], 3))

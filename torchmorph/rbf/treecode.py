@@ -447,20 +447,25 @@ def _interpolate(tree: _Tree, chains: _Chains, values_t, out, transpose: bool) -
 
 
 class _TreeSum(torch.autograd.Function):
-    """``TreeCode.apply`` on a float64 CPU tensor; backward: the transpose."""
+    """``TreeCode.apply`` on a tensor (computed in float64 on the CPU, returned in its
+    dtype and on its device); backward: the transpose."""
 
     @staticmethod
     def forward(ctx, values: Tensor, tree: TreeCode, threads: int | None):  # type: ignore[override]
         ctx.tree, ctx.threads = tree, threads
-        return torch.from_numpy(tree.apply(values.detach().numpy(), threads))
+        result = tree.apply(values.detach().cpu().double().numpy(), threads)
+        return torch.from_numpy(result).to(device=values.device, dtype=values.dtype)
 
     @staticmethod
     def backward(ctx, grad: Tensor):  # type: ignore[override]
-        transposed = ctx.tree.apply_transposed(grad.detach().contiguous().numpy(), ctx.threads)
-        return torch.from_numpy(transposed), None, None
+        array = grad.detach().cpu().double().contiguous().numpy()
+        transposed = torch.from_numpy(ctx.tree.apply_transposed(array, ctx.threads))
+        return transposed.to(device=grad.device, dtype=grad.dtype), None, None
 
 
 def tree_sum(tree: TreeCode, values: Tensor, threads: int | None = None) -> Tensor:
-    """:meth:`TreeCode.apply` of ``values`` (N_s, S), a float64 CPU tensor, differentiable
-    in the values (the backward pass is the approximation's exact transpose)."""
+    """:meth:`TreeCode.apply` of ``values`` (N_s, S), differentiable in the values (the
+    backward pass is the approximation's exact transpose). The treecode runs on the CPU
+    in float64 whatever the tensor's device and dtype (numba's threads, ``threads`` of
+    them); the result comes back in both."""
     return _TreeSum.apply(values, tree, threads)
