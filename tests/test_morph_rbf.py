@@ -406,6 +406,55 @@ def test_the_partition_and_sparse_solvers(monkeypatch, solver, options, name, bo
         MeshMorph(mesh, solver=solver)
 
 
+def test_the_partition_fits_the_global_interpolant_to_a_tolerance(monkeypatch):
+    """fit_tolerance: the partition's global fit, against the dense fit (the partition
+    alone is 1e-2 from it here), through POD, the adjoint and the state."""
+    from torchmorph import PODReducer
+    from torchmorph.rbf import partition
+
+    monkeypatch.setattr(partition, "DEFAULT_COARSE_SIZE", 60)
+    monkeypatch.setattr(partition, "DEFAULT_PATCH_SIZE", 24)
+    mesh = box_mesh(6)
+    morph = MeshMorph(mesh, method="rbf", solver="partition", fit_tolerance=1e-10)
+    assert morph.rbf.tolerance == 1e-10 and morph.rbf.num_patches > 1
+    points = mesh.points[morph.boundary_nodes]
+    d = 0.05 * torch.stack(
+        [torch.sin(3 * points[:, 1]), points[:, 0] * points[:, 2], 0 * points[:, 0]], 1
+    )
+    dense = MeshMorph(mesh, method="rbf")(d)
+    alone = MeshMorph(mesh, method="rbf", solver="partition")(d)
+    out = morph(d)
+    assert float((alone - dense).norm() / dense.norm()) > 1e-4
+    assert float((out - dense).norm() / dense.norm()) < 1e-8
+    assert torch.equal(out[morph.boundary_nodes], d)
+    family = torch.stack([d, d.flip(0), 0.5 * d + 0.01])
+    reducer = PODReducer(num_modes=3).fit(morph, family)
+    torch.testing.assert_close(reducer(family), morph(family), rtol=0, atol=1e-9)
+    g = torch.randn(1, mesh.num_nodes, 3, dtype=d.dtype, generator=torch.Generator().manual_seed(2))
+    left = float((morph(d[None]) * g).sum())
+    assert left == pytest.approx(float((d[None] * morph.adjoint(g)).sum()), rel=1e-8)
+    twin = MeshMorph(mesh, method="rbf", solver="partition", fit_tolerance=1e-10)
+    twin.load_state_dict(morph.state_dict())
+    assert torch.equal(twin(d), out)
+    with pytest.raises(ValueError, match="^tolerance: the state was saved with tolerance=1e-10"):
+        MeshMorph(mesh, method="rbf", solver="partition").load_state_dict(morph.state_dict())
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"method": "rbf", "fit_tolerance": 1e-4}, (r"^fit_tolerance: the partition of unity's"
+         r" global fit \(solver='partition' or 'auto'\); solver='dense' is the global fit")),
+        ({"method": "rbf", "solver": "partition", "fit_tolerance": 0.0},
+         "^fit_tolerance must be"),
+        ({"fit_tolerance": 1e-4}, "^fit_tolerance: an option of method='rbf'"),
+    ],
+)  # fmt: skip
+def test_fit_tolerance_refusals(options, message):
+    with pytest.raises(ValueError, match=message):
+        MeshMorph(box_mesh(3), **options)
+
+
 def test_the_sparse_solver_needs_a_wendland_kernel():
     with pytest.raises(ValueError, match="^kernel must be one of 'wendland_c0'"):
         MeshMorph(box_mesh(3), method="rbf", solver="sparse")

@@ -10,7 +10,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor, nn
 
-from torchmorph._checks import check_choice
+from torchmorph._checks import check_choice, check_positive
 from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE
 from torchmorph.idw.module import IDW
 from torchmorph.idw.stiffened import StiffenedIDW
@@ -54,6 +54,7 @@ RBF_OPTIONS: dict[str, Any] = {
     "degree": 1,
     "support_radius": None,
     "solver": None,
+    "fit_tolerance": None,
 }
 #: The storage modes of each method.
 MODES = {"idw": ("auto", "dense", "matrix_free", "tree"), "rbf": ("auto", "dense", "matrix_free")}
@@ -91,6 +92,13 @@ def check_method_options(method: str, mode: str, options: dict[str, Any]) -> dic
                 f"mode: solver={solver!r} may fit the partition-of-unity or the sparse RBF, "
                 f"which have no dense or matrix-free choice; leave mode='auto' (got {mode!r})"
             )
+    if options.get("fit_tolerance") is not None:
+        check_positive(options["fit_tolerance"], "fit_tolerance")
+    if options.get("fit_tolerance") is not None and solver not in ("partition", "auto"):
+        raise ValueError(
+            "fit_tolerance: the partition of unity's global fit (solver='partition' or "
+            f"'auto'); solver={solver or 'dense'!r} is the global fit already"
+        )
     if options.get("stiffening_length") is not None:
         if mode == "tree":
             raise ValueError("mode: near-wall stiffening (stiffening_length) has no tree mode")
@@ -147,6 +155,7 @@ def build_interpolant(
     if method == "rbf":
         options = dict(options)
         solver = options.pop("solver") or "dense"
+        fit_tolerance = options.pop("fit_tolerance")
         if solver == "auto" and controls.shape[0] > PARTITION_CONTROLS:
             solver = "sparse" if sparse_fits(controls, options) else "partition"
         if solver == "sparse":
@@ -163,6 +172,7 @@ def build_interpolant(
                 block_bytes=block_bytes,
                 patch_size=partition.DEFAULT_PATCH_SIZE,
                 coarse_size=partition.DEFAULT_COARSE_SIZE,
+                tolerance=fit_tolerance,
                 **options,
             )
     if method == "idw":

@@ -70,6 +70,18 @@ def test_partition_solver_equals_the_library(tmp_path, case, capsys):
     np.testing.assert_allclose(field, expected, rtol=0, atol=1e-14)
 
 
+def test_the_partition_fit_to_a_tolerance_equals_the_library(tmp_path, case, capsys):
+    path, mesh, boundary = case
+    options = ["--method", "rbf", "--rbf-solver", "partition", "--fit-tolerance", "1e-8"]
+    code, field = run(tmp_path, path, *options)
+    assert code == EXIT_OK
+    assert "the global fit to 1e-08 by iterations" in capsys.readouterr().out
+    expected = MeshMorph(mesh, method="rbf", solver="partition", fit_tolerance=1e-8)
+    np.testing.assert_allclose(field, expected(boundary).numpy(), rtol=0, atol=1e-14)
+    dense = MeshMorph(mesh, method="rbf")(boundary).numpy()
+    np.testing.assert_allclose(field, dense, rtol=0, atol=1e-6 * np.abs(dense).max())
+
+
 def test_sparse_solver_equals_the_library(tmp_path, case, capsys):
     path, mesh, boundary = case
     options = ["--method", "rbf", "--kernel", "wendland_c2", "--support-radius", "0.6"]
@@ -88,6 +100,8 @@ def test_sparse_solver_equals_the_library(tmp_path, case, capsys):
         (["--mode", "dense", "--tree-tolerance", "1e-3"], "--tree-tolerance: needs --mode tree"),
         (["--method", "rbf", "--tree-tolerance", "1e-3"], "--tree-tolerance: the IDW tree's"),
         (["--rbf-solver", "partition"], "--rbf-solver: an RBF option"),
+        (["--fit-tolerance", "1e-4"], "--fit-tolerance: an RBF option"),
+        (["--method", "rbf", "--fit-tolerance", "1e-4"], "--fit-tolerance: the partition of"),
         (["--method", "rbf", "--mode", "tree"], "--mode: tree is IDW's"),
         (
             ["--method", "rbf", "--rbf-solver", "partition", "--mode", "dense"],

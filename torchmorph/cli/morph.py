@@ -423,6 +423,8 @@ def run(args: argparse.Namespace) -> int:
             "partition": "partition of unity: a coarse global fit and local patches",
             "sparse": "sparse: kernel and evaluation matrices within the support radius",
         }.get(mode, f"evaluation matrix {morph.num_interior} rows, stored")
+        if getattr(morph.rbf, "tolerance", None) is not None:
+            storage += f", the global fit to {morph.rbf.tolerance:g} by iterations"
         built = f"system of {morph.num_controls} controls factorised, {storage}"
     _line("assembly", f"{_seconds(morph.assembly_time)} ({built}; {args.dtype} on {device})")
     how = ["rotation-aware"] if args.rotations else []
