@@ -43,7 +43,6 @@ __all__ = [
     "group_sums",
     "group_sums_transposed",
     "interpolate",
-    "interpolate_transposed",
     "midpoint_tree",
     "shift_down",
     "shift_up",
@@ -439,11 +438,12 @@ def shift_up(levels, level_offsets, child_offsets, child_nodes, axis_nodes, degr
 
 @njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
 def interpolate(rows, owners, own_offsets, own_starts, own_stops, axis_nodes, degrees,
-                proxy_offsets, potentials_t, out):  # fmt: skip
-    """``out[i] += Σ_l L_l(x_i) potentials[l]`` over the proxies of the node that owns
-    target i (its lowest expanded ancestor; ``owners`` with CSR ``own_offsets`` into the
-    target ranges ``own_starts:own_stops`` each owns)."""
-    columns = potentials_t.shape[0]
+                proxy_offsets, proxies_t, points, transpose):  # fmt: skip
+    """``points[i] += Σ_l L_l(x_i) proxies[l]`` over the proxies of the node that owns
+    point i (its lowest expanded ancestor; ``owners`` with CSR ``own_offsets`` into the
+    point ranges ``own_starts:own_stops`` each owns), ``points`` (N, S) and
+    ``proxies_t`` (S, P); ``transpose``: ``proxies[l] += Σ_i L_l(x_i) points[i]``."""
+    columns = proxies_t.shape[0]
     for index in prange(owners.shape[0]):
         node = owners[index]
         d0, d1, d2 = degrees[node, 0], degrees[node, 1], degrees[node, 2]
@@ -457,41 +457,17 @@ def interpolate(rows, owners, own_offsets, own_starts, own_stops, axis_nodes, de
                 _basis(rows[i, 1], axis_nodes[node, 1], d1, second)
                 _basis(rows[i, 2], axis_nodes[node, 2], d2, third)
                 for column in range(columns):
+                    value = points[i, column]
                     total = 0.0
                     k = offset
                     for a in range(d0 + 1):
                         for b in range(d1 + 1):
                             inner = first[a] * second[b]
                             for c in range(d2 + 1):
-                                total += inner * third[c] * potentials_t[column, k]
+                                if transpose:
+                                    proxies_t[column, k] += inner * third[c] * value
+                                else:
+                                    total += inner * third[c] * proxies_t[column, k]
                                 k += 1
-                    out[i, column] += total
-
-
-@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
-def interpolate_transposed(rows, owners, own_offsets, own_starts, own_stops, axis_nodes,
-                           degrees, proxy_offsets, grads_t, potentials_t):  # fmt: skip
-    """The transpose of :func:`interpolate`: ``potentials[l] += Σ_i L_l(x_i) grads[i]``
-    over the targets each owner owns."""
-    columns = grads_t.shape[0]
-    for index in prange(owners.shape[0]):
-        node = owners[index]
-        d0, d1, d2 = degrees[node, 0], degrees[node, 1], degrees[node, 2]
-        first = np.empty(d0 + 1)
-        second = np.empty(d1 + 1)
-        third = np.empty(d2 + 1)
-        offset = proxy_offsets[node]
-        for span in range(own_offsets[index], own_offsets[index + 1]):
-            for i in range(own_starts[span], own_stops[span]):
-                _basis(rows[i, 0], axis_nodes[node, 0], d0, first)
-                _basis(rows[i, 1], axis_nodes[node, 1], d1, second)
-                _basis(rows[i, 2], axis_nodes[node, 2], d2, third)
-                for column in range(columns):
-                    grad = grads_t[column, i]
-                    k = offset
-                    for a in range(d0 + 1):
-                        for b in range(d1 + 1):
-                            inner = first[a] * second[b] * grad
-                            for c in range(d2 + 1):
-                                potentials_t[column, k] += inner * third[c]
-                                k += 1
+                    if not transpose:
+                        points[i, column] += total

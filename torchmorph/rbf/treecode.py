@@ -369,7 +369,7 @@ class TreeCode:
         out = np.zeros((self.rows.shape[0], columns))
         with numba_threads(threads):
             charges_t = np.zeros((columns, source.proxies.shape[0]))
-            _interpolate(source, self.source_chains, values_t, charges_t, transpose=True)
+            _interpolate(source, self.source_chains, charges_t, values_t.T, transpose=True)
             _shift(source, self.source_chains, charges_t, up=True)
             _treecode_jit.group_sums(
                 self.rows, self.group_starts, self.group_stops, self.far_offsets, self.far,
@@ -394,7 +394,7 @@ class TreeCode:
             import numba
 
             potentials_t = np.zeros((columns, target.proxies.shape[0]))
-            _interpolate(target, self.target_chains, grads_t, potentials_t, transpose=True)
+            _interpolate(target, self.target_chains, potentials_t, grads_t.T, transpose=True)
             _shift(target, self.target_chains, potentials_t, up=True)
             grads_t[:, self.num_targets :] = potentials_t
             parts = max(1, min(numba.get_num_threads(), self.group_starts.shape[0]))
@@ -430,20 +430,14 @@ def _shift(tree: _Tree, chains: _Chains, values_t: np.ndarray, up: bool) -> None
         )  # fmt: skip
 
 
-def _interpolate(tree: _Tree, chains: _Chains, values_t, out, transpose: bool) -> None:
-    """Points and their owners' proxies: ``out`` (points, S) += the owners' proxy values
-    ``values_t`` (S, proxies) interpolated at the points, or (``transpose``) ``out`` (S,
-    proxies) += the points' values ``values_t`` (S, points) spread on their owners'
-    proxies (the proxy charges)."""
-    arguments = (
-        tree.points if tree.points.shape[0] else np.zeros((0, 3)), chains.owners,
-        chains.own_offsets, chains.own_starts, chains.own_stops, tree.axis_nodes,
-        tree.degrees, tree.proxy_offsets, values_t, out,
+def _interpolate(tree: _Tree, chains: _Chains, proxies_t, points, transpose: bool) -> None:
+    """Points and their owners' proxies: ``points`` (N, S) += the owners' proxy values
+    ``proxies_t`` (S, P) interpolated at the points, or (``transpose``) ``proxies_t`` +=
+    the points' values spread on their owners' proxies (the proxy charges)."""
+    _treecode_jit.interpolate(
+        tree.points, chains.owners, chains.own_offsets, chains.own_starts, chains.own_stops,
+        tree.axis_nodes, tree.degrees, tree.proxy_offsets, proxies_t, points, transpose,
     )  # fmt: skip
-    if transpose:
-        _treecode_jit.interpolate_transposed(*arguments)
-    else:
-        _treecode_jit.interpolate(*arguments)
 
 
 class _TreeSum(torch.autograd.Function):
