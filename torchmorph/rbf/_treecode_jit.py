@@ -232,6 +232,17 @@ def _gather(block, far_offsets, far, near_offsets, near, proxy_offsets, proxies,
     return px, py, pz
 
 
+@njit(fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+def _kernel_row(rows, i, px, py, pz, begin, end, scale2, chunk, exponent, mantissa_bits):
+    """``chunk[j] = φ(|x_i − p_(begin + j)|)`` for the gathered points ``begin:end``
+    (:mod:`torchmorph.rbf._numba`'s two passes: squared distances, then ``s log(s) / 2``)."""
+    _numba._squared_row(
+        rows[i, 0], rows[i, 1], rows[i, 2], px[begin:end], py[begin:end], pz[begin:end], scale2,
+        chunk,
+    )  # fmt: skip
+    _numba._tps_row(chunk, exponent[: end - begin], mantissa_bits[: end - begin])
+
+
 @njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
 def group_sums(rows, group_starts, group_stops, far_offsets, far, near_offsets, near,
                proxy_offsets, proxies, charges_t, starts, stops, sources, values_t, scale2,
@@ -267,11 +278,8 @@ def group_sums(rows, group_starts, group_stops, far_offsets, far, near_offsets, 
             end = min(begin + CHUNK, total)
             chunk = row[: end - begin]
             for i in range(first, last):
-                _numba._squared_row(
-                    rows[i, 0], rows[i, 1], rows[i, 2], px[begin:end], py[begin:end],
-                    pz[begin:end], scale2, chunk,
-                )  # fmt: skip
-                _numba._tps_row(chunk, exponent[: end - begin], mantissa_bits[: end - begin])
+                _kernel_row(rows, i, px, py, pz, begin, end, scale2, chunk, exponent,
+                            mantissa_bits)  # fmt: skip
                 if columns == 3:  # a 3-D field: one pass, three sums
                     first_weights = weights_t[0, begin:end]
                     second_weights = weights_t[1, begin:end]
@@ -321,11 +329,8 @@ def group_sums_transposed(rows, group_starts, group_stops, far_offsets, far, nea
                 end = min(begin + CHUNK, total)
                 chunk = row[: end - begin]
                 for i in range(first, last):
-                    _numba._squared_row(
-                        rows[i, 0], rows[i, 1], rows[i, 2], px[begin:end], py[begin:end],
-                        pz[begin:end], scale2, chunk,
-                    )  # fmt: skip
-                    _numba._tps_row(chunk, exponent[: end - begin], mantissa_bits[: end - begin])
+                    _kernel_row(rows, i, px, py, pz, begin, end, scale2, chunk, exponent,
+                                mantissa_bits)  # fmt: skip
                     for column in range(columns):
                         grad = grads_t[column, i]
                         target_row = gathered[column, begin:end]
