@@ -49,7 +49,10 @@ __all__ = [
 #: pairs), ``"exact"``, ``"treecode"``.
 SUMMATIONS = ("auto", "exact", "treecode")
 
-#: ``summation="auto"`` takes the treecode from this many target-control pairs up.
+#: ``summation="auto"`` takes the treecode from this many target-control pairs up. On the
+#: wing in a box at tolerance 1e-4 (two threads; first and later morph): 10⁴ × 10⁵ took
+#: 3.1 and 3.0 s with exact sums, 3.0 and 2.7 s with the treecode; 3·10⁴ × 10⁵ 9.7 and
+#: 9.2 s against 6.4 and 6.2 s; 10⁴ × 10⁶ 11.9 and 11.8 s against 8.6 and 6.3 s.
 TREECODE_PAIRS = 10**9
 
 #: The highest interpolation degree :func:`treecode_degree` gives.
