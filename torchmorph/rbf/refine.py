@@ -285,9 +285,13 @@ class KernelSums:
 
             distance, nearest = cKDTree(points).query(targets.detach().cpu().numpy(), k=1)
             hit = np.flatnonzero(distance == 0)
-            self.coincident = (torch.from_numpy(hit), torch.from_numpy(nearest[hit]))
+            device = targets.device
+            self.coincident = (
+                torch.from_numpy(hit).to(device),
+                torch.from_numpy(nearest[hit]).to(device),
+            )
             spread = np.linspace(0, targets.shape[0] - 1, min(SAMPLED_TARGETS, targets.shape[0]))
-            self.samples = torch.from_numpy(np.unique(spread.round().astype(np.int64)))
+            self.samples = torch.from_numpy(np.unique(spread.round().astype(np.int64))).to(device)
 
     def _exact(self, points: Tensor, weights: Tensor, threads: int) -> Tensor:
         return kernel_sum(

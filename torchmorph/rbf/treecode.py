@@ -93,8 +93,8 @@ def _boxes(points: np.ndarray, starts, stops, children) -> tuple[np.ndarray, np.
     """The bounding box of each node (points in tree order; nodes in preorder, so the
     children follow their parent: a reverse pass combines them)."""
     nodes = starts.shape[0]
-    low = np.empty((nodes, 3))
-    high = np.empty((nodes, 3))
+    low = np.zeros((nodes, 3))  # an empty set's one node: a point at the origin
+    high = np.zeros((nodes, 3))
     leaves = np.flatnonzero(children[:, 0] < 0)
     if points.shape[0]:
         ordered = leaves[np.argsort(starts[leaves])]
