@@ -92,15 +92,12 @@ class MeshMorph(nn.Module):
     kernel, epsilon, degree, support_radius
         RBF only: passed to :class:`~torchmorph.rbf.RBF` (defaults: the thin-plate
         spline, degree 1; epsilon and support_radius as RBF requires for the kernel).
-    solver : {"dense", "partition", "sparse", "auto"}, optional
+    solver, fit_tolerance : optional
         RBF only: the dense fit (default), the partition of unity (PartitionRBF, a few
-        1e-3 from the global fit far from the controls), the sparse global fit of a
-        Wendland kernel (SparseRBF), or beyond PARTITION_CONTROLS controls the sparse fit
-        (Wendland) or the partition; neither takes moved ``points`` in :meth:`forward`.
-    fit_tolerance : float, optional
-        RBF with ``solver="partition"`` (or ``"auto"`` where it takes the partition): the
-        global fit itself to this tolerance (:class:`~torchmorph.rbf.PartitionRBF`'s
-        ``tolerance``; 1e-4 came within 1e-5 of the dense fit on a wing in a box).
+        1e-3 from the global fit far from the controls; ``fit_tolerance``, its
+        ``tolerance``, makes it the global fit), the sparse global fit of a Wendland
+        kernel (SparseRBF), or ``"auto"``: beyond PARTITION_CONTROLS controls the sparse
+        fit (Wendland) or the partition; neither takes moved ``points`` in :meth:`forward`.
     mode : {"auto", "dense", "matrix_free", "tree"}
         Passed to :class:`~torchmorph.idw.IDW` or :class:`~torchmorph.rbf.RBF`
         (``"tree"`` is IDW's only).
@@ -208,25 +205,15 @@ class MeshMorph(nn.Module):
             raise TypeError(
                 f"mesh must be a torchmorph Mesh (or TetMesh), got {type(mesh).__name__}"
             )
-        options = check_method_options(
-            method,
-            mode,
-            {
-                "power": power,
-                "stiffening_length": stiffening_length,
-                "stiffening_power": stiffening_power,
-                "implementation": implementation,
-                "coincidence_tolerance": coincidence_tolerance,
-                "tolerance": tolerance,
-                "error_control": error_control,
-                "kernel": kernel,
-                "epsilon": epsilon,
-                "degree": degree,
-                "support_radius": support_radius,
-                "solver": solver,
-                "fit_tolerance": fit_tolerance,
-            },
-        )
+        given = {  # IDW's, then RBF's
+            "power": power, "stiffening_length": stiffening_length,
+            "stiffening_power": stiffening_power, "implementation": implementation,
+            "coincidence_tolerance": coincidence_tolerance, "tolerance": tolerance,
+            "error_control": error_control, "kernel": kernel, "epsilon": epsilon,
+            "degree": degree, "support_radius": support_radius, "solver": solver,
+            "fit_tolerance": fit_tolerance,
+        }  # fmt: skip
+        options = check_method_options(method, mode, given)
         self.method: str = method
         boundary = mesh.boundary_nodes
         interior = mesh.interior_nodes
