@@ -8,8 +8,9 @@ The system is the interpolation system of the whole fit, ``[Φ P; Pᵀ 0] [λ; �
 the preconditioner is the partition of unity's own two levels (the coarse fit, then the
 patches' local fits of what it leaves), so each iteration costs one product with the
 kernel matrix and one pass over the patches. :class:`GlobalSolve` differentiates the
-solution as ``A⁻¹ b`` (the transposed system is the same system, solved again), not
-through the iterations.
+solution as ``A⁻¹ b`` (the transposed system is the same system, solved again; with the
+treecode's products, symmetric to its error), not through the iterations. The fit
+itself is :class:`GlobalFit`, :class:`~torchmorph.rbf.PartitionRBF`'s base.
 """
 
 from __future__ import annotations
