@@ -58,8 +58,8 @@ DEFAULT_OVERLAP = 1.5
 #: Controls of the global coarse fit (it sets the error against the global fit: 2.5e-3 at
 #: 10⁴ controls, 4.2e-3 at 3·10⁴ in ``benchmarks/rbf_scale.py``; 10⁵ × 10⁶ in 38 s).
 DEFAULT_COARSE_SIZE = 6000
-#: Most iterations of the global fit (``tolerance``): 5-6 reach 1e-4 on the benchmark's
-#: wing in a box of walls at 10⁴ and 3·10⁴ controls.
+#: Most iterations of the global fit (``tolerance``): 4 reached 1e-4 on the benchmark's
+#: wing in a box of walls at 10⁴ and 3·10⁴ controls, 6 at 10⁵.
 DEFAULT_MAX_ITERATIONS = 100
 
 #: The per-patch buffers of the local factorisations, packed: ``patch_<name>`` (all the
@@ -153,7 +153,9 @@ class PartitionRBF(GlobalFit, nn.Module):
     ------
     ValueError
         As :class:`~torchmorph.rbf.RBF` for the points and the kernel's options; naming
-        ``patch_size``, ``overlap`` or ``coarse_size`` when out of range.
+        ``patch_size``, ``overlap``, ``coarse_size``, ``tolerance``, ``max_iterations``
+        or ``summation`` when out of range (``"treecode"`` without a tolerance, or with
+        another kernel than the thin-plate spline).
 
     Notes
     -----
