@@ -330,6 +330,12 @@ def test_bad_summations(options, message):
         PartitionRBF(body(100), body(100)[:5], **options, **SMALL)
 
 
+def test_the_treecode_needs_numba(monkeypatch):
+    monkeypatch.setattr(_numba, "available", lambda: False)
+    with pytest.raises(ValueError, match="^summation='treecode' needs numba"):
+        PartitionRBF(body(100), body(100)[:5], tolerance=1e-4, summation="treecode", **SMALL)
+
+
 def test_summation_is_part_of_the_state_and_older_states_load():
     controls, targets = body(300), torch.from_numpy(volume(20, seed=16))
     module = PartitionRBF(controls, targets, tolerance=1e-6, summation="exact", **SMALL)

@@ -4,11 +4,11 @@ proxies and between the proxies of nested nodes (and their transposes), and the
 thin-plate sums of a group of rows over its far nodes' proxies and its near sources
 (and their transpose), in parallel.
 
-A block's sums take the points it interacts with (proxies, then near sources) gathered
-into contiguous rows, then chunks of :data:`CHUNK` of them against each of its targets
-with :mod:`torchmorph.rbf._numba`'s passes (squared distances, ``s log(s) / 2`` with the
-vectorised logarithm, dot products), so that a chunk stays in the L1 cache while the
-block's targets go over it.
+A group's sums take the points it interacts with (proxies, then near sources) gathered
+into contiguous arrays, then chunks of :data:`CHUNK` of them against each of its rows
+(targets, or a target node's proxies) with :mod:`torchmorph.rbf._numba`'s passes
+(squared distances, ``s log(s) / 2`` with the vectorised logarithm, dot products), so
+that a chunk stays in the L1 cache while the group's rows go over it.
 """
 
 from __future__ import annotations

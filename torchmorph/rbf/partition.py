@@ -25,7 +25,7 @@ from torchmorph._state import (
     resize_buffers_for_load,
     unpack_tensor,
 )
-from torchmorph.rbf import _parallel
+from torchmorph.rbf import _numba, _parallel
 from torchmorph.rbf._parallel import kernel_sum
 from torchmorph.rbf.functional import (
     check_distinct,
@@ -244,6 +244,8 @@ class PartitionRBF(GlobalFit, nn.Module):
         self.summation = check_choice(summation, "summation", SUMMATIONS)
         if self.summation == "treecode" and self.tolerance is None:
             raise ValueError("summation='treecode' needs a tolerance (the global fit's)")
+        if self.summation == "treecode" and not _numba.available():
+            raise ValueError("summation='treecode' needs numba, which is not installed")
         if self.summation == "treecode" and self.kernel != "thin_plate_spline":
             raise ValueError(
                 f"summation='treecode' serves kernel='thin_plate_spline', got {self.kernel!r}"
