@@ -14,12 +14,15 @@ Printed (markdown):
 
 (a) for each control count of ``--compare`` (default 10⁴ and 3·10⁴; ``--compare-targets``
 targets, default 10⁵): the fit and one morph of the global dense fit and of the
-partition of unity for each ``--coarse`` size (default 3,000 and 6,000), the ratios,
-and the relative 2-norm error ‖u_partition − u_global‖ / ‖u_global‖ over all targets;
+partition of unity for each ``--coarse`` size (default 3,000 and 6,000), then of its
+global fit to each of ``--tolerances`` (``PartitionRBF(tolerance=...)``, the last
+``--coarse`` size), the ratios, and the relative 2-norm error ‖u − u_global‖ /
+‖u_global‖ over all targets;
 
-(b) ``--controls`` × ``--targets`` (default 10⁵ × 10⁶; the last ``--coarse`` size): the
-partition of unity's fit, its first morph and the median of ``--repeats`` later morphs,
-the process's peak resident memory (``ru_maxrss``) and the size of its state;
+(b) ``--controls`` × ``--targets`` (default 10⁵ × 10⁶; the last ``--coarse`` size; the
+global fit to the first of ``--tolerances`` if any): the fit, the first morph and the
+median of ``--repeats`` later morphs, the process's peak resident memory
+(``ru_maxrss``) and the size of its state;
 
 (c) with ``--sparse RADIUS ...`` (alone): :class:`torchmorph.rbf.SparseRBF` with
 Wendland's C2 at those support radii, against the dense global fit with the same kernel
