@@ -13,7 +13,6 @@ import pytest
 import torch
 
 from torchmorph.rbf import PartitionRBF, _numba, refine
-from torchmorph.rbf import treecode as treecode_module
 from torchmorph.rbf.treecode import TreeCode, _midpoint_tree, axis_degrees, tree_sum
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -363,4 +362,3 @@ def test_the_exact_sums_of_the_fused_pass_are_the_reference():
     )
     np.testing.assert_allclose(fused.numpy(), exact(targets, sources, values, 1.3), rtol=1e-12,
                                atol=1e-12)  # fmt: skip
-    assert treecode_module.LEAF_SIZE == 32
