@@ -45,6 +45,9 @@ SHARED = (
     "torchmorph._memory",
     "torchmorph._dense",
     "torchmorph._threads",
+    "torchmorph._kernel_rows",
+    "torchmorph._treecode",
+    "torchmorph._treecode_jit",
 )
 
 

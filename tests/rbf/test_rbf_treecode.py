@@ -1,4 +1,4 @@
-"""The thin-plate treecode (:mod:`torchmorph.rbf.treecode`): its sums against exact float64
+"""The thin-plate treecode (:mod:`torchmorph._treecode`): its sums against exact float64
 sums, an error that falls with the degree, the exact transpose and gradcheck, its trees
 and degrees, 2-D points, empty sets and thread counts; and the partition of unity's global
 fit through it (:class:`torchmorph.rbf.PartitionRBF` with ``summation``)."""
@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from torchmorph.rbf import PartitionRBF, _numba, refine
-from torchmorph.rbf.treecode import TreeCode, _midpoint_tree, axis_degrees, tree_sum
+from torchmorph._treecode import TreeCode, _midpoint_tree, axis_degrees, tree_sum
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

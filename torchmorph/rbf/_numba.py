@@ -17,11 +17,13 @@ libm's ``log`` and 5-8 for the torch blocks.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 from torch import Tensor
+
+from torchmorph._kernel_rows import FLAGS as _FLAGS
+from torchmorph._kernel_rows import squared_row as _squared_row
+from torchmorph._kernel_rows import tps_row as _tps_row
 
 try:  # numba is optional: without it the torch blocks run
     from numba import njit
@@ -30,56 +32,12 @@ except ImportError:  # pragma: no cover - exercised where numba is missing
 
 __all__ = ["available", "tps_apply", "tps_rows", "tps_upper"]
 
-_LN2_HIGH = 6.93147180369123816490e-01  # fdlibm's split of log(2): high bits exact
-_LN2_LOW = 1.90821492927058770002e-10
-_SQRT2 = math.sqrt(2.0)
-_FLAGS = {"reassoc", "contract", "nsz", "arcp"}  # reassociation: vector reductions
 _CHUNK = 512  # controls per pass of the fused sum: 3 scratch rows of 4 KiB, in L1
 
 
 def available() -> bool:
     """Whether numba is installed (the fused kernels can run)."""
     return njit is not None
-
-
-def _squared_row(x, y, z, cx, cy, cz, scale2, row):  # pass 1
-    for j in range(cx.shape[0]):
-        dx = x - cx[j]
-        dy = y - cy[j]
-        dz = z - cz[j]
-        row[j] = (dx * dx + dy * dy + dz * dz) * scale2
-
-
-def _tps_row(row, exponent, mantissa_bits):  # pass 2: row <- s log(s) / 2
-    bits = row.view(np.int64)
-    for j in range(row.shape[0]):
-        word = bits[j]
-        exponent[j] = np.float64((word >> 52) - 1023)
-        mantissa_bits[j] = (word & 0x000FFFFFFFFFFFFF) | 0x3FF0000000000000
-    mantissa = mantissa_bits.view(np.float64)
-    for j in range(row.shape[0]):
-        m = mantissa[j]
-        e = exponent[j]
-        big = m > _SQRT2
-        m = m * 0.5 if big else m
-        e = e + 1.0 if big else e
-        t = (m - 1.0) / (m + 1.0)
-        t2 = t * t
-        series = 1.0 / 23.0
-        series = series * t2 + 1.0 / 21.0
-        series = series * t2 + 1.0 / 19.0
-        series = series * t2 + 1.0 / 17.0
-        series = series * t2 + 1.0 / 15.0
-        series = series * t2 + 1.0 / 13.0
-        series = series * t2 + 1.0 / 11.0
-        series = series * t2 + 1.0 / 9.0
-        series = series * t2 + 1.0 / 7.0
-        series = series * t2 + 1.0 / 5.0
-        series = series * t2 + 1.0 / 3.0
-        series = series * t2 + 1.0
-        s = row[j]
-        logarithm = e * _LN2_HIGH + (2.0 * t * series + e * _LN2_LOW)
-        row[j] = 0.5 * s * logarithm if s > 0.0 else 0.0
 
 
 def _rows(tx, ty, tz, cx, cy, cz, scale2, out):
@@ -164,8 +122,6 @@ def _apply(tx, ty, tz, cx, cy, cz, scale2, weights_t, out):
 
 if njit is not None:
     _compile = njit(fastmath=_FLAGS, error_model="numpy", cache=True)
-    _squared_row = _compile(_squared_row)
-    _tps_row = _compile(_tps_row)
     _rows = _compile(_rows)
     _upper_rows = _compile(_upper_rows)
     _target_sums = _compile(_target_sums)

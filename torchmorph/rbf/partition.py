@@ -129,7 +129,7 @@ class PartitionRBF(GlobalFit, nn.Module):
         residual reached).
     summation : {"auto", "exact", "treecode"}
         How the global fit sums the kernel over the controls: exactly, or by the
-        treecode of :mod:`~torchmorph.rbf.treecode` (the thin-plate spline on the CPU; its
+        treecode of :mod:`~torchmorph._treecode` (the thin-plate spline on the CPU; its
         degree from ``tolerance``, :func:`~torchmorph.rbf.refine.treecode_degree`), each of
         the two sums (at the controls, at the targets) by itself; ``"auto"`` takes the
         treecode for the thin-plate spline from 10⁹ target-control pairs up. With the

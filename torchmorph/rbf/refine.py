@@ -28,7 +28,7 @@ from torchmorph.rbf import _parallel
 from torchmorph.rbf._parallel import kernel_sum
 from torchmorph.rbf.kernels import fused, polynomial_matrix
 from torchmorph.rbf.system import FACTOR_NAMES, KINDS, solve
-from torchmorph.rbf.treecode import TreeCode, tree_sum
+from torchmorph._treecode import TreeCode, tree_sum
 
 __all__ = [
     "MAX_TREECODE_DEGREE",
@@ -237,7 +237,7 @@ class KernelSums:
     """``Σ_j φ(ε|x − y_j|) λ_j`` over the controls y, at the controls and at the targets,
     for :class:`~torchmorph.rbf.PartitionRBF`'s global fit: exact (the fused pass or torch
     blocks, :func:`~torchmorph.rbf._parallel.kernel_sum`) or by the treecode
-    (:mod:`~torchmorph.rbf.treecode`, built here once per pair of point sets), each set
+    (:mod:`~torchmorph._treecode`, built here once per pair of point sets), each set
     of targets decided by :func:`uses_treecode`; and the coarse fit's sums at the
     controls for the preconditioner (:meth:`coarse_at_controls`).
 

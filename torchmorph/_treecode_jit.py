@@ -1,13 +1,13 @@
-"""The numba kernels of the RBF treecode (:mod:`torchmorph.rbf.treecode`), float64: the
-kd-trees, the dual traversal's lists, the interpolation between points and their nodes'
-proxies and between the proxies of nested nodes (and their transposes), and the
-thin-plate sums of a group of rows over its far nodes' proxies and its near sources
-(and their transpose), in parallel.
+"""The numba kernels of the treecode (:mod:`torchmorph._treecode`), float64: the kd-trees,
+the dual traversal's lists, the interpolation between points and their nodes' proxies
+and between the proxies of nested nodes (and their transposes), and the kernel sums
+(thin-plate or inverse power) of a group of rows over its far nodes' proxies and its
+near sources (and their transpose), in parallel.
 
 A group's sums take the points it interacts with (proxies, then near sources) gathered
 into contiguous arrays, then chunks of :data:`CHUNK` of them against each of its rows
-(targets, or a target node's proxies) with :mod:`torchmorph.rbf._numba`'s passes
-(squared distances, ``s log(s) / 2`` with the vectorised logarithm, dot products), so
+(targets, or a target node's proxies) with :mod:`torchmorph._kernel_rows`' passes
+(squared distances, the kernel of them, dot products), so
 that a chunk stays in the L1 cache while the group's rows go over it.
 """
 
@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from torchmorph.rbf import _numba
+from torchmorph._kernel_rows import FLAGS, inverse_power_row, squared_row, tps_row
 
 if TYPE_CHECKING:
     from numba import njit, prange
@@ -177,7 +177,7 @@ def _grown(array, capacity):
     return out
 
 
-@njit(fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+@njit(fastmath=FLAGS, error_model="numpy", cache=True)
 def _basis(value, nodes, degree, out):
     """The barycentric Lagrange basis on Chebyshev points of the second kind
     (``nodes[:degree + 1]``) at ``value``: ``out[k] = L_k(value)`` (Berrut and Trefethen,
@@ -203,7 +203,7 @@ def _basis(value, nodes, degree, out):
         out[k] /= total
 
 
-@njit(fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+@njit(fastmath=FLAGS, error_model="numpy", cache=True)
 def _gather(block, far_offsets, far, near_offsets, near, proxy_offsets, proxies, starts, stops,
             sources):  # fmt: skip
     """The points one block interacts with, contiguous per axis: its far nodes' proxies,
@@ -232,24 +232,31 @@ def _gather(block, far_offsets, far, near_offsets, near, proxy_offsets, proxies,
     return px, py, pz
 
 
-@njit(fastmath=_numba._FLAGS, error_model="numpy", cache=True)
-def _kernel_row(rows, i, px, py, pz, begin, end, scale2, chunk, exponent, mantissa_bits):
-    """``chunk[j] = φ(|x_i − p_(begin + j)|)`` for the gathered points ``begin:end``
-    (:mod:`torchmorph.rbf._numba`'s two passes: squared distances, then ``s log(s) / 2``)."""
-    _numba._squared_row(
+@njit(fastmath=FLAGS, error_model="numpy", cache=True)
+def _kernel_row(rows, i, px, py, pz, begin, end, scale2, power, floor, chunk, exponent,
+                mantissa_bits):  # fmt: skip
+    """``chunk[j] = K(|x_i − p_(begin + j)|)`` for the gathered points ``begin:end``: the
+    thin-plate ``φ(ε r)`` for ``power`` 0 (``scale2`` = ε²), else ``r^-power``
+    (:mod:`torchmorph._kernel_rows`' passes: squared distances, then the kernel)."""
+    squared_row(
         rows[i, 0], rows[i, 1], rows[i, 2], px[begin:end], py[begin:end], pz[begin:end], scale2,
         chunk,
     )  # fmt: skip
-    _numba._tps_row(chunk, exponent[: end - begin], mantissa_bits[: end - begin])
+    if power == 0.0:
+        tps_row(chunk, exponent[: end - begin], mantissa_bits[: end - begin])
+    else:
+        inverse_power_row(chunk, power, floor)
 
 
-@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+@njit(parallel=True, fastmath=FLAGS, error_model="numpy", cache=True)
 def group_sums(rows, group_starts, group_stops, far_offsets, far, near_offsets, near,
                proxy_offsets, proxies, charges_t, starts, stops, sources, values_t, scale2,
-               out):  # fmt: skip
-    """``out[i] = Σ φ(|x_i − p|) q_p`` over the far proxies (charges ``charges_t``) and near
-    sources (``values_t``) of the group of row i (the rows of group g are
-    ``group_starts[g]:group_stops[g]``, each row in one group), sources in tree order."""
+               power, floor, out):  # fmt: skip
+    """``out[i] = Σ K(|x_i − p|) q_p`` (K of :func:`_kernel_row`) over the far proxies
+    (charges ``charges_t``) and near sources (``values_t``) of the group of row i (the
+    rows of group g are ``group_starts[g]:group_stops[g]``, each row in one group),
+    sources in tree order. IDW's weight r^-4 against three columns (a 3-D field) takes
+    one fused pass (distances, weights and sums together)."""
     columns = values_t.shape[0]
     for block in prange(group_starts.shape[0]):
         px, py, pz = _gather(block, far_offsets, far, near_offsets, near, proxy_offsets,
@@ -278,8 +285,28 @@ def group_sums(rows, group_starts, group_stops, far_offsets, far, near_offsets, 
             end = min(begin + CHUNK, total)
             chunk = row[: end - begin]
             for i in range(first, last):
-                _kernel_row(rows, i, px, py, pz, begin, end, scale2, chunk, exponent,
-                            mantissa_bits)  # fmt: skip
+                if power == 4.0 and columns == 3:  # IDW's common case: one fused pass
+                    x, y, z = rows[i, 0], rows[i, 1], rows[i, 2]
+                    first_weights = weights_t[0, begin:end]
+                    second_weights = weights_t[1, begin:end]
+                    third_weights = weights_t[2, begin:end]
+                    cx, cy, cz = px[begin:end], py[begin:end], pz[begin:end]
+                    a = b = c = 0.0
+                    for j in range(end - begin):
+                        dx = x - cx[j]
+                        dy = y - cy[j]
+                        dz = z - cz[j]
+                        s = max((dx * dx + dy * dy + dz * dz) * scale2, floor)
+                        value = 1.0 / (s * s)
+                        a += value * first_weights[j]
+                        b += value * second_weights[j]
+                        c += value * third_weights[j]
+                    sums[i - first, 0] += a
+                    sums[i - first, 1] += b
+                    sums[i - first, 2] += c
+                    continue
+                _kernel_row(rows, i, px, py, pz, begin, end, scale2, power, floor, chunk,
+                            exponent, mantissa_bits)  # fmt: skip
                 if columns == 3:  # a 3-D field: one pass, three sums
                     first_weights = weights_t[0, begin:end]
                     second_weights = weights_t[1, begin:end]
@@ -305,11 +332,11 @@ def group_sums(rows, group_starts, group_stops, far_offsets, far, near_offsets, 
                 out[i, column] = sums[i - first, column]
 
 
-@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+@njit(parallel=True, fastmath=FLAGS, error_model="numpy", cache=True)
 def group_sums_transposed(rows, group_starts, group_stops, far_offsets, far, near_offsets,
                           near, proxy_offsets, proxies, starts, stops, sources, grads_t, scale2,
-                          parts, potentials_t, out_t):  # fmt: skip
-    """The transpose of :func:`group_sums`: ``potentials_t[k, :, p] += Σ_i φ(|x_i − p|)
+                          power, floor, parts, potentials_t, out_t):  # fmt: skip
+    """The transpose of :func:`group_sums`: ``potentials_t[k, :, p] += Σ_i K(|x_i − p|)
     grads_t[:, i]`` for far proxy p and ``out_t[k, :, j] += ...`` for near source j, over
     the rows i of the groups of part k (``parts`` contiguous ranges of groups, one
     private accumulator each; the caller sums them)."""
@@ -329,8 +356,8 @@ def group_sums_transposed(rows, group_starts, group_stops, far_offsets, far, nea
                 end = min(begin + CHUNK, total)
                 chunk = row[: end - begin]
                 for i in range(first, last):
-                    _kernel_row(rows, i, px, py, pz, begin, end, scale2, chunk, exponent,
-                                mantissa_bits)  # fmt: skip
+                    _kernel_row(rows, i, px, py, pz, begin, end, scale2, power, floor,
+                                chunk, exponent, mantissa_bits)  # fmt: skip
                     for column in range(columns):
                         grad = grads_t[column, i]
                         target_row = gathered[column, begin:end]
@@ -351,7 +378,7 @@ def group_sums_transposed(rows, group_starts, group_stops, far_offsets, far, nea
                     k += 1
 
 
-@njit(fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+@njit(fastmath=FLAGS, error_model="numpy", cache=True)
 def _shift_matrices(parent, child, axis_nodes, degrees):
     """Per axis, the parent's Lagrange basis at the child's Chebyshev points: (3, n + 1,
     n + 1), entry [axis, child point, parent point]."""
@@ -367,7 +394,7 @@ def _shift_matrices(parent, child, axis_nodes, degrees):
     return out
 
 
-@njit(fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+@njit(fastmath=FLAGS, error_model="numpy", cache=True)
 def _contract(matrices, source, source_shape, target_shape, out, transpose):
     """``out += (M0 ⊗ M1 ⊗ M2) source`` on grids of ``source_shape`` → ``target_shape``
     (``transpose``: ``(M0 ⊗ M1 ⊗ M2)ᵀ``, the shapes swapped), axis by axis."""
@@ -397,7 +424,7 @@ def _contract(matrices, source, source_shape, target_shape, out, transpose):
                     out[(p * b1 + n) * b2 + m] += weight * second[i, n, m]
 
 
-@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+@njit(parallel=True, fastmath=FLAGS, error_model="numpy", cache=True)
 def shift_down(levels, level_offsets, parents, axis_nodes, degrees, proxy_offsets, potentials_t):
     """Each expanded node's proxy potentials plus those of ``parents[node]`` (its nearest
     expanded ancestor) interpolated at its proxies, from the top level down (``levels``:
@@ -417,7 +444,7 @@ def shift_down(levels, level_offsets, parents, axis_nodes, degrees, proxy_offset
                 _contract(matrices, source, parent_shape, node_shape, target, False)
 
 
-@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+@njit(parallel=True, fastmath=FLAGS, error_model="numpy", cache=True)
 def shift_up(levels, level_offsets, child_offsets, child_nodes, axis_nodes, degrees,
              proxy_offsets, potentials_t):  # fmt: skip
     """The transpose of :func:`shift_down`: from the deepest level up, each node gathers
@@ -441,7 +468,7 @@ def shift_up(levels, level_offsets, child_offsets, child_nodes, axis_nodes, degr
                     _contract(matrices, source, node_shape, parent_shape, target, True)
 
 
-@njit(parallel=True, fastmath=_numba._FLAGS, error_model="numpy", cache=True)
+@njit(parallel=True, fastmath=FLAGS, error_model="numpy", cache=True)
 def interpolate(rows, owners, own_offsets, own_starts, own_stops, axis_nodes, degrees,
                 proxy_offsets, proxies_t, points, transpose):  # fmt: skip
     """``points[i] += Σ_l L_l(x_i) proxies[l]`` over the proxies of the node that owns

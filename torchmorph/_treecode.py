@@ -1,5 +1,7 @@
-"""A treecode for the thin-plate spline's kernel sums ``u_i = Σ_j φ(ε|x_i − y_j|) w_j``
-over many targets and sources: barycentric Lagrange interpolation on both sides with a
+"""A treecode for kernel sums ``u_i = Σ_j K(|x_i − y_j|) w_j`` over many targets and
+sources, K the thin-plate spline's ``φ(ε r)`` (the RBF's global fit,
+:mod:`torchmorph.rbf.refine`) or IDW's weight ``r^-p`` (:mod:`torchmorph.idw.treecode`):
+barycentric Lagrange interpolation on both sides with a
 dual tree traversal (Wang, Krasny and Tlupova, *A kernel-independent treecode based on
 barycentric Lagrange interpolation*, Commun. Comput. Phys. 28, 2020; Wilson, Vaughn and
 Krasny, Comput. Phys. Commun. 265, 2021), on the CPU (numba, in parallel).
@@ -11,8 +13,8 @@ the second kind on its bounding box. For a source node C the proxy charges
 
     q_k = Σ_{j ∈ C} L_k(y_j) w_j
 
-(L_k the tensor-product Lagrange basis) give Σ_{j ∈ C} φ(|x − y_j|) w_j ≈
-Σ_k φ(|x − t_k|) q_k, the interpolation of φ(|x − ·|) in the source variable; for a
+(L_k the tensor-product Lagrange basis) give Σ_{j ∈ C} K(|x − y_j|) w_j ≈
+Σ_k K(|x − t_k|) q_k, the interpolation of K(|x − ·|) in the source variable; for a
 target node T the sums at its proxies, interpolated, give them at its targets. A pair
 of nodes whose balls are well separated under the opening angle θ, r_T + r_C < θ R,
 interacts through the proxies of each side that has them; a pair too close opens its
@@ -42,8 +44,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchmorph import _treecode_jit
 from torchmorph._threads import numba_threads
-from torchmorph.rbf import _treecode_jit
 
 __all__ = ["DEFAULT_THETA", "LEAF_SIZE", "TARGET_BLOCK", "TreeCode", "axis_degrees", "tree_sum"]
 
@@ -109,7 +111,7 @@ def _boxes(points: np.ndarray, starts, stops, children) -> tuple[np.ndarray, np.
 
 
 def _midpoint_tree(points: np.ndarray, leaf_size: int):
-    """(order, starts, stops, children) of :func:`~torchmorph.rbf._treecode_jit.midpoint_tree`."""
+    """(order, starts, stops, children) of :func:`~torchmorph._treecode_jit.midpoint_tree`."""
     count = points.shape[0]
     size = max(2 * count - 1, 1)
     order = np.arange(count, dtype=np.int64)
@@ -266,7 +268,7 @@ class TreeCode:
     """The trees, lists and proxies of one pair of point sets (float64 NumPy, (N, D),
     D = 2 or 3) for :meth:`apply` (targets × sources) and :meth:`apply_transposed`.
 
-    Both sides have trees and expansions; :func:`~torchmorph.rbf._treecode_jit.dual_lists`
+    Both sides have trees and expansions; :func:`~torchmorph._treecode_jit.dual_lists`
     pairs their nodes. A pair whose target node has an expansion adds to its proxy
     potentials (from the source node's proxies or sources); those are shifted down to the
     expanded nodes below it (interpolated at their proxies) and finally interpolated at
@@ -279,11 +281,17 @@ class TreeCode:
     ----------
     sources, targets : numpy.ndarray, shape (N_s, D) and (N_t, D)
     scale : float
-        The kernel's distance scale ε: φ(ε r) with φ(r) = r² log r.
+        The kernel's distance scale ε: φ(ε r) with φ(r) = r² log r (thin-plate; with a
+        ``power`` the weights are (ε r)^-p).
     degree : int
         The interpolation degree per axis (the longest axes of a node's box).
     theta : float
         The opening angle (:data:`DEFAULT_THETA`).
+    power : float, optional
+        ``K(r) = r^-power`` (> 0) instead of the thin-plate spline.
+    floor : float
+        With a ``power``: squared (scaled) distances below it are raised to it, so that a
+        target on a source has a finite (meaningless) sum; its caller replaces it.
 
     Attributes
     ----------
@@ -299,8 +307,12 @@ class TreeCode:
         scale: float,
         degree: int,
         theta: float = DEFAULT_THETA,
+        *,
+        power: float | None = None,
+        floor: float = 0.0,
     ) -> None:
         self.scale2, self.degree, self.theta = float(scale) ** 2, int(degree), float(theta)
+        self.power, self.floor = (0.0 if power is None else float(power)), float(floor)
         self.num_sources, self.num_targets = sources.shape[0], targets.shape[0]
         source = self.source = _Tree(sources, LEAF_SIZE, self.degree, self.theta)
         target = self.target = _Tree(targets, TARGET_BLOCK, self.degree, self.theta)
@@ -360,7 +372,7 @@ class TreeCode:
         self.group_stops = stops[order].astype(np.int64)
 
     def apply(self, values: np.ndarray, threads: int | None = None) -> np.ndarray:
-        """``Σ_j φ(ε|x_i − y_j|) values_j`` at every target, approximated: (N_t, S) for
+        """``Σ_j K(|x_i − y_j|) values_j`` at every target, approximated: (N_t, S) for
         ``values`` (N_s, S), both in the callers' order."""
         source, target = self.source, self.target
         values_t = np.ascontiguousarray(values[source.order].T)
@@ -374,7 +386,8 @@ class TreeCode:
             _treecode_jit.group_sums(
                 self.rows, self.group_starts, self.group_stops, self.far_offsets, self.far,
                 self.near_offsets, self.near, source.proxy_offsets, source.proxies, charges_t,
-                source.starts, source.stops, source.points, values_t, self.scale2, out,
+                source.starts, source.stops, source.points, values_t, self.scale2, self.power,
+                self.floor, out,
             )  # fmt: skip
             potentials_t = np.ascontiguousarray(out[self.num_targets :].T)
             _shift(target, self.target_chains, potentials_t, up=False)
@@ -403,8 +416,8 @@ class TreeCode:
             _treecode_jit.group_sums_transposed(
                 self.rows, self.group_starts, self.group_stops, self.far_offsets, self.far,
                 self.near_offsets, self.near, source.proxy_offsets, source.proxies,
-                source.starts, source.stops, source.points, grads_t, self.scale2, parts,
-                charges, near,
+                source.starts, source.stops, source.points, grads_t, self.scale2, self.power,
+                self.floor, parts, charges, near,
             )  # fmt: skip
             charges_t = np.ascontiguousarray(charges.sum(axis=0))
             _shift(source, self.source_chains, charges_t, up=False)
