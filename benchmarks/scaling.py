@@ -30,15 +30,19 @@ O(N log N) guide lines (docs/scaling_<device>.png).
     python benchmarks/scaling.py --device cuda --quick   # GPU, ~3 minutes on an H100
     python benchmarks/scaling.py --tree                  # exact against tree, CPU
 
-``--tree`` sweeps instead the tree-approximated IDW (``torchmorph.idw.tree.TreeIDW``,
-sampled error control) against the exact fused sum on the clouds of
+``--tree`` sweeps instead the tree-approximated IDW against the exact fused sum: the
+interpolating treecode (``torchmorph.idw.treecode.TreecodeIDW``, what ``IDW(mode="tree",
+error_control="sampled")`` and ``auto`` take; rows "treecode") and the quadrupole
+traversal (``torchmorph.idw.tree.TreeIDW``, sampled error control; rows "tree"),
+``--tree-engines`` choosing, on the clouds of
 ``benchmarks/tree.py`` (N_c = N_t / 10 controls on a sphere, targets graded towards it),
 N_t from 10^4 (``--tree-sizes``), tolerances 1e-3, 1e-4 and 1e-6, CPU only (the tree has
 no CUDA kernels), one thread: the exact sum's time (on ``--exact-limit`` targets and
 scaled beyond), the tree's build and the better of two calls once the threshold's
 search has settled (the first call calibrates it; where a raise failed, up to five more
 may each probe a threshold between, a second traversal: the calls are made until one
-traverses once, ``TreeIDW.last_traversals_``), the measured error at 2,000 targets
+traverses once, ``TreeIDW.last_traversals_``; the treecode's build includes its weight
+sums, and its first call is timed apart), the measured error at 2,000 targets
 against float64 exact sums, the peak memory of the build and the calls per mesh node (N_t + N_c), fitted exponents
 and the largest mesh in 24 GB extrapolated from that memory; plot
 docs/scaling_tree_cpu.png (``--png``).
@@ -330,12 +334,41 @@ def measure_sharded(side: int, world: int, dtype_name: str) -> float:
 TREE_TOLERANCES = (1e-3, 1e-4, 1e-6)
 
 
-def measure_tree_size(n_targets: int, tolerances, exact_limit: int) -> dict:
-    """Times, errors and peak memory of the exact fused sum and of the tree at one size."""
+def _tree_calls(engine, controls, targets, displacements, tolerance, row, key):
+    """Build one tree operator ("tree": TreeIDW, sampled; "treecode": TreecodeIDW), call it
+    until it settles, time the better of two calls; (the last result, what settled)."""
+    from torchmorph.idw.tree import TreeIDW
+    from torchmorph.idw.treecode import TreecodeIDW
+
+    start = time.perf_counter()
+    if engine == "tree":
+        module = TreeIDW(controls, targets, tolerance=tolerance, error_control="sampled")
+    else:
+        module = TreecodeIDW(controls, targets, tolerance=tolerance)
+    row["time"][f"{key} build"] = time.perf_counter() - start
+    start = time.perf_counter()
+    module(displacements)
+    row["time"][f"{key} first"] = time.perf_counter() - start
+    settling = 1  # calls until the threshold's search settles (one traversal)
+    while engine == "tree" and settling < 6 and module.last_traversals_ > 1:
+        module(displacements)
+        settling += 1
+    calls = []
+    for _ in range(2):  # the better of two calibrated calls (shared cores)
+        start = time.perf_counter()
+        result = module(displacements)
+        calls.append(time.perf_counter() - start)
+    row["time"][key] = min(calls)
+    what = f"settled after {settling} call(s)" if engine == "tree" else f"degree {module.degree}"
+    return result, what
+
+
+def measure_tree_size(n_targets: int, tolerances, exact_limit: int, engines) -> dict:
+    """Times, errors and peak memory of the exact fused sum and of the tree operators at
+    one size."""
     from tree import fibonacci_sphere, field, graded_ball
 
     from torchmorph.idw import idw_apply
-    from torchmorph.idw.tree import TreeIDW
 
     n_controls = n_targets // 10
     controls64, targets64 = fibonacci_sphere(n_controls), graded_ball(n_targets, 1)
@@ -358,37 +391,36 @@ def measure_tree_size(n_targets: int, tolerances, exact_limit: int) -> dict:
         controls=controls.double(), targets=targets.double()[sample],
         displacements=displacements.double(),
     )  # fmt: skip
-    for tolerance in tolerances:
-        key = f"tree {tolerance:g}"
-        with Memory(torch.device("cpu")) as memory:
-            start = time.perf_counter()
-            module = TreeIDW(controls, targets, tolerance=tolerance, error_control="sampled")
-            row["time"][f"{key} build"] = time.perf_counter() - start
-            module(displacements)
-            settling = 1  # calls until the threshold's search settles (one traversal)
-            while settling < 6 and module.last_traversals_ > 1:
-                module(displacements)
-                settling += 1
-            calls = []
-            for _ in range(2):  # the better of two calibrated calls (shared cores)
-                start = time.perf_counter()
-                result = module(displacements)
-                calls.append(time.perf_counter() - start)
-            row["time"][key] = min(calls)
-        row["memory"][key] = memory.peak
-        row["error"][key] = float((result[sample].double() - reference).norm() / reference.norm())
-        del module, result
-        print(
-            f"[scaling --tree] N_t={n_targets:,} {key}: build {row['time'][key + ' build']:.3g} s, "
-            f"call {row['time'][key]:.3g} s (exact {row['time']['exact']:.3g} s), "
-            f"error {row['error'][key]:.2e}, peak {memory.peak / 1e6:.0f} MB, "
-            f"settled after {settling} call(s)",
-            flush=True,
-        )
+    for engine in engines:
+        for tolerance in tolerances:
+            key = f"{engine} {tolerance:g}"
+            with Memory(torch.device("cpu")) as memory:
+                result, settling = _tree_calls(
+                    engine, controls, targets, displacements, tolerance, row, key
+                )
+            row["memory"][key] = memory.peak
+            error = (result[sample].double() - reference).norm() / reference.norm()
+            row["error"][key] = float(error)
+            del result
+            print(
+                f"[scaling --tree] N_t={n_targets:,} {key}: "
+                f"build {row['time'][key + ' build']:.3g} s, "
+                f"call {row['time'][key]:.3g} s (exact {row['time']['exact']:.3g} s), "
+                f"error {row['error'][key]:.2e}, peak {memory.peak / 1e6:.0f} MB, "
+                f"{settling}",
+                flush=True,
+            )
     return row
 
 
-def summarise_tree(rows: list[dict], tolerances) -> tuple[str, dict]:
+def _label(key: str) -> str:
+    engine, tolerance = key.split(" ")
+    if engine == "treecode":
+        return f"treecode {tolerance} (TreecodeIDW, a later call)"
+    return f"tree, sampled {tolerance} (TreeIDW, calibrated call)"
+
+
+def summarise_tree(rows: list[dict], tolerances, engines) -> tuple[str, dict]:
     sizes = [r["targets"] for r in rows]
     header = [
         "configuration", *[f"N_t={n:,}" for n in sizes], "exponent k", "bytes/node at max N",
@@ -396,7 +428,7 @@ def summarise_tree(rows: list[dict], tolerances) -> tuple[str, dict]:
     ]  # fmt: skip
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     fits = {}
-    keys = ["exact"] + [f"tree {t:g}" for t in tolerances]
+    keys = ["exact"] + [f"{e} {t:g}" for e in engines for t in tolerances]
     for key in keys:
         k, _ = power_fit(sizes, [r["time"][key] for r in rows])
         fits[key] = k
@@ -411,24 +443,26 @@ def summarise_tree(rows: list[dict], tolerances) -> tuple[str, dict]:
         memory = [(r["nodes"], r["memory"][key]) for r in rows if key in r["memory"]]
         per_node = memory[-1][1] / memory[-1][0] if memory else float("nan")
         biggest = largest_nodes(*zip(*memory, strict=True), CPU_MEMORY) if memory else math.nan
-        label = (
-            "exact fused sum" if key == "exact" else f"tree, sampled {key[5:]} (calibrated call)"
-        )
+        label = "exact fused sum" if key == "exact" else _label(key)
         lines.append(
             f"| {label} | " + " | ".join(cells)
             + f" | {k:.2f} | {per_node:,.0f} | {biggest:.2g} |"
         )  # fmt: skip
-    for tolerance in tolerances:
-        key = f"tree {tolerance:g} build"
-        k, _ = power_fit(sizes, [r["time"][key] for r in rows])
-        cells = [seconds(r["time"][key]) for r in rows]
-        lines.append(
-            f"| tree build ({tolerance:g}) | " + " | ".join(cells) + f" | {k:.2f} | – | – |"
-        )
+    for engine in engines:
+        for tolerance in tolerances:
+            for part in ("build", "first"):
+                key = f"{engine} {tolerance:g} {part}"
+                k, _ = power_fit(sizes, [r["time"][key] for r in rows])
+                cells = [seconds(r["time"][key]) for r in rows]
+                name = "build" if part == "build" else "first call"
+                lines.append(
+                    f"| {engine} {name} ({tolerance:g}) | " + " | ".join(cells)
+                    + f" | {k:.2f} | – | – |"
+                )  # fmt: skip
     return "\n".join(lines), fits
 
 
-def plot_tree(rows: list[dict], fits: dict, tolerances, path: Path) -> None:
+def plot_tree(rows: list[dict], fits: dict, tolerances, engines, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -436,12 +470,13 @@ def plot_tree(rows: list[dict], fits: dict, tolerances, path: Path) -> None:
 
     figure, axes = plt.subplots(figsize=(7.5, 5.5))
     sizes = [r["targets"] for r in rows]
-    for key in ["exact"] + [f"tree {t:g}" for t in tolerances]:
-        label = "exact fused sum" if key == "exact" else f"tree, sampled {key[5:]}"
+    for key in ["exact"] + [f"{e} {t:g}" for e in engines for t in tolerances]:
+        label = "exact fused sum" if key == "exact" else _label(key)
         axes.loglog(
             sizes, [r["time"][key] for r in rows], "o-", label=f"{label} (k={fits[key]:.2f})"
         )
-    n0, t0 = sizes[0], rows[0]["time"]["tree 0.0001"] if "tree 0.0001" in rows[0]["time"] else 1.0
+    guide = f"{engines[0]} 0.0001"
+    n0, t0 = sizes[0], rows[0]["time"][guide] if guide in rows[0]["time"] else 1.0
     axes.loglog(
         sizes, [t0 * n * math.log(n) / (n0 * math.log(n0)) for n in sizes], "k-.",
         label="O(N log N) guide",
@@ -467,8 +502,8 @@ def tree_main(args) -> int:
     tolerances = args.tree_tolerances
     rows = []
     for size in args.tree_sizes:
-        rows.append(measure_tree_size(int(size), tolerances, args.exact_limit))
-    table, fits = summarise_tree(rows, tolerances)
+        rows.append(measure_tree_size(int(size), tolerances, args.exact_limit, args.tree_engines))
+    table, fits = summarise_tree(rows, tolerances, args.tree_engines)
     print(f"\n## Scaling: tree against exact (CPU, {os.cpu_count()} cores, 1 thread, float32)")
     print(f"\n{table}\n")
     if args.json:
@@ -476,7 +511,7 @@ def tree_main(args) -> int:
     if not args.no_plot:
         path = args.png or ROOT / "docs" / "scaling_tree_cpu.png"
         try:
-            plot_tree(rows, fits, tolerances, path)
+            plot_tree(rows, fits, tolerances, args.tree_engines, path)
         except ImportError as error:
             print(f"no plot ({error}); pip install matplotlib, or pass --no-plot")
         else:
@@ -667,8 +702,16 @@ def main(argv: list[str] | None = None) -> int:
         help="--tree: target counts N_t (N_c = N_t / 10)",
     )  # fmt: skip
     parser.add_argument(
-        "--tree-tolerances", type=float, nargs="+", default=list(TREE_TOLERANCES),
+        "--tree-tolerances",
+        type=float,
+        nargs="+",
+        default=list(TREE_TOLERANCES),
         help="--tree: tolerances of the tree",
+    )
+    parser.add_argument(
+        "--tree-engines", nargs="+", choices=("treecode", "tree"), default=["treecode", "tree"],
+        help="--tree: the interpolating treecode (TreecodeIDW) and/or the quadrupole "
+        "traversal (TreeIDW, sampled)",
     )  # fmt: skip
     parser.add_argument(
         "--exact-limit", type=int, default=100_000,
