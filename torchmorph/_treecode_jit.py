@@ -255,8 +255,8 @@ def group_sums(rows, group_starts, group_stops, far_offsets, far, near_offsets, 
     """``out[i] = Σ K(|x_i − p|) q_p`` (K of :func:`_kernel_row`) over the far proxies
     (charges ``charges_t``) and near sources (``values_t``) of the group of row i (the
     rows of group g are ``group_starts[g]:group_stops[g]``, each row in one group),
-    sources in tree order. IDW's weight r^-4 against three columns (a 3-D field) takes
-    one fused pass (distances, weights and sums together)."""
+    sources in tree order. IDW's weight r^-4 against one column (its weight sums) or three
+    (a 3-D field) takes one fused pass (distances, weights and sums together)."""
     columns = values_t.shape[0]
     for block in prange(group_starts.shape[0]):
         px, py, pz = _gather(block, far_offsets, far, near_offsets, near, proxy_offsets,
@@ -304,6 +304,19 @@ def group_sums(rows, group_starts, group_stops, far_offsets, far, near_offsets, 
                     sums[i - first, 0] += a
                     sums[i - first, 1] += b
                     sums[i - first, 2] += c
+                    continue
+                if power == 4.0 and columns == 1:  # IDW's weight sums
+                    x, y, z = rows[i, 0], rows[i, 1], rows[i, 2]
+                    only_weights = weights_t[0, begin:end]
+                    cx, cy, cz = px[begin:end], py[begin:end], pz[begin:end]
+                    a = 0.0
+                    for j in range(end - begin):
+                        dx = x - cx[j]
+                        dy = y - cy[j]
+                        dz = z - cz[j]
+                        s = max((dx * dx + dy * dy + dz * dz) * scale2, floor)
+                        a += only_weights[j] / (s * s)
+                    sums[i - first, 0] += a
                     continue
                 _kernel_row(rows, i, px, py, pz, begin, end, scale2, power, floor, chunk,
                             exponent, mantissa_bits)  # fmt: skip

@@ -202,3 +202,28 @@ def test_the_sampled_tree_mode_is_the_treecode():
     exact = reference(controls, targets, smooth(controls))
     assert float((module(smooth(controls)) - exact).norm() / exact.norm()) <= 1e-3
     assert np.isfinite(module.transposed(exact).numpy()).all()
+
+
+@pytest.mark.parametrize("power", [4.0, 3.0])
+def test_the_inverse_power_sums_and_their_fused_passes(power):
+    """The treecode's sums of r^-p against float64 sums written out here, the error
+    falling with the degree; at p = 4 the fused passes (one column, three columns) equal
+    the general pass (two, six columns) to rounding."""
+    from torchmorph._treecode import TreeCode
+
+    sources, targets = sphere(4000).numpy(), graded(2000).numpy()
+    values = np.random.default_rng(7).standard_normal((4000, 3))
+    distances2 = ((targets[:, None, :] - sources[None]) ** 2).sum(-1)
+    exact = distances2 ** (-power / 2) @ values
+    errors = []
+    for degree in (2, 3, 4):
+        tree = TreeCode(sources, targets, 1.0, degree, power=power, floor=1e-30)
+        approximate = tree.apply(values)
+        errors.append(np.linalg.norm(approximate - exact) / np.linalg.norm(exact))
+        doubled = tree.apply(np.concatenate([values, values], 1))
+        np.testing.assert_allclose(approximate, doubled[:, :3], rtol=1e-12)
+        ones = np.ones((4000, 1))
+        np.testing.assert_allclose(
+            tree.apply(ones), tree.apply(np.concatenate([ones, ones], 1))[:, :1], rtol=1e-12
+        )
+    assert errors[0] > 3 * errors[1] > 9 * errors[2] and 0 < errors[2] < 1e-4

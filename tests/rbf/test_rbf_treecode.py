@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchmorph.rbf import PartitionRBF, _numba, refine
 from torchmorph._treecode import TreeCode, _midpoint_tree, axis_degrees, tree_sum
+from torchmorph.rbf import PartitionRBF, _numba, refine
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

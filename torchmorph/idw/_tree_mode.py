@@ -26,7 +26,10 @@ at p = 4 in 3-D, controls on a sphere and targets graded towards it, one thread
 (``benchmarks/README.md``, "When auto takes the tree"): at 10^5 × 10^4 and 1e-4 the
 tree's first call (the build and the threshold's tuning) costs what the exact sum's does
 and the later ones a third of it, in float32 and float64; at 1e-6 the tree pays from
-3·10^5 × 3·10^4 on. Below 1e-7, the exact modes only."""
+3·10^5 × 3·10^4 on. Below 1e-7, the exact modes only. Measured with ``TreeIDW``; the
+treecode ``auto`` now builds (:class:`~torchmorph.idw.treecode.TreecodeIDW`) is faster
+at every size of that table (at 10^5 × 10^4, 1e-4, float32: build and first call 0.37 s,
+later calls 0.12 s, against 0.51 s exact), so these thresholds stay on the safe side."""
 
 
 class TreeOperator:

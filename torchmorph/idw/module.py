@@ -110,9 +110,12 @@ class IDW(nn.Module):
         IDW exponent p > 0; default 4 (the paper's).
     mode : {"auto", "dense", "matrix_free", "tree"}
         ``dense`` assembles and stores W (N_t, N_c) once; ``matrix_free``
-        recomputes weights on every call and never stores W; ``tree`` applies a
-        :class:`~torchmorph.idw.tree.TreeIDW` built once (far clusters of controls summed
-        by a quadrupole expansion, to the relative error ``tolerance``; CPU only);
+        recomputes weights on every call and never stores W; ``tree`` applies a tree
+        operator built once, to the relative error ``tolerance`` (CPU only): with
+        ``error_control="certified"`` a :class:`~torchmorph.idw.tree.TreeIDW` (far
+        clusters of controls by a quadrupole expansion, with a bound), with
+        ``"sampled"`` a :class:`~torchmorph.idw.treecode.TreecodeIDW` (far pairs by
+        barycentric interpolation on both sides);
         ``auto`` with a ``tolerance`` takes the tree, with sampled error control, where it
         was measured faster than the exact sum (:func:`auto_mode`: the fused CPU kernels,
         p = 4, 3-D, from 10^9 target–control pairs at tolerances from 1e-5 up and from
@@ -130,15 +133,14 @@ class IDW(nn.Module):
         ``"auto"``: the relative error ``‖u_tree - u‖ / ‖u‖`` (2-norm over the targets,
         per displacement field) that the tree keeps. With ``"auto"`` it allows the tree
         (above), whose sampled error control estimates that error at sampled targets
-        rather than bounding it (:class:`~torchmorph.idw.tree.TreeIDW`); where auto
-        picks an exact mode, ``tolerance`` is ``None`` afterwards.
+        rather than bounding it (:class:`~torchmorph.idw.treecode.TreecodeIDW`); where
+        auto picks an exact mode, ``tolerance`` is ``None`` afterwards.
     error_control : {"certified", "sampled"}, optional
-        ``mode="tree"`` only: how the tree keeps ``tolerance``
-        (:class:`~torchmorph.idw.tree.TreeIDW`). ``"certified"`` (default) by a worst-case
-        bound — slower than the exact sum at the sizes measured; ``"sampled"`` by exact
-        float64 sums at sampled targets — an estimate (measured 1.5–3× below the
-        tolerance on graded clouds), and the fast one: 18.2× the exact sum at 10^6 ×
-        10^5, 1e-4, one thread.
+        ``mode="tree"`` only: how the tree keeps ``tolerance``. ``"certified"`` (default)
+        by a worst-case bound (:class:`~torchmorph.idw.tree.TreeIDW`) — slower than the
+        exact sum at the sizes measured; ``"sampled"`` by exact sums at sampled targets
+        (:class:`~torchmorph.idw.treecode.TreecodeIDW`) — an estimate, and the fast one:
+        see ``benchmarks/README.md``, "Tree-approximated IDW", for its speed-ups.
     block_bytes : int, optional
         Byte budget of one block of pairwise temporaries of the torch
         implementation (default: 4 MiB on the CPU, 256 MiB on CUDA).
@@ -187,11 +189,11 @@ class IDW(nn.Module):
     a matrix-free module (W is dropped) and a matrix-free one into a dense module
     (W is assembled from the loaded geometry).
 
-    Tree mode (:mod:`torchmorph.idw.tree`) approximates: gradients flow to the
-    displacements only (the backward applies the transpose of the operator that the
-    forward used, so its accuracy follows the forward's displacements: an all-zero
-    field gets the loosest threshold, and a vector-Jacobian product taken at zeros is
-    not held to ``tolerance``), moved ``controls``/``targets`` in :meth:`forward` are
+    Tree mode (:mod:`torchmorph.idw.tree`, :mod:`torchmorph.idw.treecode`) approximates:
+    gradients flow to the displacements only (the backward applies the transpose of the
+    operator that the forward used; with ``"certified"`` its accuracy follows the
+    forward's displacements: an all-zero field gets the loosest threshold, and a
+    vector-Jacobian product taken at zeros is not held to ``tolerance``), moved ``controls``/``targets`` in :meth:`forward` are
     refused, and :meth:`weights_matrix` raises — the tree stores no W, and an exact W
     would not be the map that :meth:`forward` applies. Its state holds ``tolerance``
     beside ``mode``; two tree states must agree on it, and a tree state loads into a

@@ -100,7 +100,8 @@ result's own resolution.
 Not done here: CUDA (Triton) kernels; gradients to the points; targets coinciding with
 a control are found only by leaves summed exactly, which always holds (a node containing
 the control has ``ρ >= R``). :class:`TreeIDW` is also ``IDW(mode="tree")`` and
-``MeshMorph(mode="tree")``; :meth:`TreeIDW.transposed` applies ``Aᵀ`` (the morph's
+``MeshMorph(mode="tree")`` with certified error control (with sampled control those take
+the faster :class:`~torchmorph.idw.treecode.TreecodeIDW`); :meth:`TreeIDW.transposed` applies ``Aᵀ`` (the morph's
 adjoint), and a call on all-zero fields keeps the threshold of the last call (or of a
 probe call), so that a vector-Jacobian product taken there is as accurate as elsewhere.
 """

@@ -24,11 +24,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchmorph._treecode import TreeCode, tree_sum
 from torchmorph.rbf import _parallel
 from torchmorph.rbf._parallel import kernel_sum
 from torchmorph.rbf.kernels import fused, polynomial_matrix
 from torchmorph.rbf.system import FACTOR_NAMES, KINDS, solve
-from torchmorph._treecode import TreeCode, tree_sum
 
 __all__ = [
     "MAX_TREECODE_DEGREE",
