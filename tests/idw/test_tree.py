@@ -56,9 +56,9 @@ def relative_error(result, exact):
 def graded_sphere(monkeypatch):
     """2,000 controls on the sphere and 20,000 targets graded towards it, with 64 sampled
     targets: their blocks are then a small part of all (a first sampled call tunes there)."""
-    import torchmorph.idw.tree as tree_module
+    import torchmorph.idw._tree_sample as sample_module
 
-    monkeypatch.setattr(tree_module, "SAMPLE_TARGETS", 64)
+    monkeypatch.setattr(sample_module, "SAMPLE_TARGETS", 64)
     generator = torch.Generator().manual_seed(5)
     controls = sphere(2000, generator)
     exponent = torch.rand(20000, 1, generator=generator, dtype=torch.float64) * 4
@@ -115,7 +115,7 @@ def test_sampled_float32_reference_from_single_reference_up(monkeypatch, toleran
     """Float32 inputs: the sampled check takes the float32 fused sums (float64 partial
     sums) from SINGLE_REFERENCE up and float64 sums below; the tolerance holds against
     float64 sums either way."""
-    import torchmorph.idw.tree as tree_module
+    import torchmorph.idw._tree_sample as sample_module
 
     generator = torch.Generator().manual_seed(9)
     controls, targets = (points.float() for points in cloud("graded", generator))
@@ -127,10 +127,10 @@ def test_sampled_float32_reference_from_single_reference_up(monkeypatch, toleran
         references.append(arguments["controls"].dtype)
         return idw_apply(**arguments)
 
-    monkeypatch.setattr(tree_module, "idw_apply", recording)
+    monkeypatch.setattr(sample_module, "idw_apply", recording)
     module = TreeIDW(controls, targets, tolerance=tolerance, error_control="sampled")
     result = module(displacements)
-    single = tolerance >= tree_module.SINGLE_REFERENCE
+    single = tolerance >= sample_module.SINGLE_REFERENCE
     assert references == [torch.float32 if single else torch.float64]
     assert result.dtype == torch.float32
     assert relative_error(result, exact) <= max(tolerance, 1e-6)

@@ -114,7 +114,7 @@ from typing import Literal
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchmorph._checks import (
     as_points,
@@ -122,12 +122,12 @@ from torchmorph._checks import (
     check_vectors,
     dim_of,
 )
-from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph.idw._geometry import check_error_control, check_tolerance, normalise
 from torchmorph.idw._tree_operator import TARGET_BLOCK, _TreeApply, _TreeOperator
+from torchmorph.idw._tree_sample import SAMPLE_TARGETS, CloudPair
 from torchmorph.idw._tree_threshold import CEILING_CALLS, CEILING_EASE, search
 from torchmorph.idw.backends.numba.kernels import available
-from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE, idw_apply
+from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE
 
 __all__ = [
     "DEFAULT_LEAF_SIZE",
@@ -149,9 +149,6 @@ DEFAULT_TOLERANCE = 1e-4
 
 DEFAULT_LEAF_SIZE = 64
 """Controls per leaf of the control tree (summed exactly when not accepted)."""
-
-SAMPLE_TARGETS = 1024
-"""Targets at which exact sums estimate ``rms(u)``, the scale of the tolerance."""
 
 SAMPLE_SAFETY = 1.5
 """``error_control="sampled"``: the error measured at the sampled targets must stay
@@ -175,10 +172,6 @@ the sampled targets alone (then traverses all blocks once) when they are at most
 SAMPLE_ATTEMPTS = 8
 """``error_control="sampled"``: a first call's cheap trials on the sampled targets' blocks
 at most (they may halve the gap to a threshold that failed, so later calls need not)."""
-
-SINGLE_REFERENCE = 1e-5
-"""Float32 inputs, tolerances from this up: the sampled check's exact sums are the float32
-fused kernels' (7e-8 from float64 sums on the benchmark's clouds; half the time)."""
 
 SAMPLED_ETA_LIMIT = 100.0
 """``error_control="sampled"``: the largest ``η`` tried (nodes still need ``ρ < R``)."""
@@ -209,7 +202,7 @@ def _check_cpu(points: Tensor, name: str) -> None:
         )
 
 
-class TreeIDW(nn.Module):
+class TreeIDW(CloudPair):
     """Tree-approximated IDW between fixed clouds: ``TreeIDW(controls, targets)(d)``.
 
     Parameters
@@ -311,52 +304,14 @@ class TreeIDW(nn.Module):
         self._sample_blocks = blocks if SAMPLE_BLOCKS * blocks.size <= starts.size - 1 else None
         self._transposed_sums: tuple[float, np.ndarray, np.ndarray] | None = None
 
-    # ----------------------------------------------------------------- state
-    def get_extra_state(self) -> dict:
-        return {**self._hyperparameters(), "tolerance": self.tolerance}
-
-    def set_extra_state(self, state: dict) -> None:
-        check_saved_hyperparameters("TreeIDW", state, self._hyperparameters())
-
-    def _hyperparameters(self) -> dict[str, float]:
-        return {"power": self.power, "coincidence_tolerance": self.coincidence_tolerance}
-
-    def _load_from_state_dict(
-        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
-    ):
-        if prefix + "_extra_state" in state_dict:  # before anything is loaded
-            check_saved_hyperparameters(
-                "TreeIDW", state_dict[prefix + "_extra_state"], self._hyperparameters()
-            )
-        resize_buffers_for_load(self, state_dict, prefix, ("controls", "targets"))
-        super()._load_from_state_dict(
-            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
-        )
-        self._build()
-
     def _scale(self, values64: Tensor, batch: int, dim: int):
         """Per field: Δ, the diameter of its bounding box; rms(u) at sampled targets; and
-        (the sampled rows, their exact values (B, rows, D) in float64; the float32 fused
-        sums for float32 inputs at tolerances from :data:`SINGLE_REFERENCE` up)."""
+        (the sampled rows, their exact values (B, rows, D) in float64)."""
         fields = values64.reshape(-1, batch, dim)
         spread = (fields.amax(0) - fields.amin(0)).norm(dim=1).numpy()
-        rows = self._sample_rows()
-        single = self.controls.dtype == torch.float32 and self.tolerance >= SINGLE_REFERENCE
-        dtype = torch.float32 if single else torch.float64
-        sample = idw_apply(
-            controls=self.controls.to(dtype),
-            targets=self.targets[rows].to(dtype),
-            displacements=fields.permute(1, 0, 2).to(dtype),
-            power=self.power,
-            coincidence_tolerance=self.coincidence_tolerance,
-        ).double()
+        rows, sample = self._exact_sample(fields)
         rms = sample.square().sum(-1).mean(-1).sqrt().numpy()
         return spread, rms, (rows, sample)
-
-    def _sample_rows(self) -> Tensor:
-        """The sampled targets: up to :data:`SAMPLE_TARGETS`, evenly spaced in their order."""
-        n_targets = int(self.targets.shape[0])
-        return torch.linspace(0, n_targets - 1, min(SAMPLE_TARGETS, n_targets)).round().long()
 
     def _sample_calibration(
         self, values, eta, exact, goal, largest, dim, unit

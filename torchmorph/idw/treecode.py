@@ -15,7 +15,7 @@ Error control
 -------------
 The tolerance sets the starting degree from :data:`DEGREE_ERRORS`, the relative 2-norm
 errors measured per degree; every call then measures the error at
-:data:`~torchmorph.idw.tree.SAMPLE_TARGETS` targets against exact sums of the fused
+:data:`~torchmorph.idw._tree_sample.SAMPLE_TARGETS` targets against exact sums of the fused
 kernels, as ``TreeIDW(error_control="sampled")`` does, and where it exceeds
 ``tolerance / SAMPLE_SAFETY`` raises the degree (new lists, a new weight sum) and sums
 again, up to :data:`MAX_DEGREE`, with a warning where that does not suffice. It is an
@@ -42,19 +42,17 @@ import warnings
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchmorph._checks import as_points, check_same_device_dtype, check_vectors, dim_of
-from torchmorph._state import check_saved_hyperparameters, resize_buffers_for_load
 from torchmorph._treecode import DEFAULT_THETA, TreeCode
 from torchmorph.idw._geometry import check_tolerance, normalise
+from torchmorph.idw._tree_sample import CloudPair
 from torchmorph.idw.backends.numba.kernels import available
-from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE, idw_apply
+from torchmorph.idw.functional import DEFAULT_COINCIDENCE_TOLERANCE
 from torchmorph.idw.tree import (
     DEFAULT_TOLERANCE,
     SAMPLE_SAFETY,
-    SAMPLE_TARGETS,
-    SINGLE_REFERENCE,
     _check_cpu,
     _check_tolerance,
     _sampled,
@@ -85,7 +83,7 @@ def start_degree(tolerance: float) -> int:
     return min(MAX_DEGREE, last + steps)
 
 
-class TreecodeIDW(nn.Module):
+class TreecodeIDW(CloudPair):
     """IDW (eq. 2) with both kernel sums by an interpolating treecode (see the module's
     notes), for a fixed pair of clouds; ``forward`` applies it to displacement fields.
 
@@ -148,12 +146,11 @@ class TreecodeIDW(nn.Module):
         self.register_buffer("controls", controls.detach().clone())
         self.register_buffer("targets", targets.detach().clone())
         self.last_sampled_error_: list[float] = []
-        self._build(start_degree(self.tolerance))
+        self._build()
 
-    def _build(self, degree: int) -> None:
-        """The treecode of the current clouds at ``degree``, the weight sums at the
-        targets and the coincident targets (again after a state is loaded)."""
-        self.degree = int(degree)
+    def _build(self) -> None:
+        """The treecode of the current clouds at the tolerance's start degree, the weight
+        sums at the targets and the coincident targets (again after a state is loaded)."""
         with torch.no_grad():
             targets, controls, radius2 = normalise(
                 self.targets, self.controls, self.coincidence_tolerance
@@ -161,7 +158,7 @@ class TreecodeIDW(nn.Module):
         self._points = (controls.double().numpy(), targets.double().numpy())
         self._radius2 = float(radius2)
         self._coincident = _coincident(*self._points, self._radius2)
-        self._raise_to(self.degree)
+        self._raise_to(start_degree(self.tolerance))
 
     def _raise_to(self, degree: int) -> None:
         """The treecode at ``degree`` and the weight sums at the targets through it."""
@@ -172,29 +169,6 @@ class TreecodeIDW(nn.Module):
         sums = tree.apply(np.ones((controls.shape[0], 1)))[:, 0]
         self.degree = int(degree)
         self._operator = (tree, np.where(sums > 0, sums, 1.0), self._coincident)
-
-    # ----------------------------------------------------------------- state
-    def get_extra_state(self) -> dict:
-        return {**self._hyperparameters(), "tolerance": self.tolerance}
-
-    def set_extra_state(self, state: dict) -> None:
-        check_saved_hyperparameters("TreecodeIDW", state, self._hyperparameters())
-
-    def _hyperparameters(self) -> dict[str, float]:
-        return {"power": self.power, "coincidence_tolerance": self.coincidence_tolerance}
-
-    def _load_from_state_dict(
-        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
-    ):
-        if prefix + "_extra_state" in state_dict:  # before anything is loaded
-            check_saved_hyperparameters(
-                "TreecodeIDW", state_dict[prefix + "_extra_state"], self._hyperparameters()
-            )
-        resize_buffers_for_load(self, state_dict, prefix, ("controls", "targets"))
-        super()._load_from_state_dict(
-            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
-        )
-        self._build(start_degree(self.tolerance))
 
     # ----------------------------------------------------------------- calls
     def _flat(self, values: Tensor, count: int, name: str, what: str):
@@ -210,24 +184,6 @@ class TreecodeIDW(nn.Module):
         out = flat.reshape(count, batch, self.controls.shape[1])
         return out.permute(1, 0, 2) if batched else out[:, 0]
 
-    def _reference(self, values: Tensor, batch: int) -> tuple[Tensor, Tensor]:
-        """(the sampled rows, their exact values (B, rows, D) in float64): the fused
-        kernels' sums, float32 ones for float32 inputs from :data:`SINGLE_REFERENCE` up."""
-        dim = self.controls.shape[1]
-        count = int(self.targets.shape[0])
-        rows = torch.linspace(0, count - 1, min(SAMPLE_TARGETS, count)).round().long()
-        single = self.controls.dtype == torch.float32 and self.tolerance >= SINGLE_REFERENCE
-        dtype = torch.float32 if single else torch.float64
-        fields = values.detach().reshape(-1, batch, dim).permute(1, 0, 2)
-        exact = idw_apply(
-            controls=self.controls.to(dtype),
-            targets=self.targets[rows].to(dtype),
-            displacements=fields.to(dtype),
-            power=self.power,
-            coincidence_tolerance=self.coincidence_tolerance,
-        ).double()
-        return rows, exact
-
     def forward(self, displacements: Tensor) -> Tensor:
         """u at the targets, shape (N_t, D) or (B, N_t, D) like ``displacements``
         ((N_c, D) or (B, N_c, D)); differentiable to ``displacements``."""
@@ -240,7 +196,7 @@ class TreecodeIDW(nn.Module):
             self.last_sampled_error_ = [0.0] * batch
             return self._unflat(values[:0], 0, batch, batched)
         with torch.no_grad():
-            rows, exact = self._reference(values, batch)
+            rows, exact = self._exact_sample(values.reshape(n_controls, batch, dim))
         goal = self.tolerance / SAMPLE_SAFETY
         while True:
             result = _TreecodeApply.apply(values, self._operator)
